@@ -1,0 +1,195 @@
+"""The artifact store: how stages hand work to each other on disk.
+
+Layout: ``<data_root>/<stage>/<item...>/`` with a ``manifest.json`` in each item folder that records the
+config that produced it. An item is *done* when its manifest exists and its config matches; a stage skips
+done items and recomputes the rest. An item is written into a temporary sibling folder and renamed into
+place only when complete (manifest last), so an interrupted stage never leaves a folder that looks
+finished, and parallel jobs writing different items never clobber each other.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from tnf.errors import TnfError
+
+MANIFEST = "manifest.json"
+DEFAULT_ROOT = "./tnf-data"
+
+
+def data_root(configured: str | os.PathLike[str] | None = None) -> Path:
+    """The artifact root: the config's value if given, else ``$TNF_DATA``, else ``./tnf-data``."""
+    if configured not in (None, ""):
+        return Path(str(configured)).expanduser().absolute()
+    return Path(os.environ.get("TNF_DATA", DEFAULT_ROOT)).expanduser().absolute()
+
+
+def config_hash(config: Mapping[str, Any]) -> str:
+    """A stable hash of a JSON-able config (key order does not matter)."""
+    blob = json.dumps(_jsonable(config), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _jsonable(x: Any) -> Any:
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(x, (DictConfig, ListConfig)):
+            x = OmegaConf.to_container(x, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(x, Mapping):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, Path):
+        return str(x)
+    if hasattr(x, "item") and callable(x.item):  # numpy / torch scalars
+        return x.item()
+    return x
+
+
+def write_json(path: str | os.PathLike[str], data: Any) -> None:
+    """Write JSON atomically (temporary file in the same folder, fsync, rename)."""
+    write_bytes(path, (json.dumps(_jsonable(data), indent=2) + "\n").encode())
+
+
+def write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write bytes atomically: readers see the old file or the whole new one, never a part."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def read_json(path: str | os.PathLike[str], what: str = "file") -> Any:
+    """Read JSON, turning a missing or malformed file into a one-line TnfError naming it."""
+    path = Path(path)
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise TnfError(f"{what} not found: {path}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise TnfError(f"{what} {path} is not valid JSON: {e}") from None
+    except OSError as e:
+        raise TnfError(f"cannot read {what} {path}: {e.strerror}") from None
+
+
+class ArtifactStore:
+    """Item folders under ``root``, each finished by a manifest that records its config."""
+
+    def __init__(self, root: str | os.PathLike[str] | None = None):
+        self.root = data_root(root)
+
+    def path(self, stage: str, *item: str) -> Path:
+        return self.root.joinpath(stage, *item)
+
+    def manifest(self, stage: str, *item: str) -> dict[str, Any] | None:
+        """The item's manifest, or None when the item is not finished."""
+        p = self.path(stage, *item) / MANIFEST
+        if not p.is_file():
+            return None
+        return read_json(p, "manifest")
+
+    def is_done(self, stage: str, *item: str, config: Mapping[str, Any]) -> bool:
+        """True when the item is finished and was made with this config."""
+        m = self.manifest(stage, *item)
+        return m is not None and m.get("config_hash") == config_hash(config)
+
+    def require(self, stage: str, *item: str, hint: str = "") -> Path:
+        """The folder of a finished item, or a TnfError saying which stage to run first."""
+        p = self.path(stage, *item)
+        if not (p / MANIFEST).is_file():
+            msg = f"missing {stage} output {p}"
+            raise TnfError(msg + (f"; {hint}" if hint else ""))
+        return p
+
+    def items(self, stage: str, depth: int = 1) -> list[tuple[str, ...]]:
+        """Finished items of a stage, as tuples of path parts ``depth`` levels below the stage folder."""
+        base = self.path(stage)
+        if not base.is_dir():
+            return []
+        pattern = "/".join(["*"] * depth) + "/" + MANIFEST
+        out = [m.parent.relative_to(base).parts for m in base.glob(pattern)]
+        return sorted(p for p in out if not any(part.startswith(".") for part in p))
+
+    @contextlib.contextmanager
+    def writing(
+        self, stage: str, *item: str, config: Mapping[str, Any], info: Mapping[str, Any] | None = None
+    ) -> Iterator[Path]:
+        """Write an item: yields a temporary folder; on success it becomes the item's folder.
+
+        ``info`` (and anything the body stores in the yielded folder's ``manifest.json`` beforehand is
+        replaced) goes into the manifest next to the config and its hash. On an exception the temporary
+        folder is removed and any earlier finished item is left as it was.
+        """
+        final = self.path(stage, *item)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
+        extra: dict[str, Any] = {}
+        try:
+            yield tmp
+            extra_path = tmp / MANIFEST
+            if extra_path.is_file():  # the body may leave fields for the manifest
+                extra = read_json(extra_path, "manifest")
+            manifest = {
+                **extra,
+                **dict(info or {}),
+                "stage": stage,
+                "item": list(item),
+                "config": _jsonable(config),
+                "config_hash": config_hash(config),
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                "tnf_version": _version(),
+            }
+            write_json(tmp / MANIFEST, manifest)
+            _replace_dir(tmp, final)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+    def clean_partials(self, stage: str) -> int:
+        """Remove temporary folders that interrupted runs left behind; returns how many."""
+        base = self.path(stage)
+        n = 0
+        if base.is_dir():
+            for p in list(base.rglob(".*.partial")):
+                shutil.rmtree(p, ignore_errors=True)
+                n += 1
+        return n
+
+
+def _replace_dir(src: Path, dst: Path) -> None:
+    """Move folder ``src`` to ``dst``, replacing an old ``dst`` with as short a gap as a rename allows."""
+    if dst.exists():
+        old = dst.with_name(f".{dst.name}.old-{os.getpid()}")
+        os.replace(dst, old)
+        os.replace(src, dst)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(src, dst)
+
+
+def _version() -> str:
+    from tnf import __version__
+
+    return __version__

@@ -1,0 +1,1 @@
+"""Evaluation: image metrics, the tactile classification task, aggregation over seeds and the report."""

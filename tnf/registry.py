@@ -1,0 +1,300 @@
+"""Registries: one per kind of component, filled by in-tree decorators and by plugins' entry points.
+
+An in-tree component registers with a decorator and declares a nested ``Config`` dataclass::
+
+    @SENSORS.register("digit")
+    class Digit(Sensor):
+        @dataclass
+        class Config:
+            width: int = 240
+            ...
+
+        def __init__(self, cfg: Config): ...
+
+A third-party package registers the same kind of class through an entry point in the kind's group, e.g.
+``[project.entry-points."tnf.sensors"] gelsight = "tnf_gelsight.sensor:GelSight"``.
+
+Discovery is lazy: the in-tree modules and the entry points of a kind are imported at the first lookup
+in that kind's registry, never at ``import tnf``. A plugin whose import fails raises its own error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import importlib.metadata as md
+import threading
+import types
+import typing
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any, TypeVar
+
+from tnf.errors import TnfError
+
+T = TypeVar("T")
+
+IN_TREE = "tnf"
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """A registered component: its name, the object (usually a class) and where it comes from."""
+
+    name: str
+    obj: Any
+    origin: str  # "tnf" for in-tree components, else the distribution name of the plugin
+
+    @property
+    def config_class(self) -> type | None:
+        return getattr(self.obj, "Config", None)
+
+
+class Registry:
+    """A flat name -> component table for one kind of component.
+
+    Args:
+        kind: what the components are ("sensor", "scene", ...), used in messages.
+        group: the entry-point group plugins register through ("tnf.sensors", ...).
+        modules: in-tree modules that register components of this kind when imported.
+    """
+
+    def __init__(self, kind: str, group: str, modules: Iterable[str] = ()):
+        self.kind = kind
+        self.group = group
+        self._modules = tuple(modules)
+        self._entries: dict[str, Entry] = {}
+        self._discovered = False
+        self._lock = threading.RLock()
+
+    # -- registration -------------------------------------------------------------------------------
+    def register(self, name: str) -> Callable[[T], T]:
+        """Decorator that registers an in-tree component under ``name``."""
+
+        def deco(obj: T) -> T:
+            self.add(name, obj, origin=IN_TREE)
+            return obj
+
+        return deco
+
+    def add(self, name: str, obj: Any, origin: str) -> None:
+        """Register ``obj`` under ``name``; a second, different object under the same name is an error."""
+        if not isinstance(name, str) or not name:
+            raise TnfError(f"{self.kind} registry: a component name must be a non-empty string, got {name!r}")
+        with self._lock:
+            old = self._entries.get(name)
+            if old is not None:
+                if old.obj is obj:
+                    return
+                raise TnfError(
+                    f"duplicate {self.kind} {name!r}: registered by {_where(old.obj, old.origin)} "
+                    f"and again by {_where(obj, origin)}"
+                )
+            self._entries[name] = Entry(name, obj, origin)
+
+    # -- discovery ----------------------------------------------------------------------------------
+    def _discover(self) -> None:
+        with self._lock:
+            if self._discovered:
+                return
+            # Mark first: in-tree modules call register() while we import them.
+            self._discovered = True
+            try:
+                for module in self._modules:
+                    importlib.import_module(module)
+                for ep in md.entry_points(group=self.group):
+                    dist = ep.dist.name if ep.dist is not None else "unknown distribution"
+                    self.add(ep.name, ep.load(), origin=dist)
+            except BaseException:
+                self._discovered = False
+                raise
+
+    def refresh(self) -> None:
+        """Forget plugin entries and discover again (after installing a plugin in a running process)."""
+        with self._lock:
+            self._entries = {k: e for k, e in self._entries.items() if e.origin == IN_TREE}
+            self._discovered = False
+
+    # -- lookup -------------------------------------------------------------------------------------
+    def entries(self) -> list[Entry]:
+        self._discover()
+        return sorted(self._entries.values(), key=lambda e: e.name)
+
+    def names(self) -> list[str]:
+        return [e.name for e in self.entries()]
+
+    def __contains__(self, name: object) -> bool:
+        self._discover()
+        return name in self._entries
+
+    def entry(self, name: str) -> Entry:
+        self._discover()
+        try:
+            return self._entries[name]
+        except KeyError:
+            available = ", ".join(sorted(self._entries)) or "none"
+            raise TnfError(f"unknown {self.kind} {name!r}; available: {available}") from None
+
+    def get(self, name: str) -> Any:
+        return self.entry(name).obj
+
+    def config(self, name: str, params: Mapping[str, Any] | None = None) -> Any:
+        """Validate ``params`` into the component's ``Config`` dataclass (defaults fill missing keys)."""
+        entry = self.entry(name)
+        cls = entry.config_class
+        if cls is None or not dataclasses.is_dataclass(cls):
+            raise TnfError(f"{self.kind} {name!r} ({_where(entry.obj, entry.origin)}) declares no Config dataclass")
+        return from_dict(cls, dict(params or {}), where=f"{self.kind}.{name}")
+
+    def build(self, spec: Mapping[str, Any] | str, **kwargs: Any) -> Any:
+        """Build a component from ``{"name": ..., <config fields>...}`` or from a bare name.
+
+        The component's constructor receives the validated Config as its first argument.
+        """
+        name, params = split_spec(spec, self.kind)
+        cfg = self.config(name, params)
+        obj = self.get(name)(cfg, **kwargs)
+        return obj
+
+
+def split_spec(spec: Mapping[str, Any] | str, kind: str = "component") -> tuple[str, dict[str, Any]]:
+    """``{"name": n, **params}`` (a Hydra group node) or ``"n"`` -> ``(n, params)``."""
+    if isinstance(spec, str):
+        return spec, {}
+    params = _plain(spec)
+    if not isinstance(params, dict) or "name" not in params:
+        raise TnfError(f"a {kind} config needs a 'name' key, got {params!r}")
+    name = params.pop("name")
+    return name, params
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """A Config dataclass as plain JSON-friendly data (tuples become lists)."""
+    return _plain(dataclasses.asdict(cfg))
+
+
+def _plain(x: Any) -> Any:
+    try:  # OmegaConf containers, without importing omegaconf when not needed
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(x, (DictConfig, ListConfig)):
+            return OmegaConf.to_container(x, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(x, Mapping):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    return x
+
+
+def _where(obj: Any, origin: str) -> str:
+    mod = getattr(obj, "__module__", "?")
+    qual = getattr(obj, "__qualname__", type(obj).__name__)
+    return f"{mod}.{qual} (from {origin})"
+
+
+# -- config validation ------------------------------------------------------------------------------
+def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T:
+    """Build dataclass ``cls`` from ``data``, checking keys and value types.
+
+    Unknown keys and values of the wrong type are errors that name the key and what was expected.
+    """
+    data = _plain(data)
+    if not isinstance(data, dict):
+        raise TnfError(f"{where}: expected a mapping, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise TnfError(f"{where}: unknown key {unknown[0]!r}; valid keys: {', '.join(sorted(fields))}")
+    hints = typing.get_type_hints(cls)
+    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    try:
+        obj = cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise TnfError(f"{where}: {e}") from None
+    check = getattr(obj, "validate", None)
+    if callable(check):
+        try:
+            check()
+        except (ValueError, AssertionError) as e:
+            raise TnfError(f"{where}: {e}") from None
+    return obj
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, where)
+            except TnfError as e:
+                errors.append(str(e))
+        raise TnfError(f"{where}: expected {_name(tp)}, got {value!r}")
+    if origin is typing.Literal:
+        if value not in args:
+            raise TnfError(f"{where}: expected one of {', '.join(map(repr, args))}, got {value!r}")
+        return value
+    if origin in (list, tuple) or tp in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise TnfError(f"{where}: expected a list, got {value!r}")
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(args) != len(value):
+                raise TnfError(f"{where}: expected {len(args)} values, got {len(value)}")
+            return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(args, value)))
+        inner = args[0] if args else Any
+        items = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if (origin is tuple or tp is tuple) else items
+    if origin is dict or tp is dict:
+        if not isinstance(value, Mapping):
+            raise TnfError(f"{where}: expected a mapping, got {value!r}")
+        return dict(value)
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        if isinstance(value, tp):
+            return value
+        return from_dict(tp, value, where)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise TnfError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TnfError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TnfError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise TnfError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+# -- the registries ---------------------------------------------------------------------------------
+# Each lists the in-tree modules that register into it; plugins add entry points to the group.
+OBJECTS = Registry(
+    "objects", "tnf.objects", ["tnf.objects.builtin", "tnf.objects.mesh_dir", "tnf.objects.pybullet"]
+)
+SCENES = Registry("scene", "tnf.scenes", ["tnf.scenes.nerf", "tnf.scenes.hashgrid", "tnf.scenes.mesh"])
+SENSORS = Registry("sensor", "tnf.sensors", ["tnf.sensors.digit", "tnf.sensors.omnitact"])
+SIMULATORS = Registry("simulator", "tnf.simulators", ["tnf.sim.warp_gel"])
+GENERATORS = Registry(
+    "generator", "tnf.generators", ["tnf.generators.tn_cgan", "tnf.generators.lee", "tnf.generators.cyclegan"]
+)
+
+REGISTRIES: dict[str, Registry] = {
+    r.kind: r for r in (OBJECTS, SCENES, SENSORS, SIMULATORS, GENERATORS)
+}

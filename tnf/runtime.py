@@ -1,0 +1,66 @@
+"""Run-wide helpers every stage uses: the compute device, seeding and progress bars."""
+
+from __future__ import annotations
+
+import contextlib
+import random
+from collections.abc import Iterator
+from typing import Any
+
+from tnf.errors import TnfError
+
+
+def resolve_device(name: str = "auto") -> str:
+    """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``; ``cpu``/``cuda``/``cuda:N`` pass through."""
+    import torch
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise TnfError(f"device={name!r} but no CUDA GPU is visible; use device=cpu or device=auto")
+    if name != "cpu" and not name.startswith("cuda"):
+        raise TnfError(f"device must be auto, cpu, cuda or cuda:N, got {name!r}")
+    return name
+
+
+def warp_device(torch_device: str) -> str:
+    """The warp device name for a torch device string (``cuda`` -> ``cuda:0``)."""
+    return "cuda:0" if torch_device == "cuda" else torch_device
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, NumPy and torch (all devices)."""
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+@contextlib.contextmanager
+def progress(enabled: bool = True, transient: bool = False) -> Iterator[Any]:
+    """A rich progress display: ``with progress() as p: t = p.add_task("capture", total=n); p.advance(t)``.
+
+    When disabled (``progress=false`` in the config, or in tests) the same calls do nothing.
+    """
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    p = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        disable=not enabled,
+        transient=transient,
+    )
+    with p:
+        yield p

@@ -1,0 +1,22 @@
+"""Helpers for testing tnf and its plugins: compose a stage's real config, and contract test suites."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+
+def compose(stage: str, overrides: Sequence[str] = ()) -> Any:
+    """Compose the real Hydra config of ``stage`` (e.g. ``"touch"``) with ``overrides``, as ``tnf`` does.
+
+    Plugin config packages registered under ``tnf.conf`` are on the search path, as on the command line.
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from tnf.env import conf_dir
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=conf_dir(), version_base=None):
+        return hydra_compose(config_name="stage/" + stage.replace("-", "_"), overrides=list(overrides))
