@@ -9,7 +9,7 @@ os.environ.setdefault("WANDB_MODE", "offline")
 
 import pytest  # noqa: E402
 
-SHARED = Path(__file__).resolve().parent / "data"
+ASSETS = Path(__file__).resolve().parent / "assets"
 
 
 @pytest.fixture
