@@ -1,0 +1,95 @@
+"""nox sessions: tests (a small dependency matrix), lint, typecheck, dev, demo, plugins, slow.
+
+torch is installed first and pinned, so that pip never replaces it with a multi-GB CUDA build on a CPU
+machine. Set TNF_TORCH to install another torch spec (for example on a GPU machine).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import nox
+
+ROOT = Path(__file__).parent
+PYTHON = os.environ.get("TNF_PYTHON", "3.11")
+TORCH = os.environ.get("TNF_TORCH", "torch==2.13.0")
+CONSTRAINTS = {
+    "pinned": ROOT / ".ci" / "constraints-pinned.txt",
+    "lowest": ROOT / ".ci" / "constraints-lowest.txt",
+}
+ENV = {
+    "PYOPENGL_PLATFORM": "egl",
+    "PYGLET_HEADLESS": "true",
+    "WANDB_MODE": "offline",
+    "WARP_CACHE_PATH": str(ROOT / ".warp-cache"),
+    "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "2"),
+}
+
+nox.options.sessions = ["tests"]
+nox.options.reuse_existing_virtualenvs = True
+
+
+def install(session: nox.Session, deps: str = "pinned", extras: str = "test") -> None:
+    session.install(TORCH, "-c", str(CONSTRAINTS[deps]))
+    session.install("-e", f".[{extras}]", "-c", str(CONSTRAINTS[deps]))
+
+
+@nox.session(python=PYTHON)
+@nox.parametrize("deps", ["pinned", "lowest"])
+def tests(session: nox.Session, deps: str) -> None:
+    """The default test run (CPU, slow tests left out) against pinned and lowest supported versions."""
+    install(session, deps)
+    session.run("pytest", "-q", "-p", "no:cacheprovider", *session.posargs, env=ENV)
+
+
+@nox.session(python=PYTHON)
+def slow(session: nox.Session) -> None:
+    """Tests marked slow (longer end-to-end runs)."""
+    install(session)
+    session.run("pytest", "-q", "-m", "slow", *session.posargs, env=ENV)
+
+
+@nox.session(python=PYTHON)
+def lint(session: nox.Session) -> None:
+    """ruff check and format check."""
+    session.install("ruff==0.17.6")
+    session.run("ruff", "check", ".")
+    session.run("ruff", "format", "--check", ".")
+
+
+@nox.session(python=PYTHON)
+def typecheck(session: nox.Session) -> None:
+    """mypy on the tnf package."""
+    install(session)
+    session.install("mypy==2.4.1")
+    session.run("mypy", "tnf")
+
+
+@nox.session(python=PYTHON)
+def demo(session: nox.Session) -> None:
+    """The main job: the quick-start pipeline on built-in objects, ending with a report."""
+    install(session)
+    session.run("tnf", "pipeline", *session.posargs, env=ENV)
+
+
+@nox.session(python=PYTHON)
+def plugins(session: nox.Session) -> None:
+    """Install each package under plugins/ next to tnf and run its tests."""
+    install(session)
+    for plugin in sorted(p for p in (ROOT / "plugins").iterdir() if (p / "pyproject.toml").is_file()):
+        session.log(f"plugin {plugin.name}")
+        session.install("--no-deps", "-e", str(plugin))
+        session.run("pytest", "-q", "-p", "no:cacheprovider", str(plugin / "tests"), env=ENV)
+
+
+@nox.session(python=False)
+def dev(session: nox.Session) -> None:
+    """Create .venv at the repository root with tnf (editable) and the test tools."""
+    venv = ROOT / ".venv"
+    session.run(f"python{PYTHON}", "-m", "venv", str(venv))
+    pip = str(venv / "bin" / "pip")
+    session.run(pip, "install", "--upgrade", "pip")
+    session.run(pip, "install", TORCH, "-c", str(CONSTRAINTS["pinned"]))
+    session.run(pip, "install", "-e", ".[test]", "ruff", "mypy", "nox", "-c", str(CONSTRAINTS["pinned"]))
+    session.log(f"activate with: source {venv}/bin/activate")

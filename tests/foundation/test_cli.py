@@ -1,0 +1,68 @@
+import subprocess
+import sys
+import types
+
+import pytest
+
+from tnf import TnfError
+from tnf.cli import STAGES, main
+
+
+def run_cli(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "tnf.cli", *args], capture_output=True, text=True, env=env)
+
+
+def test_help_lists_every_stage():
+    out = run_cli("--help")
+    assert out.returncode == 0
+    for stage in STAGES:
+        assert stage in out.stdout
+
+
+def test_unknown_stage_is_one_clear_line():
+    out = run_cli("frobnicate")
+    assert out.returncode == 1
+    assert out.stderr.strip().splitlines() == [
+        "error: unknown stage 'frobnicate'; stages: " + ", ".join(STAGES) + " (see tnf --help)"
+    ]
+
+
+@pytest.fixture
+def echo_stage(monkeypatch):
+    """Stand in for the `objects` stage's code (the real stage config is used)."""
+    seen = {}
+
+    def run(cfg):
+        seen["cfg"] = cfg
+        if cfg.seed == 13:
+            raise TnfError("seed 13 is unlucky")
+
+    module = types.ModuleType("tnf.stages.objects")
+    module.run = run
+    monkeypatch.setitem(sys.modules, "tnf.stages.objects", module)
+    return seen
+
+
+def test_stage_gets_composed_config_with_overrides(echo_stage, data_root):
+    assert main(["objects", "seed=7", "trainer=gpu", "debug=tiny"]) == 0
+    cfg = echo_stage["cfg"]
+    assert cfg.seed == 7 and cfg.trainer.accelerator == "gpu" and list(cfg.object_names) == ["ball", "box"]
+    assert cfg.data_root == str(data_root)
+
+
+def test_stage_user_error_exits_nonzero_with_one_line(echo_stage, data_root, capsys):
+    assert main(["objects", "seed=13"]) == 1
+    err = capsys.readouterr().err
+    assert "error: seed 13 is unlucky" in err and "Traceback" not in err
+
+
+def test_bad_override_is_an_error(echo_stage, data_root, capsys):
+    assert main(["objects", "sensor=no_such_sensor"]) != 0
+    assert "no_such_sensor" in capsys.readouterr().err
+
+
+def test_multirun_runs_each_job(echo_stage, data_root):
+    seeds = []
+    sys.modules["tnf.stages.objects"].run = lambda cfg: seeds.append(cfg.seed)
+    assert main(["objects", "-m", "seed=1,2,3"]) == 0
+    assert seeds == [1, 2, 3]

@@ -1,0 +1,41 @@
+"""Every config group option composes with every stage's primary config."""
+
+from pathlib import Path
+
+import pytest
+
+from tnf.cli import STAGES
+from tnf.env import conf_dir
+from tnf.testing import compose
+
+CONF = Path(conf_dir())
+GROUPS = ["objects", "scene", "sensor", "simulator", "generator", "data", "trainer", "logger", "experiment", "debug"]
+OPTIONS = [(g, p.stem) for g in GROUPS for p in sorted((CONF / g).glob("*.yaml"))]
+HYDRA_STAGES = [s for s in STAGES if s != "list"]
+
+
+@pytest.mark.parametrize("stage", HYDRA_STAGES)
+def test_every_stage_composes(stage):
+    cfg = compose(stage)
+    assert cfg.seed == 0 and cfg.data_root
+
+
+@pytest.mark.parametrize("group, option", OPTIONS, ids=[f"{g}={o}" for g, o in OPTIONS])
+def test_every_group_option_composes(group, option):
+    cfg = compose("pipeline", [f"{group}={option}"])
+    if group not in ("experiment", "debug", "data"):
+        assert cfg[group].name if "name" in cfg[group] else cfg[group]
+
+
+def test_component_groups_name_registered_components():
+    """Each YAML of a component group names a component that validates against its Config."""
+    from tnf.registry import REGISTRIES
+
+    kinds = {"objects": "objects", "scene": "scene", "sensor": "sensor", "simulator": "simulator"}
+    kinds["generator"] = "generator"
+    for group, kind in kinds.items():
+        for path in sorted((CONF / group).glob("*.yaml")):
+            cfg = compose("pipeline", [f"{group}={path.stem}"])
+            node = dict(cfg[group])
+            name = node.pop("name")
+            REGISTRIES[kind].config(name, node)  # raises TnfError on unknown or mistyped keys

@@ -1,0 +1,124 @@
+import importlib.metadata as md
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import pytest
+
+from tests.foundation.plugin_util import install_tiny_plugin
+from tnf import TnfError
+from tnf.registry import Registry
+
+
+class FakeSensor:
+    """A sensor from a fake distribution."""
+
+    @dataclass
+    class Config:
+        width: int = 4
+
+    def __init__(self, cfg):
+        self.cfg = cfg
+
+
+def fake_entry_points(mapping):
+    class Dist:
+        name = "tnf-fake"
+
+    def entry_points(group=None, **_):
+        eps = []
+        for name, value in mapping.get(group, {}).items():
+            ep = md.EntryPoint(name=name, value=value, group=group)
+            object.__setattr__(ep, "dist", Dist())  # EntryPoint is immutable; real ones carry their dist
+            eps.append(ep)
+        return md.EntryPoints(eps)
+
+    return entry_points
+
+
+def test_entry_point_from_fake_distribution(monkeypatch):
+    monkeypatch.setattr(
+        md, "entry_points", fake_entry_points({"tnf.sensors": {"fake": f"{__name__}:FakeSensor"}})
+    )
+    reg = Registry("sensor", "tnf.sensors")
+    assert reg.names() == ["fake"]
+    assert reg.entry("fake").origin == "tnf-fake"
+    assert reg.build({"name": "fake", "width": 9}) is not None
+
+
+def test_discovery_is_lazy(monkeypatch):
+    calls = []
+
+    def entry_points(group=None, **_):
+        calls.append(group)
+        return md.EntryPoints([])
+
+    monkeypatch.setattr(md, "entry_points", entry_points)
+    reg = Registry("sensor", "tnf.sensors")
+    assert calls == []
+    reg.names()
+    reg.names()
+    assert calls == ["tnf.sensors"]
+
+
+def test_plugin_duplicate_of_in_tree_name_names_both(monkeypatch):
+    monkeypatch.setattr(
+        md, "entry_points", fake_entry_points({"tnf.sensors": {"digit": f"{__name__}:FakeSensor"}})
+    )
+    reg = Registry("sensor", "tnf.sensors")
+
+    @reg.register("digit")
+    class Digit:
+        @dataclass
+        class Config:
+            pass
+
+    with pytest.raises(TnfError, match=r"duplicate sensor 'digit'.*Digit \(from tnf\).*FakeSensor \(from tnf-fake\)"):
+        reg.names()
+
+
+def test_real_installed_plugin(tmp_path, monkeypatch):
+    site = install_tiny_plugin(tmp_path / "site")
+    monkeypatch.syspath_prepend(str(site))
+    reg = Registry("sensor", "tnf.sensors")
+    entry = reg.entry("tiny")
+    assert entry.origin == "tnf-tiny-plugin"
+    assert reg.build({"name": "tiny", "width": 16}).cfg.width == 16
+
+
+def test_plugin_import_error_propagates(tmp_path, monkeypatch):
+    site = install_tiny_plugin(tmp_path / "site", broken=True)
+    monkeypatch.syspath_prepend(str(site))
+    reg = Registry("sensor", "tnf.sensors")
+    with pytest.raises(ModuleNotFoundError, match="tnf_missing_dependency_xyz"):
+        reg.names()
+
+
+def test_plugin_yaml_joins_config_groups(tmp_path, monkeypatch):
+    from tnf.testing import compose
+
+    site = install_tiny_plugin(tmp_path / "site")
+    monkeypatch.syspath_prepend(str(site))
+    cfg = compose("touch", ["sensor=tiny"])
+    assert cfg.sensor.name == "tiny" and cfg.sensor.width == 8
+
+
+def test_plugin_yaml_absent_without_plugin():
+    from hydra.errors import MissingConfigException
+
+    from tnf.testing import compose
+
+    with pytest.raises(MissingConfigException):
+        compose("touch", ["sensor=tiny"])
+
+
+def test_cli_list_shows_plugin_origin(tmp_path):
+    site = install_tiny_plugin(tmp_path / "site")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, "-m", "tnf.cli", "list"], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    rows = [line for line in out.stdout.splitlines() if " tiny " in line]
+    assert rows and "tnf-tiny-plugin" in rows[0], out.stdout
+    for name in ("digit", "omnitact", "hashgrid", "nerf", "tn_cgan", "warp_gel", "builtin"):
+        assert f" {name} " in out.stdout
