@@ -1,0 +1,358 @@
+"""The ``Sensor`` base class: the public API for tactile sensors, in-tree and from plugins.
+
+A vision-based tactile sensor (Digit, OmniTact, GelSight...) is a camera looking through a soft elastomer
+gel lit by coloured lights from the inside. In tnf a sensor is mostly *data* (its ``Config``): image size,
+field of view, gel geometry, elastomer stiffness, lights, noise and blur, plus a few methods the simulator
+calls. A new sensor usually only changes the data; it may override one or two hooks:
+
+* ``gel_surface()`` - the shape of the undeformed gel (default: a separable parabolic sag),
+* ``background(seed)`` - the image the sensor shows with nothing touching it,
+* ``decorate(image, indentation)`` - draw things onto the finished tactile image (e.g. printed markers
+  that move with the gel),
+* ``shade(points, normals)`` - the lighting model (the warp simulator's fast path implements the default
+  model on the device; a sensor that overrides ``shade`` is rendered by calling it on the host instead).
+
+Frames and units: the **sensor frame** is the camera frame in the OpenGL convention: camera at the origin,
+looking along its -z axis, +x right, +y up, metres. The gel lies in front of the camera (negative z). A
+sensor pose is a camera-to-world 4x4 matrix. Images are ``[H, W, 3]`` uint8, row 0 at the top (+y).
+
+A plugin sensor, e.g. in a package ``tnf_gelsight`` registered through the ``tnf.sensors`` entry point::
+
+    from dataclasses import dataclass, field
+    from tnf.sensors import Light, Sensor, SensorConfig
+
+    class GelSight(Sensor):
+        \"\"\"GelSight Mini with a marker grid.\"\"\"
+
+        @dataclass
+        class Config(SensorConfig):
+            width: int = 320
+            height: int = 240
+            gel_width: float = 0.018
+            gel_height: float = 0.024
+            sag: float = 0.0
+            lights: list[Light] = field(default_factory=lambda: [Light((0.01, 0.0, -0.02), (1.0, 0.2, 0.2))])
+            marker_spacing: float = 0.0015
+            \"\"\"Distance between printed markers, metres.\"\"\"
+
+        def decorate(self, image, indentation):
+            ...  # draw dark dots at the marker positions, shifted with the gel
+            return image
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tnf.errors import TnfError
+
+
+@dataclass
+class Light:
+    """A point light inside the sensor."""
+
+    position: tuple[float, float, float] = (0.0, 0.0, -0.02)
+    """Position in the sensor frame (camera at origin, looking along -z), metres."""
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Linear RGB colour, each channel in [0, 1]."""
+    intensity: float = 1.0
+    """Brightness multiplier (dimensionless)."""
+
+    def validate(self) -> None:
+        if any(c < 0 for c in self.color):
+            raise ValueError(f"light color channels must be >= 0, got {self.color}")
+        if self.intensity < 0:
+            raise ValueError(f"light intensity must be >= 0, got {self.intensity}")
+
+
+@dataclass
+class SensorConfig:
+    """Data shared by every sensor. Subclasses change defaults and may add fields (document each)."""
+
+    width: int = 240
+    """Image width W, pixels."""
+    height: int = 320
+    """Image height H, pixels."""
+    fov: float = 60.0
+    """Vertical field of view of the camera, degrees (square pixels; principal point at the centre)."""
+    camera_distance: float = 0.022
+    """Distance from the camera to the plane of the gel's rim along the view axis, metres."""
+    gel_width: float = 0.020
+    """Gel size along the image x axis, metres."""
+    gel_height: float = 0.030
+    """Gel size along the image y axis, metres."""
+    sag: float = 0.005
+    """How far the gel's centre bulges out beyond its rim (convex curvature), metres; 0 = flat."""
+    thickness: float = 0.004
+    """Elastomer thickness over its rigid backing, metres (a thin layer is stiffer than a half-space)."""
+    young_modulus: float = 3.0e5
+    """Elastomer Young's modulus E, pascals."""
+    poisson_ratio: float = 0.48
+    """Elastomer Poisson ratio (nearly incompressible silicone: ~0.5)."""
+    max_penetration: float = 0.003
+    """Deepest indentation the simulator considers, metres (presses stop there)."""
+    force_range: tuple[float, float] = (0.0, 20.0)
+    """Normal forces the sensor is used with, newtons (a target force outside it is an error)."""
+    lights: list[Light] = field(default_factory=lambda: [Light()])
+    """Point lights inside the sensor."""
+    ambient: float = 0.0
+    """Ambient light level added to the shading, in [0, 1]."""
+    diffuse: float = 1.0
+    """Weight of Lambertian (diffuse) shading."""
+    specular: float = 0.2
+    """Weight of Blinn-Phong specular highlights."""
+    shininess: float = 20.0
+    """Blinn-Phong exponent (higher = tighter highlights)."""
+    contrast: float = 255.0
+    """Gain from shading difference (deformed minus undeformed, in [0, 1] units) to 8-bit image values."""
+    blur_sigma: float = 0.8
+    """Gaussian blur of the difference image, pixels (the gel and lens are not perfectly sharp); 0 = off."""
+    noise_std: float = 2.0
+    """Standard deviation of Gaussian pixel noise, 8-bit units; 0 = off."""
+    background_image: str | None = None
+    """Image file of the sensor with nothing touching it (a real photo); null = procedural background."""
+    background_seed: int = 0
+    """Seed of the procedural background (gel texture, LED variation)."""
+
+    def validate(self) -> None:
+        if self.width < 8 or self.height < 8:
+            raise ValueError(f"image size must be at least 8x8 pixels, got {self.width}x{self.height}")
+        if not 1.0 <= self.fov <= 170.0:
+            raise ValueError(f"fov must be in [1, 170] degrees, got {self.fov}")
+        for name in ("camera_distance", "gel_width", "gel_height", "thickness", "young_modulus", "max_penetration"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.sag < 0:
+            raise ValueError(f"sag must be >= 0, got {self.sag}")
+        if not 0.0 <= self.poisson_ratio < 0.5:
+            raise ValueError(f"poisson_ratio must be in [0, 0.5), got {self.poisson_ratio}")
+        lo, hi = self.force_range
+        if not 0 <= lo < hi:
+            raise ValueError(f"force_range must be (min, max) with 0 <= min < max, got {self.force_range}")
+        if not self.lights:
+            raise ValueError("a sensor needs at least one light")
+        if self.blur_sigma < 0 or self.noise_std < 0:
+            raise ValueError(f"blur_sigma and noise_std must be >= 0, got {self.blur_sigma}, {self.noise_std}")
+
+
+class Sensor:
+    """A vision-based tactile sensor: its data (``cfg``) and the hooks the simulator calls.
+
+    Args:
+        cfg: the validated ``Config`` (build from a config node with ``SENSORS.build({"name": ..., ...})``).
+    """
+
+    Config = SensorConfig
+    name: str = "sensor"
+    """Registry name; set by subclasses (the registry does not set it)."""
+
+    def __init__(self, cfg: SensorConfig):
+        self.cfg = cfg
+
+    # -- camera ---------------------------------------------------------------------------------------
+    @property
+    def width(self) -> int:
+        return self.cfg.width
+
+    @property
+    def height(self) -> int:
+        return self.cfg.height
+
+    def intrinsics(self) -> tuple[float, float, float, float]:
+        """Pinhole intrinsics ``(fx, fy, cx, cy)`` in pixels, from the vertical field of view."""
+        fy = 0.5 * self.height / math.tan(math.radians(self.cfg.fov) / 2)
+        return fy, fy, self.width / 2, self.height / 2
+
+    def gel_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor-frame ``(x, y)`` of each pixel's gel sample, each ``[H, W]`` float32 metres.
+
+        Pixel ``(row, col)`` samples the gel where its camera ray meets the rim plane; the simulator works on
+        this regular grid (the parallax across the gel's sag is neglected).
+        """
+        fx, fy, cx, cy = self.intrinsics()
+        d = self.cfg.camera_distance
+        cols = (np.arange(self.width, dtype=np.float64) + 0.5 - cx) / fx * d
+        rows = -(np.arange(self.height, dtype=np.float64) + 0.5 - cy) / fy * d
+        x, y = np.meshgrid(cols, rows)
+        return x.astype(np.float32), y.astype(np.float32)
+
+    def pixel_size(self) -> tuple[float, float]:
+        """Gel area one pixel covers, ``(dx, dy)`` metres."""
+        fx, fy, _, _ = self.intrinsics()
+        return self.cfg.camera_distance / fx, self.cfg.camera_distance / fy
+
+    def gel_mask(self) -> np.ndarray:
+        """``[H, W]`` bool: pixels that see gel (the image may extend beyond the gel's edge)."""
+        x, y = self.gel_grid()
+        return (np.abs(x) <= self.cfg.gel_width / 2) & (np.abs(y) <= self.cfg.gel_height / 2)
+
+    def gel_surface(self) -> np.ndarray:
+        """Undeformed gel heights ``[H, W]`` float32 metres: how far the surface bulges out beyond the rim plane
+        (toward the object, along -z). Default: a separable parabola, ``sag`` at the centre, 0 at the edges.
+
+        The surface point of pixel ``(r, c)`` is ``(x, y, -(camera_distance + h))`` with ``x, y = gel_grid()``.
+        """
+        x, y = self.gel_grid()
+        u = 1.0 - (2.0 * x / self.cfg.gel_width) ** 2
+        v = 1.0 - (2.0 * y / self.cfg.gel_height) ** 2
+        return (self.cfg.sag * np.clip(u, 0, None) * np.clip(v, 0, None)).astype(np.float32)
+
+    def gel_points(self, heights: np.ndarray | None = None) -> np.ndarray:
+        """Sensor-frame points ``[H, W, 3]`` of the gel surface for outward heights ``[H, W]`` (default: undeformed)."""
+        x, y = self.gel_grid()
+        h = self.gel_surface() if heights is None else heights
+        return np.stack([x, y, -(self.cfg.camera_distance + h)], axis=-1).astype(np.float32)
+
+    # -- elastomer ------------------------------------------------------------------------------------
+    @property
+    def effective_modulus(self) -> float:
+        """Contact modulus ``E* = E / (1 - nu^2)`` against a rigid indenter, pascals."""
+        return self.cfg.young_modulus / (1.0 - self.cfg.poisson_ratio**2)
+
+    def check_force(self, force: float) -> None:
+        """Raise a TnfError when ``force`` (newtons) is outside the sensor's force range."""
+        lo, hi = self.cfg.force_range
+        if not lo < force <= hi:
+            raise TnfError(f"sensor {self.name!r}: force must be in ({lo}, {hi}] N, got {force}")
+
+    # -- lighting -------------------------------------------------------------------------------------
+    def light_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(positions [L, 3] metres in the sensor frame, radiance [L, 3] = color * intensity)``, float32."""
+        pos = np.array([lt.position for lt in self.cfg.lights], dtype=np.float32).reshape(-1, 3)
+        rad = np.array([np.asarray(lt.color) * lt.intensity for lt in self.cfg.lights], dtype=np.float32)
+        return pos, rad.reshape(-1, 3)
+
+    def shade(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Light the gel: ``points`` and unit ``normals`` ``[..., 3]`` (sensor frame, normals facing the camera)
+        -> radiance ``[..., 3]`` float32, roughly in [0, 1].
+
+        Default: ambient + Lambertian + Blinn-Phong per light, viewed from the camera at the origin. The warp
+        simulator evaluates this same model on the device; override it for another lighting model (the
+        simulator then calls it on the host).
+        """
+        c = self.cfg
+        pos, rad = self.light_arrays()
+        view = -points / np.linalg.norm(points, axis=-1, keepdims=True)
+        out = np.full(points.shape[:-1] + (3,), c.ambient, dtype=np.float32)
+        for p, r in zip(pos, rad):
+            to_light = p - points
+            ldir = to_light / np.linalg.norm(to_light, axis=-1, keepdims=True)
+            ndl = np.clip((normals * ldir).sum(-1, keepdims=True), 0, None)
+            half = ldir + view
+            half /= np.linalg.norm(half, axis=-1, keepdims=True)
+            ndh = np.clip((normals * half).sum(-1, keepdims=True), 0, None)
+            out += r * (c.diffuse * ndl + c.specular * ndh**c.shininess)
+        return out.astype(np.float32)
+
+    def surface_normals(self, heights: np.ndarray) -> np.ndarray:
+        """Unit normals ``[H, W, 3]`` facing the camera (+z) of the surface with outward heights ``[H, W]``."""
+        dx, dy = self.pixel_size()
+        z = -(self.cfg.camera_distance + heights.astype(np.float64))
+        dzdc = np.gradient(z, axis=1) / dx  # columns grow with +x
+        dzdr = np.gradient(z, axis=0) / dy  # rows grow with -y
+        n = np.stack([-dzdc, dzdr, np.ones_like(z)], axis=-1)
+        return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+    # -- images ---------------------------------------------------------------------------------------
+    def background(self, seed: int | None = None) -> np.ndarray:
+        """The image with nothing touching the gel, ``[H, W, 3]`` uint8.
+
+        From ``background_image`` when set (resized to the sensor's size), else procedural: the lit undeformed
+        gel, coloured glows near each light, vignetting and a faint gel texture, varied by ``seed``
+        (default: ``background_seed``).
+        """
+        if self.cfg.background_image:
+            return load_background(self.cfg.background_image, self.width, self.height)
+        return self.procedural_background(self.cfg.background_seed if seed is None else seed)
+
+    def procedural_background(self, seed: int) -> np.ndarray:
+        """Procedural background ``[H, W, 3]`` uint8 (see ``background``)."""
+        rng = np.random.default_rng(seed)
+        c = self.cfg
+        h = self.gel_surface()
+        pts = self.gel_points(h)
+        lit = self.shade(pts, self.surface_normals(h))
+        x, y = self.gel_grid()
+        pos, rad = self.light_arrays()
+        scale = max(c.gel_width, c.gel_height)
+        glow = np.zeros_like(lit)
+        for p, r in zip(pos, rad):
+            # LEDs leave soft coloured glows near where they sit; vary their reach and strength per seed.
+            reach = scale * rng.uniform(0.35, 0.6)
+            d2 = (x - p[0]) ** 2 + (y - p[1]) ** 2
+            glow += rng.uniform(0.35, 0.55) * r * np.exp(-d2 / (2 * reach**2))[..., None]
+        base = rng.uniform(0.12, 0.2, size=3).astype(np.float32)
+        img = base + 0.12 * lit / max(float(lit.max()), 1e-6) + glow
+        r2 = (x / (c.gel_width / 2)) ** 2 + (y / (c.gel_height / 2)) ** 2
+        img *= (1.0 - 0.35 * np.clip(r2 / 2.0, 0, 1) ** 1.5)[..., None]  # vignetting
+        texture = _smooth_noise(rng, self.height, self.width, cells=12) * 0.015
+        img += texture[..., None] + rng.normal(0, 0.004, size=img.shape)
+        img = np.where(self.gel_mask()[..., None], img, img * 0.3)  # housing beyond the gel is dark
+        return np.clip(img * 255.0, 0, 255).astype(np.uint8)
+
+    def decorate(self, image: np.ndarray, indentation: np.ndarray) -> np.ndarray:
+        """Hook to draw onto finished tactile images (e.g. markers printed on the gel).
+
+        Args:
+            image: ``[B, H, W, 3]`` uint8 tactile images.
+            indentation: ``[B, H, W]`` float32 metres the gel surface moved toward the camera.
+        Returns the images (may modify ``image`` in place). Default: unchanged.
+        """
+        return image
+
+    @property
+    def decorates(self) -> bool:
+        """True when a subclass overrides ``decorate`` (the simulator then copies images to the host for it)."""
+        return type(self).decorate is not Sensor.decorate
+
+    @property
+    def custom_shading(self) -> bool:
+        """True when a subclass overrides ``shade`` (the simulator then shades on the host)."""
+        return type(self).shade is not Sensor.shade
+
+    def describe(self) -> dict[str, Any]:
+        """``{"name", "config"}`` as plain JSON data (what the touch manifest records)."""
+        from tnf.registry import config_to_dict
+
+        return {"name": self.name, "config": config_to_dict(self.cfg)}
+
+
+def load_background(path: str | Path, width: int, height: int) -> np.ndarray:
+    """Load an image file as a sensor background ``[height, width, 3]`` uint8, resized when needed."""
+    from PIL import Image, UnidentifiedImageError
+
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise TnfError(f"sensor background_image not found: {p}")
+    try:
+        with Image.open(p) as im:
+            im = im.convert("RGB")
+            if im.size != (width, height):
+                im = im.resize((width, height), Image.Resampling.BILINEAR)
+            return np.asarray(im, dtype=np.uint8).copy()
+    except (UnidentifiedImageError, OSError) as e:
+        raise TnfError(f"sensor background_image {p} is not a readable image: {e}") from None
+
+
+def _smooth_noise(rng: np.random.Generator, h: int, w: int, cells: int) -> np.ndarray:
+    """Smooth value noise ``[h, w]`` in about [-1, 1]: a coarse random grid, bilinearly upsampled."""
+    gh, gw = cells + 1, max(2, round(cells * w / h)) + 1
+    grid = rng.uniform(-1, 1, size=(gh, gw))
+    ys = np.linspace(0, gh - 1, h)
+    xs = np.linspace(0, gw - 1, w)
+    y0 = np.clip(ys.astype(int), 0, gh - 2)
+    x0 = np.clip(xs.astype(int), 0, gw - 2)
+    fy = (ys - y0)[:, None]
+    fx = (xs - x0)[None, :]
+    g = grid
+    return (
+        g[y0][:, x0] * (1 - fy) * (1 - fx)
+        + g[y0 + 1][:, x0] * fy * (1 - fx)
+        + g[y0][:, x0 + 1] * (1 - fy) * fx
+        + g[y0 + 1][:, x0 + 1] * fy * fx
+    )
