@@ -1,0 +1,173 @@
+"""Dataset format round trip, PairDataset and PairDataModule batches, mixing and subsampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tnf.data import SPLITS, PairDataset, PairWriter, open_pairs, write_manifest
+from tnf.errors import TnfError
+
+
+def make_dataset(folder, objects=("a", "b", "c"), touches=6, frames=1, seed=0, novel=("c",)):
+    """A small dataset of random images: per object `touches` touches of `frames` frames each.
+
+    Training objects' touches cycle train, train, val, novel_view; novel objects' are all novel_object.
+    """
+    rng = np.random.default_rng(seed)
+    rows = []
+    for oid, name in enumerate(objects):
+        for t in range(touches):
+            split = "novel_object" if name in novel else ("train", "train", "val", "novel_view")[t % 4]
+            rows += [(oid, t, SPLITS.index(split))] * frames
+    n = len(rows)
+    bg = rng.integers(0, 256, (2, 128, 128, 3), dtype=np.uint8)
+    data = {
+        "rgb": rng.integers(0, 256, (n, 128, 128, 3), dtype=np.uint8),
+        "depth": rng.random((n, 128, 128)).astype(np.float16),
+        "tactile": rng.integers(0, 256, (n, 128, 128, 3), dtype=np.uint8),
+    }
+    data["rgb"][:, 0, 0] = [0, 255, 128]  # known values to check the [-1, 1] mapping
+    data["depth"][:, 0, 0] = [0.0]
+    data["depth"][:, 0, 1] = [1.0]
+    arr = np.array(rows)
+    meta = {
+        "background_index": (arr[:, 0] % 2).astype(np.int32),
+        "object_id": arr[:, 0].astype(np.int32),
+        "split": arr[:, 2].astype(np.int8),
+        "touch_index": arr[:, 1].astype(np.int32),
+        "sensor_id": np.zeros(n, np.int16),
+    }
+    with PairWriter(folder, n, bg) as w:
+        for s in range(0, n, 5):  # several chunks, as the builder streams
+            w.write(s, **{k: v[s : s + 5] for k, v in {**data, **meta}.items()})
+    write_manifest(folder, {"objects": list(objects), "sensors": ["digit"], "count": n})
+    return {**data, **meta, "backgrounds": bg}
+
+
+def test_round_trip(tmp_path):
+    ref = make_dataset(tmp_path / "ds")
+    a = open_pairs(tmp_path / "ds")
+    assert len(a) == 18 and a.objects == ["a", "b", "c"]
+    for k in ("rgb", "depth", "tactile", "background_index", "object_id", "split", "touch_index", "backgrounds"):
+        np.testing.assert_array_equal(np.asarray(getattr(a, k)), ref[k])
+    assert isinstance(a.rgb, np.memmap)
+    assert a.rgb.dtype == np.uint8 and a.depth.dtype == np.float16
+
+
+def test_writer_refuses_unwritten_rows(tmp_path):
+    bg = np.zeros((1, 128, 128, 3), np.uint8)
+    w = PairWriter(tmp_path / "ds", 3, bg)
+    with pytest.raises(RuntimeError, match="never written"):
+        w.close()
+
+
+def test_open_refuses_non_dataset(tmp_path):
+    with pytest.raises(TnfError, match="tnf pair"):
+        open_pairs(tmp_path)
+
+
+def test_items_values_and_splits(tmp_path):
+    ref = make_dataset(tmp_path / "ds")
+    ds = PairDataset(tmp_path / "ds", splits=("train",))
+    assert len(ds) == 2 * 4  # objects a, b: touches 0, 1, 4, 5
+    item = ds[0]
+    assert item["rgb"].shape == (3, 128, 128) and item["rgb"].dtype == torch.float32
+    assert item["depth"].shape == (1, 128, 128) and item["background"].shape == (3, 128, 128)
+    assert item["tactile"].shape == (3, 128, 128) and item["object_id"].dtype == torch.long
+    row = int(ds.index[0])
+    assert item["rgb"][:, 0, 0].tolist() == [-1.0, 1.0, pytest.approx(128 / 127.5 - 1, abs=1e-6)]
+    assert item["depth"][0, 0, :2].tolist() == [-1.0, 1.0]
+    expect_t = torch.from_numpy(ref["tactile"][row]).permute(2, 0, 1).float() / 127.5 - 1
+    torch.testing.assert_close(item["tactile"], expect_t)
+    expect_bg = torch.from_numpy(ref["backgrounds"][ref["background_index"][row]]).permute(2, 0, 1) / 127.5 - 1
+    torch.testing.assert_close(item["background"], expect_bg.float())
+    for k in ("rgb", "depth", "background", "tactile"):
+        assert item[k].min() >= -1 and item[k].max() <= 1
+    assert set(np.asarray(ref["object_id"])[ds.index]) == {0, 1}
+    novel = PairDataset(tmp_path / "ds", splits=("novel_object",))
+    assert len(novel) == 6 and {int(novel[i]["object_id"]) for i in range(6)} == {2}
+    assert PairDataset(tmp_path / "ds", splits=("train", "val")).split_counts() == {"train": 8, "val": 2}
+
+
+def test_batch_equals_items(tmp_path):
+    make_dataset(tmp_path / "ds")
+    ds = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view", "novel_object"))
+    idx = [5, 0, 17, 3]
+    batch = ds.__getitems__(idx)
+    for j, i in enumerate(idx):
+        for k, v in ds[i].items():
+            torch.testing.assert_close(batch[k][j], v)
+
+
+def test_per_object_keeps_whole_touches(tmp_path):
+    ref = make_dataset(tmp_path / "ds", touches=8, frames=3)
+    ds = PairDataset(tmp_path / "ds", splits=("train",), per_object=2, seed=1)
+    obj = ref["object_id"][ds.index]
+    touch = ref["touch_index"][ds.index]
+    for o in (0, 1):
+        chosen = set(touch[obj == o])
+        assert len(chosen) == 2
+        assert (obj == o).sum() == 2 * 3  # every frame of each chosen touch
+    again = PairDataset(tmp_path / "ds", splits=("train",), per_object=2, seed=1)
+    np.testing.assert_array_equal(ds.index, again.index)
+    assert len(PairDataset(tmp_path / "ds", per_object=100)) == len(PairDataset(tmp_path / "ds"))
+
+
+def test_augment_keeps_range_and_pairs_aligned(tmp_path):
+    make_dataset(tmp_path / "ds")
+    torch.manual_seed(0)
+    plain = PairDataset(tmp_path / "ds").__getitems__(list(range(6)))
+    aug = PairDataset(tmp_path / "ds", augment=True).__getitems__(list(range(6)))
+    for k in ("rgb", "depth", "background", "tactile"):
+        assert aug[k].min() >= -1 and aug[k].max() <= 1
+    # The same flip is applied to tactile, depth and background: each is one of the 4 flips of the original.
+    for i in range(6):
+        flips = [lambda x: x, lambda x: x.flip(-1), lambda x: x.flip(-2), lambda x: x.flip(-1).flip(-2)]
+        match = [f for f in flips if torch.equal(f(plain["tactile"][i]), aug["tactile"][i])]
+        assert len(match) >= 1
+        assert torch.equal(match[0](plain["depth"][i]), aug["depth"][i])
+        assert torch.equal(match[0](plain["background"][i]), aug["background"][i])
+
+
+def test_datamodule_batches_and_mixing(tmp_path):
+    from tnf.data import PairDataModule
+
+    make_dataset(tmp_path / "sim", objects=("a", "b", "c"))
+    make_dataset(tmp_path / "gen", objects=("b", "d"), novel=(), seed=1)
+    dm = PairDataModule([tmp_path / "sim", tmp_path / "gen"], batch_size=4, seed=0)
+    assert dm.object_names == ["a", "b", "c", "d"]
+    dm.setup("fit")
+    batches = list(dm.train_dataloader())
+    n = sum(len(b["rgb"]) for b in batches)
+    assert n == 8 + 8  # sim: a, b x 4 train touches; gen: b, d x 4
+    b = batches[0]
+    assert b["rgb"].shape == (4, 3, 128, 128) and b["depth"].shape == (4, 1, 128, 128)
+    assert b["background"].shape == (4, 3, 128, 128) and b["tactile"].shape == (4, 3, 128, 128)
+    assert b["rgb"].dtype == torch.float32 and b["object_id"].dtype == torch.long
+    ids = torch.cat([b["object_id"] for b in batches])
+    assert set(ids.tolist()) == {0, 1, 3}  # "b" of both datasets is id 1
+    val = list(dm.val_dataloader())
+    assert sum(len(b["rgb"]) for b in val) == 2 + 2
+    novel_view, novel_object = dm.test_dataloader()
+    assert sum(len(b["rgb"]) for b in novel_object) == 6
+    assert sum(len(b["rgb"]) for b in dm.test_dataloader("novel_view")) == sum(len(b["rgb"]) for b in novel_view)
+    sub = PairDataModule([tmp_path / "sim", tmp_path / "gen"], batch_size=64, per_object=1)
+    assert len(next(iter(sub.train_dataloader()))["rgb"]) == 4  # 1 touch x (a, b) + (b, d)
+
+
+def test_datamodule_workers(tmp_path):
+    from tnf.data import PairDataModule
+
+    make_dataset(tmp_path / "ds")
+    dm = PairDataModule([tmp_path / "ds"], batch_size=3, num_workers=1)
+    got = sorted(int(i) for b in dm.train_dataloader() for i in b["object_id"])
+    assert got == [0] * 4 + [1] * 4
+
+
+def test_datamodule_missing_dataset(tmp_path, data_root):
+    from tnf.data import PairDataModule
+
+    with pytest.raises(TnfError, match="tnf pair"):
+        PairDataModule(["nope"])

@@ -1,0 +1,136 @@
+"""The LightningDataModule over one or several paired datasets."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader
+
+from tnf.artifacts import MANIFEST, data_root, read_json
+from tnf.data.dataset import MixedPairDataset, PairDataset, collate_pairs
+from tnf.errors import TnfError
+
+TEST_SPLITS = ("novel_view", "novel_object")
+
+
+def resolve_dataset(folder: str | os.PathLike[str], root: str | os.PathLike[str] | None = None) -> Path:
+    """A dataset folder given as a path, or as a name under ``<data_root>/pairs/``."""
+    p = Path(folder).expanduser()
+    if (p / MANIFEST).is_file():
+        return p
+    named = data_root(root) / "pairs" / str(folder)
+    if (named / MANIFEST).is_file():
+        return named
+    raise TnfError(f"no paired dataset at {p} nor {named}; build one with `tnf pair`")
+
+
+class PairDataModule(L.LightningDataModule):
+    """Batches of pairs for training a generator: dicts of float32 tensors in [-1, 1] (``rgb`` [B, 3, 128, 128],
+    ``depth`` [B, 1, 128, 128], ``background`` [B, 3, 128, 128], ``tactile`` [B, 3, 128, 128]) and
+    ``object_id`` [B] long, indexing ``object_names`` (the union of the datasets' objects, in order).
+
+    Args:
+        folders: dataset folders (or names under ``<data_root>/pairs``); several are mixed into one.
+        batch_size: pairs per batch.
+        num_workers: DataLoader worker processes (0 loads in the main process).
+        per_object: at most this many touches per object and dataset; None keeps all.
+        augment: flips and RGB jitter on the training batches (see ``augment_batch``).
+        pin_memory: page-locked batches for faster copies to a GPU.
+        seed: seed of the subsample and the training order.
+        train_splits, val_splits: splits served by ``train_dataloader`` / ``val_dataloader``.
+        drop_last: drop the last, incomplete training batch.
+        data_root: where dataset names are looked up (default the configured artifact root).
+    """
+
+    def __init__(
+        self,
+        folders: Sequence[str | os.PathLike[str]],
+        batch_size: int = 64,
+        num_workers: int = 0,
+        per_object: int | None = None,
+        augment: bool = False,
+        pin_memory: bool = False,
+        seed: int = 0,
+        train_splits: Sequence[str] = ("train",),
+        val_splits: Sequence[str] = ("val",),
+        drop_last: bool = False,
+        data_root: str | os.PathLike[str] | None = None,
+    ):
+        super().__init__()
+        if isinstance(folders, (str, os.PathLike)):
+            folders = [folders]
+        if not folders:
+            raise TnfError("PairDataModule needs at least one dataset folder")
+        if batch_size < 1:
+            raise TnfError(f"batch_size must be >= 1, got {batch_size}")
+        self.folders = [resolve_dataset(f, data_root) for f in folders]
+        self.batch_size = batch_size
+        self.num_workers = num_workers
+        self.per_object = per_object
+        self.augment = augment
+        self.pin_memory = pin_memory
+        self.seed = seed
+        self.train_splits = tuple(train_splits)
+        self.val_splits = tuple(val_splits)
+        self.drop_last = drop_last
+        names: list[str] = []
+        for f in self.folders:
+            for n in read_json(f / MANIFEST, "dataset manifest")["objects"]:
+                if n not in names:
+                    names.append(n)
+        self.object_names = names
+
+    def dataset(self, splits: Sequence[str], augment: bool = False) -> PairDataset | MixedPairDataset:
+        """The pairs of ``splits`` over all folders (one dataset, or a mix)."""
+        parts = [
+            PairDataset(f, splits, self.per_object, self.seed, object_names=self.object_names, augment=augment)
+            for f in self.folders
+        ]
+        return parts[0] if len(parts) == 1 else MixedPairDataset(parts)
+
+    def _loader(self, splits: Sequence[str], train: bool) -> DataLoader:
+        ds = self.dataset(splits, augment=self.augment and train)
+        if len(ds) == 0:
+            raise TnfError(f"no pairs in split(s) {', '.join(splits)} of {', '.join(map(str, self.folders))}")
+        g = torch.Generator().manual_seed(self.seed)
+        return DataLoader(
+            ds,
+            batch_size=self.batch_size,
+            shuffle=train,
+            drop_last=train and self.drop_last,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=self.num_workers > 0,
+            collate_fn=collate_pairs,
+            generator=g if train else None,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train_splits, train=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.val_splits, train=False)
+
+    def test_dataloader(self, split: str | None = None) -> DataLoader | list[DataLoader]:
+        """One split's loader (``novel_view``, ``novel_object``, ...), or both test splits' when None."""
+        if split is None:
+            return [self._loader((s,), train=False) for s in TEST_SPLITS]
+        return self._loader((split,), train=False)
+
+
+def datamodule_from_config(cfg: object) -> PairDataModule:
+    """A ``PairDataModule`` from a composed tnf config (its ``data`` section, ``seed`` and ``data_root``)."""
+    from omegaconf import OmegaConf
+
+    d = OmegaConf.to_container(cfg.data, resolve=True)  # type: ignore[attr-defined]
+    assert isinstance(d, dict)
+    return PairDataModule(
+        d.pop("datasets"),
+        seed=int(cfg.seed),
+        data_root=cfg.data_root,
+        **d,  # type: ignore[attr-defined]
+    )

@@ -1,0 +1,182 @@
+"""Reading paired datasets as PyTorch datasets: whole batches are one fancy index into the memory maps."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset, default_collate
+
+from tnf.data.splits import SPLITS, split_code
+from tnf.data.store import PairArrays, open_pairs
+from tnf.errors import TnfError
+
+Batch = dict[str, torch.Tensor]
+
+
+def _to_unit_range(x: np.ndarray) -> torch.Tensor:
+    """uint8 [B, H, W, C] -> float32 [B, C, H, W] in [-1, 1] (contiguous)."""
+    t = torch.from_numpy(np.ascontiguousarray(x))
+    out = torch.empty((t.shape[0], t.shape[3], t.shape[1], t.shape[2]), dtype=torch.float32)
+    out.copy_(t.permute(0, 3, 1, 2))
+    return out.mul_(2.0 / 255.0).sub_(1.0)
+
+
+class PairDataset(Dataset):
+    """Pairs of one dataset folder, restricted to some splits.
+
+    Items (``ds[i]``) and batches (``ds.__getitems__(indices)``, which ``DataLoader`` calls with a whole
+    batch of indices) are dicts of float32 tensors in [-1, 1]: ``rgb`` [3, 128, 128], ``depth``
+    [1, 128, 128] (-1 nearest, 1 far or empty), ``background`` [3, 128, 128], ``tactile`` [3, 128, 128];
+    plus ``object_id`` (long; index into ``object_names``). Batches have a leading batch dimension.
+
+    Args:
+        folder: a dataset folder (``<root>/pairs/<name>``).
+        splits: split names to include (see ``tnf.data.SPLITS``).
+        per_object: keep at most this many touches per object (all frames of a chosen touch), drawn with
+            ``seed``; None keeps all.
+        seed: seed of the per-object subsample.
+        object_names: the object vocabulary ``object_id`` indexes; default this dataset's own object list.
+            Datasets that are mixed share one vocabulary so an object keeps its id.
+        augment: random horizontal/vertical flips (the same flip on all four images of a pair) and
+            brightness/contrast jitter of the RGB image.
+    """
+
+    def __init__(
+        self,
+        folder: str | os.PathLike[str],
+        splits: Sequence[str] = ("train",),
+        per_object: int | None = None,
+        seed: int = 0,
+        object_names: Sequence[str] | None = None,
+        augment: bool = False,
+    ):
+        if isinstance(splits, str):
+            splits = (splits,)
+        self.arrays: PairArrays = open_pairs(folder)
+        self.splits = tuple(splits)
+        self.augment = augment
+        own = self.arrays.objects
+        self.object_names = list(object_names) if object_names is not None else own
+        missing = [n for n in own if n not in self.object_names]
+        if missing:
+            raise TnfError(f"object {missing[0]!r} of dataset {folder} is not in the given object_names")
+        self._id_map = torch.tensor([self.object_names.index(n) for n in own], dtype=torch.long)
+
+        split = np.asarray(self.arrays.split)
+        codes = [split_code(s) for s in self.splits]
+        rows = np.flatnonzero(np.isin(split, codes))
+        if per_object is not None:
+            rows = _subsample_touches(
+                rows, np.asarray(self.arrays.object_id), np.asarray(self.arrays.touch_index), per_object, seed
+            )
+        self.index = rows.astype(np.int64)
+        # Backgrounds are few: convert once, then a batch is one index_select.
+        self._backgrounds = _to_unit_range(np.array(self.arrays.backgrounds))
+        self._bg_index = torch.from_numpy(np.asarray(self.arrays.background_index).astype(np.int64))
+        self._object_id = torch.from_numpy(np.asarray(self.arrays.object_id).astype(np.int64))
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    @property
+    def manifest(self) -> dict[str, Any]:
+        return self.arrays.manifest
+
+    def __getitem__(self, i: int) -> Batch:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} pairs")
+        return {k: v[0] for k, v in self.__getitems__([i]).items()}
+
+    def __getitems__(self, indices: Sequence[int]) -> Batch:
+        """A batch of pairs as one dict of stacked tensors."""
+        rows = self.index[np.asarray(indices, dtype=np.int64)]
+        a = self.arrays
+        rgb = _to_unit_range(a.rgb[rows])
+        tactile = _to_unit_range(a.tactile[rows])
+        depth = torch.from_numpy(a.depth[rows]).unsqueeze(1).float().mul_(2.0).sub_(1.0)
+        rows_t = torch.from_numpy(rows)
+        background = self._backgrounds.index_select(0, self._bg_index.index_select(0, rows_t))
+        object_id = self._id_map.index_select(0, self._object_id.index_select(0, rows_t))
+        batch = {"rgb": rgb, "depth": depth, "background": background, "tactile": tactile, "object_id": object_id}
+        if self.augment:
+            augment_batch(batch)
+        return batch
+
+    def split_counts(self) -> dict[str, int]:
+        """Number of pairs per split in this (possibly subsampled) dataset."""
+        codes = np.asarray(self.arrays.split)[self.index]
+        return {s: int((codes == i).sum()) for i, s in enumerate(SPLITS) if s in self.splits}
+
+
+def _subsample_touches(
+    rows: np.ndarray, object_id: np.ndarray, touch_index: np.ndarray, per_object: int, seed: int
+) -> np.ndarray:
+    """Keep the rows of at most ``per_object`` touches per object (chosen at random with ``seed``)."""
+    if per_object < 1:
+        raise TnfError(f"per_object must be >= 1 or null, got {per_object}")
+    rng = np.random.default_rng(seed)
+    keep = np.zeros(len(rows), dtype=bool)
+    obj = object_id[rows]
+    touch = touch_index[rows]
+    for o in np.unique(obj):
+        in_obj = obj == o
+        touches = np.unique(touch[in_obj])
+        if len(touches) > per_object:
+            touches = np.sort(rng.choice(touches, size=per_object, replace=False))
+        keep |= in_obj & np.isin(touch, touches)
+    return rows[keep]
+
+
+def augment_batch(batch: Batch) -> None:
+    """In place: per-pair random flips of all images, and RGB brightness/contrast jitter (+-10 %)."""
+    b = batch["rgb"].shape[0]
+    images = ("rgb", "depth", "background", "tactile")
+    for dim in (-1, -2):
+        flip = torch.rand(b) < 0.5
+        if flip.any():
+            for k in images:
+                batch[k][flip] = batch[k][flip].flip(dim)
+    gain = 1 + 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
+    shift = 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
+    batch["rgb"].mul_(gain).add_(shift).clamp_(-1, 1)
+
+
+class MixedPairDataset(Dataset):
+    """Several ``PairDataset``s served as one (e.g. simulated and generated touches); batches as above."""
+
+    def __init__(self, datasets: Sequence[PairDataset]):
+        if not datasets:
+            raise TnfError("no datasets to mix")
+        self.datasets = list(datasets)
+        self.offsets = np.cumsum([0] + [len(d) for d in self.datasets])
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def __getitem__(self, i: int) -> Batch:
+        return {k: v[0] for k, v in self.__getitems__([i]).items()}
+
+    def __getitems__(self, indices: Sequence[int]) -> Batch:
+        idx = np.asarray(indices, dtype=np.int64)
+        which = np.searchsorted(self.offsets, idx, side="right") - 1
+        parts = [(np.flatnonzero(which == d), idx[which == d] - self.offsets[d]) for d in np.unique(which)]
+        if len(parts) == 1:
+            return self.datasets[int(which[0])].__getitems__(parts[0][1])
+        fetched = [self.datasets[int(which[pos[0]])].__getitems__(local) for pos, local in parts]
+        out: Batch = {}
+        for k, v in fetched[0].items():
+            out[k] = torch.empty((len(idx), *v.shape[1:]), dtype=v.dtype)
+            for (pos, _), f in zip(parts, fetched):
+                out[k][torch.from_numpy(pos)] = f[k]
+        return out
+
+
+def collate_pairs(batch: Any) -> Batch:
+    """DataLoader collate function: batches from ``__getitems__`` are already stacked."""
+    if isinstance(batch, dict):
+        return batch
+    return default_collate(batch)

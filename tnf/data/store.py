@@ -1,0 +1,152 @@
+"""The on-disk format of a paired dataset: a folder of memory-mappable ``.npy`` arrays and a manifest.
+
+``<root>/pairs/<name>/``:
+
+- ``rgb.npy`` uint8 [N, 128, 128, 3]: rendered colour, centre-cropped;
+- ``depth.npy`` float16 [N, 128, 128]: normalised depth in [0, 1] (1 = no surface);
+- ``tactile.npy`` uint8 [N, 128, 128, 3]: the tactile image;
+- ``backgrounds.npy`` uint8 [K, 128, 128, 3] and ``background_index.npy`` int32 [N]: the sensor's
+  no-contact image of each pair, stored once per distinct background;
+- ``object_id.npy`` int32 [N] (index into the manifest's ``objects``), ``split.npy`` int8 [N] (index into
+  ``splits``), ``touch_index.npy`` int32 [N] (the touch's index in its touch manifest), ``sensor_id.npy``
+  int16 [N] (index into ``sensors``);
+- ``manifest.json``: provenance and counts; ``previews/``: a few pairs as PNG.
+
+Arrays are written in place through ``np.lib.format.open_memmap`` so a dataset of any size is built with
+bounded memory, and read back with ``mmap_mode="r"`` so loading holds only the pages it touches.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tnf.artifacts import MANIFEST, read_json, write_json
+from tnf.data.preprocess import SIZE
+from tnf.data.splits import SPLITS
+from tnf.errors import TnfError
+
+FORMAT_VERSION = 1
+
+# name -> (dtype, shape after N)
+PAIR_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "rgb": ("uint8", (SIZE, SIZE, 3)),
+    "depth": ("float16", (SIZE, SIZE)),
+    "tactile": ("uint8", (SIZE, SIZE, 3)),
+    "background_index": ("int32", ()),
+    "object_id": ("int32", ()),
+    "split": ("int8", ()),
+    "touch_index": ("int32", ()),
+    "sensor_id": ("int16", ()),
+}
+
+
+class PairWriter:
+    """Fills the arrays of a dataset of ``n`` pairs chunk by chunk, straight into memory-mapped files.
+
+    ``with PairWriter(folder, n, backgrounds) as w: w.write(start, rgb=..., depth=..., ...)``; then write the
+    manifest with ``write_manifest``. Memory use is that of the chunks passed in.
+    """
+
+    def __init__(self, folder: str | os.PathLike[str], n: int, backgrounds: np.ndarray):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.n = int(n)
+        bg = np.asarray(backgrounds)
+        if bg.ndim != 4 or bg.shape[1:] != (SIZE, SIZE, 3) or bg.dtype != np.uint8:
+            raise ValueError(f"backgrounds must be uint8 [K, {SIZE}, {SIZE}, 3], got {bg.dtype} {bg.shape}")
+        np.save(self.folder / "backgrounds.npy", bg)
+        self.arrays = {
+            name: np.lib.format.open_memmap(
+                self.folder / f"{name}.npy", mode="w+", dtype=np.dtype(dt), shape=(self.n, *shape)
+            )
+            for name, (dt, shape) in PAIR_ARRAYS.items()
+        }
+        self.written = np.zeros(self.n, dtype=bool)
+
+    def write(self, start: int, **chunk: np.ndarray) -> None:
+        """Write rows ``start : start + len`` of every array (all arrays of ``PAIR_ARRAYS`` must be given)."""
+        missing = set(PAIR_ARRAYS) - set(chunk)
+        if missing:
+            raise ValueError(f"missing arrays: {sorted(missing)}")
+        k = len(chunk["rgb"])
+        for name, arr in chunk.items():
+            self.arrays[name][start : start + k] = arr
+        self.written[start : start + k] = True
+
+    def close(self) -> None:
+        if not self.written.all():
+            raise RuntimeError(f"{int((~self.written).sum())} of {self.n} pairs were never written")
+        for arr in self.arrays.values():
+            arr.flush()
+        self.arrays.clear()
+
+    def __enter__(self) -> PairWriter:
+        return self
+
+    def __exit__(self, exc_type: Any, *rest: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.arrays.clear()
+
+
+def write_manifest(folder: str | os.PathLike[str], info: Mapping[str, Any]) -> None:
+    """Write ``manifest.json`` with the format version and split names added."""
+    write_json(Path(folder) / MANIFEST, {"format_version": FORMAT_VERSION, "splits": list(SPLITS), **info})
+
+
+@dataclass
+class PairArrays:
+    """A dataset folder opened read-only: memory-mapped arrays plus the manifest."""
+
+    folder: Path
+    manifest: dict[str, Any]
+    rgb: np.ndarray
+    depth: np.ndarray
+    tactile: np.ndarray
+    backgrounds: np.ndarray
+    background_index: np.ndarray
+    object_id: np.ndarray
+    split: np.ndarray
+    touch_index: np.ndarray
+    sensor_id: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.rgb)
+
+    @property
+    def objects(self) -> list[str]:
+        return list(self.manifest["objects"])
+
+
+def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
+    """Open a dataset folder (``<root>/pairs/<name>``) memory-mapped; TnfError when it is not one."""
+    folder = Path(folder)
+    if not (folder / MANIFEST).is_file():
+        raise TnfError(f"not a paired dataset (no {MANIFEST}): {folder}; build one with `tnf pair`")
+    manifest = read_json(folder / MANIFEST, "dataset manifest")
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise TnfError(
+            f"dataset {folder} has format version {manifest.get('format_version')!r}, this tnf reads "
+            f"{FORMAT_VERSION}; rebuild it with `tnf pair`"
+        )
+    arrays: dict[str, np.ndarray] = {}
+    for name in (*PAIR_ARRAYS, "backgrounds"):
+        path = folder / f"{name}.npy"
+        try:
+            arrays[name] = np.load(path, mmap_mode="r")
+        except FileNotFoundError:
+            raise TnfError(
+                f"dataset {folder} is incomplete: {path.name} is missing; rebuild it with `tnf pair`"
+            ) from None
+    n = len(arrays["rgb"])
+    for name in PAIR_ARRAYS:
+        if len(arrays[name]) != n:
+            raise TnfError(f"dataset {folder} is inconsistent: {name}.npy has {len(arrays[name])} rows, rgb.npy {n}")
+    return PairArrays(folder=folder, manifest=manifest, **arrays)
