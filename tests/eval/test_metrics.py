@@ -1,0 +1,80 @@
+"""tnf.eval.metrics against hand-computed values and an independent SSIM written here with scipy."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import correlate1d
+
+from tnf.eval.metrics import mse, ssim
+
+
+def _images(seed: int, n: int = 2, size: int = 128) -> torch.Tensor:
+    """Smooth random uint8 images [n, 3, size, size] (blurred noise, like tactile images are)."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 3, size // 8, size // 8, generator=g)
+    x = torch.nn.functional.interpolate(x, size=(size, size), mode="bilinear", align_corners=False)
+    return (40 + 170 * x + 20 * torch.rand(n, 3, size, size, generator=g)).round().byte()
+
+
+def _reference_ssim(a: np.ndarray, b: np.ndarray, valid: bool = False) -> float:
+    """SSIM of two [3, H, W] 0-255 images (Wang et al. 2004): Gaussian window 11 / sigma 1.5, K1 0.01, K2 0.03,
+    L 255, averaged over pixels and channels. Borders: the image is mirrored (d c b | a b c d) and every pixel's
+    SSIM is averaged, the convention of tnf's metric (torchmetrics); ``valid=True`` averages only pixels whose
+    window lies inside the image (skimage's convention)."""
+    r = np.arange(11) - 5
+    w = np.exp(-(r**2) / (2 * 1.5**2))
+    w /= w.sum()
+
+    def blur(x):
+        y = correlate1d(correlate1d(x, w, axis=0, mode="mirror"), w, axis=1, mode="mirror")
+        return y[5:-5, 5:-5] if valid else y
+
+    c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+    vals = []
+    for x, y in zip(a.astype(np.float64), b.astype(np.float64), strict=True):
+        mx, my = blur(x), blur(y)
+        sxx, syy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+        s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
+        vals.append(s.mean())
+    return float(np.mean(vals))
+
+
+def test_identical_images_give_ssim_one_and_mse_zero():
+    x = _images(0)
+    assert torch.allclose(ssim(x, x), torch.ones(2), atol=1e-5)
+    assert torch.equal(mse(x, x), torch.zeros(2))
+
+
+def test_constant_offset_gives_known_mse():
+    x = _images(1)
+    y = x + 10  # values stay below 255, so no clipping
+    assert torch.allclose(mse(x, y), torch.full((2,), 100.0))
+    # the same images in tnf's [-1, 1] float range give the same MSE on the 0-255 scale
+    xf, yf = x.float() / 127.5 - 1, y.float() / 127.5 - 1
+    assert torch.allclose(mse(xf, yf), torch.full((2,), 100.0))
+    assert (ssim(x, y) < 1).all()
+
+
+def test_mse_in_range_0_to_65025():
+    black = torch.zeros(1, 3, 128, 128, dtype=torch.uint8)
+    white = torch.full((1, 3, 128, 128), 255, dtype=torch.uint8)
+    assert mse(black, white).item() == 65025.0
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_ssim_agrees_with_independent_implementation(seed):
+    a, b = _images(seed), _images(seed + 100)
+    b = ((a.float() + b.float()) / 2).round().byte()  # partly similar, SSIM well inside (0, 1)
+    ours = ssim(a, b)
+    ref = [_reference_ssim(a[i].numpy(), b[i].numpy()) for i in range(len(a))]
+    assert 0.2 < min(ref) < 0.95
+    np.testing.assert_allclose(ours.numpy(), ref, atol=1e-4)
+    # the border convention moves SSIM by far less than the gaps between methods in the paper (>= 0.01)
+    valid = [_reference_ssim(a[i].numpy(), b[i].numpy(), valid=True) for i in range(len(a))]
+    np.testing.assert_allclose(ours.numpy(), valid, atol=0.01)
+
+
+def test_images_are_compared_at_128():
+    big = _images(4, n=1, size=256)
+    small = torch.nn.functional.interpolate(big.float(), size=(128, 128), mode="bilinear", antialias=True)
+    assert ssim(big, small.round().byte()).item() > 0.999

@@ -1,0 +1,247 @@
+"""The tactile classification task: which object does one tactile image come from?
+
+A small CNN is trained on a set of tactile images and scored on held-out ground-truth touches. The paper's rows
+(its Table 1b / 2b): ``Sim`` (ground-truth touches of the training objects only), ``Sim + G`` (the same plus
+images generator G made from novel poses) and ``G only``. Every row uses the same network, the same number of
+optimisation steps, the same seed and the same test set, so differences come from the training images alone.
+
+Images go in as uint8 ``[N, 3, S, S]`` (the touch-format loader below makes them) and are fed to the network in
+[-1, 1]. Everything stays on the device as uint8, so a few thousand images train in seconds on a GPU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from tnf.errors import TnfError
+
+
+@dataclass
+class ClassifierConfig:
+    """Settings of the tactile object classifier (identical for every training set)."""
+
+    image_size: int = 64
+    """Side of the square input image in pixels (128 is the generators' size; 64 trains 4x faster)."""
+    width: int = 32
+    """Channels of the first convolution block; doubled in each of the next blocks (up to 4 blocks)."""
+    steps: int = 1500
+    """Optimisation steps (batches); the same for every row, so a larger training set gets no extra steps."""
+    batch_size: int = 64
+    """Images per step."""
+    lr: float = 1e-3
+    """Adam learning rate, decayed with a cosine schedule to zero over ``steps``."""
+    weight_decay: float = 1e-4
+    """AdamW weight decay."""
+    shift: int = 4
+    """Augmentation: random translation of each batch by up to this many pixels (0 = none)."""
+
+    def validate(self) -> None:
+        if self.image_size < 16:
+            raise TnfError(f"evaluate.classifier.image_size must be >= 16 pixels, got {self.image_size}")
+        for name in ("width", "steps", "batch_size"):
+            if getattr(self, name) < 1:
+                raise TnfError(f"evaluate.classifier.{name} must be >= 1, got {getattr(self, name)}")
+        if self.lr <= 0:
+            raise TnfError(f"evaluate.classifier.lr must be > 0, got {self.lr}")
+        if not 0 <= self.shift < self.image_size // 2:
+            raise TnfError(f"evaluate.classifier.shift must be in [0, image_size/2), got {self.shift}")
+
+    @classmethod
+    def from_dict(cls, params: Mapping[str, Any]) -> ClassifierConfig:
+        """Build and validate from a config node; an unknown key is a TnfError naming it."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        for key in params:
+            if key not in known:
+                raise TnfError(f"unknown key evaluate.classifier.{key}; known: {', '.join(sorted(known))}")
+        cfg = cls(**dict(params))
+        cfg.validate()
+        return cfg
+
+
+class TactileClassifier(nn.Module):
+    """Conv blocks (3x3 conv, batch norm, ReLU, 2x2 max pool), global average pooling and a linear layer.
+
+    Input ``[B, 3, S, S]`` in [-1, 1]; output logits ``[B, num_classes]``.
+    """
+
+    def __init__(self, num_classes: int, width: int = 32, blocks: int = 4):
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = 3
+        for i in range(blocks):
+            c_out = width * 2 ** min(i, 2)
+            layers += [nn.Conv2d(c_in, c_out, 3, padding=1, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(True)]
+            layers.append(nn.MaxPool2d(2))
+            c_in = c_out
+        self.features = nn.Sequential(*layers)
+        self.head = nn.Linear(c_in, num_classes)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x).mean((2, 3)))
+
+
+def _to_input(x: torch.Tensor, size: int) -> torch.Tensor:
+    """uint8 [B, 3, H, W] -> float [B, 3, size, size] in [-1, 1]."""
+    x = x.float() / 127.5 - 1.0
+    if x.shape[-1] != size or x.shape[-2] != size:
+        x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False, antialias=True)
+    return x
+
+
+def train_classifier(
+    images: torch.Tensor,
+    labels: torch.Tensor,
+    num_classes: int,
+    cfg: ClassifierConfig,
+    seed: int = 0,
+    device: str = "cpu",
+    on_step: Callable[[int], None] | None = None,
+) -> TactileClassifier:
+    """Train a fresh classifier on uint8 images ``[N, 3, H, W]`` with labels ``[N]`` (0..num_classes-1).
+
+    The initial weights, batch order and augmentation depend only on ``seed``. ``on_step(i)`` is called after
+    each step (progress bars).
+    """
+    if len(images) == 0:
+        raise TnfError("classifier training set is empty; check the touch and generated datasets")
+    if images.dtype != torch.uint8 or images.ndim != 4:
+        raise ValueError(f"images must be uint8 [N, 3, H, W], got {images.dtype} {tuple(images.shape)}")
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    model = TactileClassifier(num_classes, cfg.width, blocks=min(4, int(math.log2(cfg.image_size)) - 2)).to(device)
+    x_all = images.to(device)
+    y_all = labels.to(device).long()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 0.5 * (1 + math.cos(math.pi * i / cfg.steps)))
+    model.train()
+    n = len(x_all)
+    order = torch.randperm(n, generator=gen)
+    pos = 0
+    for step in range(cfg.steps):
+        if pos + cfg.batch_size > n and pos > 0:  # reshuffle each epoch; a batch never spans two epochs
+            order, pos = torch.randperm(n, generator=gen), 0
+        idx = order[pos : pos + cfg.batch_size].to(device)
+        pos += cfg.batch_size
+        x = _to_input(x_all[idx], cfg.image_size)
+        if cfg.shift > 0:
+            dx, dy = (torch.randint(-cfg.shift, cfg.shift + 1, (2,), generator=gen)).tolist()
+            x = torch.roll(F.pad(x, [cfg.shift] * 4, mode="replicate"), shifts=(dy, dx), dims=(2, 3))
+            x = x[..., cfg.shift : cfg.shift + cfg.image_size, cfg.shift : cfg.shift + cfg.image_size]
+        loss = F.cross_entropy(model(x), y_all[idx])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        if on_step is not None:
+            on_step(step)
+    model.eval()
+    return model
+
+
+@torch.no_grad()
+def predict(model: TactileClassifier, images: torch.Tensor, image_size: int, batch_size: int = 512) -> torch.Tensor:
+    """Predicted class ``[N]`` (long, on the CPU) of uint8 images ``[N, 3, H, W]``."""
+    device = next(model.parameters()).device
+    out = [
+        model(_to_input(images[i : i + batch_size].to(device), image_size)).argmax(1).cpu()
+        for i in range(0, len(images), batch_size)
+    ]
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.long)
+
+
+def accuracy(model: TactileClassifier, images: torch.Tensor, labels: torch.Tensor, image_size: int) -> float:
+    """Classification accuracy in percent on uint8 images ``[N, 3, H, W]`` with labels ``[N]``."""
+    if len(images) == 0:
+        raise TnfError("classifier test set is empty; the held-out touches (evaluate.classify.test_splits) are missing")
+    return float((predict(model, images, image_size) == labels.cpu().long()).float().mean()) * 100.0
+
+
+@dataclass
+class LabelledImages:
+    """A classification set: uint8 images ``[N, 3, S, S]`` and labels ``[N]`` (indices into the class list)."""
+
+    images: torch.Tensor
+    labels: torch.Tensor
+
+    @staticmethod
+    def concat(sets: Sequence[LabelledImages]) -> LabelledImages:
+        return LabelledImages(torch.cat([s.images for s in sets]), torch.cat([s.labels for s in sets]))
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+def run_rows(
+    train_sets: Mapping[str, LabelledImages],
+    test: LabelledImages,
+    num_classes: int,
+    cfg: ClassifierConfig,
+    seed: int = 0,
+    device: str = "cpu",
+    on_step: Callable[[int], None] | None = None,
+) -> dict[str, float]:
+    """Train one classifier per row of ``train_sets`` (same seed and schedule) -> accuracy in percent per row."""
+    return {
+        row: accuracy(
+            train_classifier(s.images, s.labels, num_classes, cfg, seed, device, on_step),
+            test.images,
+            test.labels,
+            cfg.image_size,
+        )
+        for row, s in train_sets.items()
+    }
+
+
+# ---- touch-format folders (the output of `tnf touch` and `tnf generate`) -------------------------------------
+
+
+def touch_records(folder: str | Path) -> list[dict[str, Any]]:
+    """The ``touches`` list of a touch-format folder's manifest (each has at least ``image``)."""
+    from tnf.artifacts import read_json
+
+    folder = Path(folder)
+    m = read_json(folder / "manifest.json", "touch manifest")
+    touches = m.get("touches", m.get("info", {}).get("touches"))
+    if not isinstance(touches, list):
+        raise TnfError(f"touch manifest {folder / 'manifest.json'} has no 'touches' list")
+    return touches
+
+
+def load_touch_images(
+    folder: str | Path,
+    size: int,
+    splits: Sequence[str] | None = None,
+    limit: int | None = None,
+    seed: int = 0,
+) -> torch.Tensor:
+    """Tactile images of a touch-format folder as uint8 ``[N, 3, size, size]`` (resized with antialiasing).
+
+    ``splits`` keeps touches whose ``split`` is listed (None: all); ``limit`` keeps a random subset of that many
+    (chosen with ``seed``, in the manifest's order), the way the ``Sim`` set takes a fixed number per object.
+    """
+    from PIL import Image
+
+    folder = Path(folder)
+    recs = [t for t in touch_records(folder) if splits is None or t.get("split") in splits]
+    if limit is not None and len(recs) > limit:
+        keep = np.sort(np.random.default_rng(seed).choice(len(recs), size=limit, replace=False))
+        recs = [recs[i] for i in keep]
+    out = np.zeros((len(recs), size, size, 3), np.uint8)
+    for i, t in enumerate(recs):
+        path = folder / t["image"]
+        try:
+            with Image.open(path) as im:
+                out[i] = np.asarray(im.convert("RGB").resize((size, size), Image.Resampling.BILINEAR))
+        except FileNotFoundError:
+            raise TnfError(f"touch image {path} listed in {folder / 'manifest.json'} is missing") from None
+    return torch.from_numpy(out).permute(0, 3, 1, 2).contiguous()

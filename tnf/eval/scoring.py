@@ -1,0 +1,99 @@
+"""SSIM and MSE of a generator on a test set, per image, per object and overall, with the background baseline.
+
+Batches are the paired datasets' dicts (float32 in [-1, 1]): ``rgb [B,3,128,128]``, ``depth [B,1,128,128]``,
+``background [B,3,128,128]``, ``tactile [B,3,128,128]``, ``object_id [B]``. The generator is any callable
+``batch -> [B,3,128,128]`` in [-1, 1]; the ``BG`` row uses ``batch["background"]`` as the prediction.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
+
+import torch
+
+from tnf.eval.metrics import mse, ssim
+
+BG = "BG"
+
+
+class MetricAccumulator:
+    """Collects per-image SSIM and MSE with each image's object, and summarises them."""
+
+    def __init__(self) -> None:
+        self.ssim: dict[str, list[float]] = defaultdict(list)
+        self.mse: dict[str, list[float]] = defaultdict(list)
+
+    def add(self, objects: Sequence[str], ssim_values: torch.Tensor, mse_values: torch.Tensor) -> None:
+        for o, s, m in zip(objects, ssim_values.tolist(), mse_values.tolist(), strict=True):
+            self.ssim[o].append(s)
+            self.mse[o].append(m)
+
+    def merge(self, other: MetricAccumulator) -> MetricAccumulator:
+        out = MetricAccumulator()
+        for acc in (self, other):
+            for o in acc.ssim:
+                out.ssim[o] += acc.ssim[o]
+                out.mse[o] += acc.mse[o]
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """``{"ssim": mean over images, "mse": ..., "n": images, "per_object": {object: {ssim, mse, n}}}``."""
+        all_s = [v for vs in self.ssim.values() for v in vs]
+        all_m = [v for vs in self.mse.values() for v in vs]
+        n = len(all_s)
+        return {
+            "ssim": sum(all_s) / n if n else None,
+            "mse": sum(all_m) / n if n else None,
+            "n": n,
+            "per_object": {
+                o: {
+                    "ssim": sum(self.ssim[o]) / len(self.ssim[o]),
+                    "mse": sum(self.mse[o]) / len(self.mse[o]),
+                    "n": len(self.ssim[o]),
+                }
+                for o in sorted(self.ssim)
+            },
+        }
+
+
+def score_batches(
+    batches: Iterable[Mapping[str, torch.Tensor]],
+    generate: Callable[[Mapping[str, torch.Tensor]], torch.Tensor] | None,
+    object_names: Sequence[str] | None = None,
+    keep_examples: int = 0,
+    on_batch: Callable[[], None] | None = None,
+) -> tuple[dict[str, MetricAccumulator], dict[str, torch.Tensor]]:
+    """Score ``generate`` (None: the background baseline only) on ``batches``.
+
+    Returns ({"G": accumulator, "BG": accumulator}, examples) where examples holds the first ``keep_examples``
+    images on the CPU: rgb, depth, generated, real (all in [-1, 1]) and object_id.
+    """
+    accs = {"G": MetricAccumulator(), BG: MetricAccumulator()}
+    kept: dict[str, list[torch.Tensor]] = defaultdict(list)
+    n_kept = 0
+    with torch.no_grad():
+        for batch in batches:
+            real = batch["tactile"]
+            ids = batch["object_id"].tolist()
+            objs = [object_names[i] if object_names is not None else str(i) for i in ids]
+            bg = batch["background"].to(real.device)
+            accs[BG].add(objs, ssim(bg, real), mse(bg, real))
+            if generate is not None:
+                fake = generate(batch).detach().float().to(real.device)
+                accs["G"].add(objs, ssim(fake, real), mse(fake, real))
+                if n_kept < keep_examples:
+                    take = min(keep_examples - n_kept, len(real))
+                    for key, val in (
+                        ("rgb", batch["rgb"]),
+                        ("depth", batch["depth"]),
+                        ("generated", fake),
+                        ("real", real),
+                        ("object_id", batch["object_id"]),
+                    ):
+                        kept[key].append(val[:take].detach().cpu())
+                    n_kept += take
+            if on_batch is not None:
+                on_batch()
+    return accs, {k: torch.cat(v) for k, v in kept.items()}

@@ -1,0 +1,308 @@
+"""``tnf evaluate``: score a trained generator and write the report.
+
+For one model (``evaluate.model=RUN``): SSIM and MSE of its generated images against ground truth on each test
+split (plus the BG row, the sensor's background used as the prediction), per object too, and the classification
+task (rows Sim, Sim + G, G only). The run's results go to ``<root>/reports/<name>/runs/<table>_<method>_seed<k>/``
+(and to the Hydra job's output folder); then the report in ``<root>/reports/<name>/`` is rebuilt from every run
+there. ``evaluate.sweep_dir=DIR`` instead collects the results.json files of a Hydra multirun folder.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from tnf.errors import TnfError
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    from omegaconf import OmegaConf
+    from rich.console import Console
+
+    from tnf.artifacts import ArtifactStore, config_hash, write_json
+    from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
+    from tnf.eval.report import write_report
+
+    console = Console(highlight=False)
+    ecfg = cfg.evaluate
+    store = ArtifactStore(cfg.data_root)
+    report_dir = store.path("reports", str(ecfg.name))
+    runs_dir = report_dir / "runs"
+    if ecfg.table not in ("main", "transfer"):
+        raise TnfError(f"evaluate.table must be main or transfer, got {ecfg.table!r}")
+    out: dict[str, Any] = {}
+
+    if ecfg.sweep_dir:
+        files = find_results(Path(str(ecfg.sweep_dir)).expanduser())
+        if not files:
+            raise TnfError(f"no {RESULTS_FILE} below evaluate.sweep_dir={ecfg.sweep_dir}; did the sweep's jobs finish?")
+        for r in load_results(files):
+            src = Path(r.pop("_path"))
+            dst = runs_dir / run_id(r)
+            dst.mkdir(parents=True, exist_ok=True)
+            write_json(dst / RESULTS_FILE, r)
+            if r.get("examples") and (src.parent / r["examples"]).is_file():
+                shutil.copyfile(src.parent / r["examples"], dst / r["examples"])
+        console.print(f"collected {len(files)} run(s) from {ecfg.sweep_dir}")
+
+    if ecfg.model:
+        method = ecfg.method or _method_label(cfg)
+        settings = OmegaConf.to_container(cfg, resolve=True)
+        # Everything that changes the numbers; not the report name, progress or the sweep folder.
+        hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate")}
+        hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in ("name", "sweep_dir", "force")}
+        chash = config_hash(hashed)
+        folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
+        old = folder / RESULTS_FILE
+        if not ecfg.force and old.is_file() and load_results([old])[0].get("config_hash") == chash:
+            console.print(
+                f"{method} seed {cfg.seed}: results exist with the same settings, skipped (evaluate.force=true)"
+            )
+            results = load_results([old])[0]
+            results.pop("_path")
+        else:
+            results = evaluate_model(cfg, store, method, folder)
+            results["config_hash"] = chash
+            write_json(folder / RESULTS_FILE, results)
+        _copy_to_hydra_output(folder)
+        out["results"] = results
+
+    files = find_results(runs_dir) if runs_dir.is_dir() else []
+    if not files:
+        raise TnfError(
+            f"nothing to report in {report_dir}: give evaluate.model=RUN (a folder under {store.path('models')}) "
+            "or evaluate.sweep_dir=DIR"
+        )
+    tables = write_report(load_results(files), report_dir, name=str(ecfg.name))
+    _print_summary(console, tables, report_dir)
+    out["report"] = report_dir / "report.md"
+    out["tables"] = tables
+    return out
+
+
+def run_id(r: Mapping[str, Any]) -> str:
+    """Folder name of a run's results: ``<table>_<method>_seed<k>`` with unsafe characters replaced."""
+    raw = f"{r.get('table', 'main')}_{r['method']}_seed{r['seed']}"
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", raw)
+
+
+def _method_label(cfg: Any) -> str:
+    from tnf.eval.paper import METHOD_LABELS
+
+    name = str(cfg.generator.name) if "generator" in cfg and "name" in cfg.generator else "G"
+    return METHOD_LABELS.get(name, name)
+
+
+def evaluate_model(cfg: Any, store: Any, method: str, folder: Path) -> dict[str, Any]:
+    """Image metrics and the classification task for ``cfg.evaluate.model``; returns the results dict."""
+    from tnf.eval.aggregate import SCHEMA
+    from tnf.runtime import progress, resolve_device, seed_everything
+
+    ecfg = cfg.evaluate
+    device = resolve_device(str(cfg.device))
+    folder.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {
+        "schema": SCHEMA,
+        "table": str(ecfg.table),
+        "method": method,
+        "generator": str(cfg.generator.name) if "generator" in cfg else None,
+        "model": str(ecfg.model),
+        "seed": int(cfg.seed),
+        "image": {},
+        "accuracy": {},
+        "warnings": [],
+    }
+    with progress(bool(cfg.progress)) as bar:
+        if list(ecfg.splits):
+            seed_everything(int(cfg.seed))
+            image, examples = image_metrics(cfg, store, device, bar)
+            results["image"] = image
+            if examples is not None:
+                from tnf.eval.figures import example_grid
+
+                example_grid(examples["tensors"], float(ecfg.diff_threshold), examples["labels"]).save(
+                    folder / "examples.png"
+                )
+                results["examples"] = "examples.png"
+        if ecfg.classify.enabled:
+            seed_everything(int(cfg.seed))
+            acc, info, warnings = classification(cfg, store, method, device, bar)
+            results["accuracy"] = acc
+            results["classify"] = info
+            results["warnings"] += warnings
+    return results
+
+
+def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """SSIM/MSE per test split for the model and BG, and the example touches (from novel_object if scored)."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    from tnf.eval.scoring import BG, score_batches
+
+    ecfg = cfg.evaluate
+    if not ecfg.dataset:
+        raise TnfError(
+            "evaluate.dataset is not set: name the paired dataset (a folder under pairs/) with the test splits"
+        )
+    try:
+        from tnf.data import PairDataset
+        from tnf.generators import load_generator
+    except ImportError as e:
+        raise TnfError(
+            f"image metrics need tnf.data and tnf.generators ({e}); set evaluate.splits=[] to skip"
+        ) from None
+    pairs = store.require("pairs", str(ecfg.dataset), hint="run `tnf pair` first")
+    ckpt = store.path("models", str(ecfg.model), str(ecfg.checkpoint))
+    if not ckpt.is_file():
+        raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check evaluate.model/checkpoint")
+    system = load_generator(ckpt, device)
+
+    def generate(batch: Any) -> torch.Tensor:
+        moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+        return system.generate(moved)
+
+    out: dict[str, Any] = {}
+    bg_all = None
+    examples = None
+    splits = list(ecfg.splits)
+    example_split = "novel_object" if "novel_object" in splits else splits[-1]
+    for split in splits:
+        ds = PairDataset(pairs, splits=[split], per_object=ecfg.per_object, seed=int(cfg.seed))
+        names = _object_names(ds)
+        loader = DataLoader(ds, batch_size=int(ecfg.batch_size), shuffle=False, num_workers=int(ecfg.num_workers))
+        task = bar.add_task(f"score {split}", total=len(loader))
+        keep = int(ecfg.examples) if split == example_split else 0
+        accs, kept = score_batches(loader, generate, names, keep_examples=keep, on_batch=lambda t=task: bar.advance(t))
+        out[split] = {"G": accs["G"].summary(), BG: accs[BG].summary()}
+        bg_all = accs[BG] if bg_all is None else bg_all.merge(accs[BG])
+        if keep and kept:
+            labels = [names[i] if names else str(i) for i in kept["object_id"].tolist()]
+            examples = {"tensors": kept, "labels": labels}
+    results: dict[str, Any] = {}
+    method = cfg.evaluate.method or _method_label(cfg)
+    for split, rows in out.items():
+        results[split] = {method: rows["G"], BG: rows[BG]}
+    if bg_all is not None:
+        results["all"] = {BG: bg_all.summary()}
+    return results, examples
+
+
+def _object_names(ds: Any) -> list[str] | None:
+    for attr in ("object_names", "objects"):
+        names = getattr(ds, attr, None)
+        if isinstance(names, (list, tuple)) and names and isinstance(names[0], str):
+            return list(names)
+    return None
+
+
+def classification(cfg: Any, store: Any, method: str, device: str, bar: Any) -> tuple[dict, dict, list[str]]:
+    """Train the classifier on Sim, Sim + G and G only; accuracy (percent) on held-out ground truth."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
+
+    ecfg = cfg.evaluate
+    ccfg = ecfg.classify
+    clf = ClassifierConfig.from_dict(OmegaConf.to_container(ecfg.classifier, resolve=True))
+    sensor = str(ccfg.sensor or cfg.sensor.name)
+    source = str(cfg.objects.name)
+    generated_run = str(ecfg.generated or ecfg.model)
+    if ccfg.objects:
+        objects = [str(o) for o in ccfg.objects]
+    else:
+        objects = [p[2] for p in store.items("touch", depth=3) if p[0] == sensor and p[1] == source]
+    if cfg.object_names and not ccfg.objects:
+        objects = [o for o in objects if o in set(cfg.object_names)]
+    if len(objects) < 2:
+        raise TnfError(
+            f"classification needs touches of at least 2 objects under {store.path('touch', sensor, source)}, "
+            f"found {objects}; run `tnf touch` first or set evaluate.classify.enabled=false"
+        )
+    size = clf.image_size
+    seed = int(cfg.seed)
+    sim, gen, test, warnings = [], [], [], []
+    load = bar.add_task("load touches", total=len(objects))
+    for label, obj in enumerate(objects):
+        folder = store.require("touch", sensor, source, obj, hint="run `tnf touch` first")
+
+        def labelled(x: torch.Tensor, label: int = label) -> LabelledImages:
+            return LabelledImages(x, torch.full((len(x),), label, dtype=torch.long))
+
+        sim.append(labelled(load_touch_images(folder, size, list(ccfg.sim_splits), ccfg.sim_per_object, seed)))
+        test.append(labelled(load_touch_images(folder, size, list(ccfg.test_splits), ccfg.test_per_object, seed)))
+        gfolder = store.path("generated", generated_run, source, obj)
+        if (gfolder / "manifest.json").is_file():
+            gen.append(labelled(load_touch_images(gfolder, size, None, ccfg.generated_per_object, seed)))
+        else:
+            warnings.append(f"no generated touches for {obj} in {gfolder}")
+        bar.advance(load)
+    if not gen:
+        raise TnfError(
+            f"no generated touches of run {generated_run!r} under {store.path('generated', generated_run, source)}; "
+            "run `tnf generate` first, set evaluate.generated=RUN, or evaluate.classify.enabled=false"
+        )
+    sim_set, gen_set, test_set = (LabelledImages.concat(s) for s in (sim, gen, test))
+    rows = {"Sim": sim_set, f"Sim + {method}": LabelledImages.concat([sim_set, gen_set])}
+    if ccfg.generated_only:
+        rows[f"{method} only"] = gen_set
+    task = bar.add_task("classify", total=clf.steps * len(rows))
+    acc = run_rows(rows, test_set, len(objects), clf, seed, device, on_step=lambda _: bar.advance(task))
+    info = {
+        "classes": objects,
+        "train_images": {row: len(s) for row, s in rows.items()},
+        "test_images": len(test_set),
+        "sensor": sensor,
+        "generated": generated_run,
+    }
+    return acc, info, warnings
+
+
+def _copy_to_hydra_output(folder: Path) -> None:
+    """Put the run's results into the Hydra job folder too, so a multirun folder can be aggregated later."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        out = Path(HydraConfig.get().runtime.output_dir)
+    except (ImportError, ValueError):  # not inside a Hydra app (tests, API use)
+        return
+    for f in folder.iterdir():
+        if f.is_file():
+            shutil.copyfile(f, out / f.name)
+
+
+def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) -> None:
+    from rich.table import Table
+
+    from tnf.eval.report import TABLES, accuracy_rows, checks, fmt_stat, image_rows
+
+    for name, data in tables.items():
+        num = TABLES.get(name, (name,))[0]
+        t = Table(title=f"Table {num}a", box=None)
+        for col in ("test set", "method", "SSIM", "paper", "MSE", "paper"):
+            t.add_column(col)
+        for r in image_rows(name, data):
+            o, p = r["ours"], r["paper"]
+            t.add_row(
+                r["test_set"],
+                r["method"],
+                fmt_stat(o.get("ssim"), "ssim"),
+                fmt_stat(p.get("ssim"), "ssim"),
+                fmt_stat(o.get("mse"), "mse"),
+                fmt_stat(p.get("mse"), "mse"),
+            )
+        console.print(t)
+        t = Table(title=f"Table {num}b", box=None)
+        for col in ("training set", "accuracy %", "paper"):
+            t.add_column(col)
+        for r in accuracy_rows(name, data):
+            t.add_row(r["row"], fmt_stat(r["ours"], "acc"), fmt_stat(r["paper"], "acc"))
+        console.print(t)
+        failed = [c for c, v, _ in checks(name, data) if v == "FAILS"]
+        if failed:
+            console.print(f"[yellow]claims not reproduced:[/] {'; '.join(failed)}")
+    console.print(f"report: {report_dir / 'report.md'}")
