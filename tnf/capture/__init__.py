@@ -1,0 +1,286 @@
+"""Multi-view RGB-D capture of an object, written in the instant-ngp / nerfstudio ``transforms.json`` format.
+
+Cameras look at the origin from a sphere (``sphere``: Fibonacci-even) or from an azimuth/elevation range
+(``hemisphere``), plus a separate set of held-out test views. Output folder of one object::
+
+    transforms.json        training views: fl_x, fl_y, cx, cy, w, h, camera_angle_x, frames
+    transforms_test.json   held-out views, same format
+    images/train_000.png   RGBA, alpha = 255 where the object is
+    depth/train_000.npy    float32 z-depth in metres, 0 where empty
+
+Matrices are camera-to-world 4x4 in the OpenGL convention (camera looks along -z, +y up), metres; world +z
+is the object's up.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from tnf.errors import TnfError
+
+GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+
+
+@dataclass
+class CaptureConfig:
+    """Settings of the capture stage (``cfg.capture``)."""
+
+    views: Literal["sphere", "hemisphere"] = "sphere"
+    """Training camera layout: evenly on a whole sphere, or uniformly in an azimuth/elevation range."""
+    num_views: int = 48
+    """Number of training views per object."""
+    num_test_views: int = 8
+    """Number of held-out test views per object (a different set of poses)."""
+    resolution: int = 128
+    """Image width and height in pixels."""
+    fov_deg: float = 40.0
+    """Horizontal (= vertical) field of view in degrees."""
+    fill: float = 0.8
+    """Fraction of the image width the object's bounding sphere spans; sets the camera distance."""
+    distance: float | None = None
+    """Camera distance from the origin in metres; null: from ``fill``, the object's size and the fov."""
+    min_elevation_deg: float = -30.0
+    """Lowest camera elevation above the xy plane for ``hemisphere`` views, degrees."""
+    max_elevation_deg: float = 80.0
+    """Highest camera elevation for ``hemisphere`` views, degrees."""
+    min_azimuth_deg: float = 0.0
+    """Start of the azimuth range for ``hemisphere`` views, degrees."""
+    max_azimuth_deg: float = 360.0
+    """End of the azimuth range for ``hemisphere`` views, degrees."""
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """RGB background colour in [0, 1] (the PNGs' colour where alpha is 0)."""
+    ambient: float = 0.35
+    """Ambient light level in [0, 1]."""
+    light_intensity: float = 3.0
+    """Strength of the key directional light (pyrender units); fill and rim lights are fractions of it."""
+
+    def validate(self) -> None:
+        if self.num_views < 1 or self.num_test_views < 0:
+            raise ValueError(
+                f"num_views must be >= 1 and num_test_views >= 0, got {self.num_views}, {self.num_test_views}"
+            )
+        if not 8 <= self.resolution <= 4096:
+            raise ValueError(f"resolution must be in 8..4096 pixels, got {self.resolution}")
+        if not 1.0 < self.fov_deg < 170.0:
+            raise ValueError(f"fov_deg must be in (1, 170) degrees, got {self.fov_deg}")
+        if not 0.05 <= self.fill <= 1.0:
+            raise ValueError(f"fill must be in [0.05, 1], got {self.fill}")
+        if self.distance is not None and self.distance <= 0:
+            raise ValueError(f"distance must be > 0 metres or null, got {self.distance}")
+        if not -90.0 <= self.min_elevation_deg <= self.max_elevation_deg <= 90.0:
+            raise ValueError(
+                f"need -90 <= min_elevation_deg <= max_elevation_deg <= 90, got "
+                f"{self.min_elevation_deg}, {self.max_elevation_deg}"
+            )
+        if any(not 0.0 <= c <= 1.0 for c in self.background):
+            raise ValueError(f"background must be RGB in [0, 1], got {list(self.background)}")
+
+
+def capture_config(node: Any) -> CaptureConfig:
+    """Validate ``cfg.capture`` (a Hydra node or dict) into a :class:`CaptureConfig`."""
+    from tnf.registry import from_dict
+
+    return from_dict(CaptureConfig, node or {}, where="capture")
+
+
+# -- cameras ------------------------------------------------------------------------------------------------
+def look_at(eye: Any, target: Any = (0.0, 0.0, 0.0), up: Any = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world 4x4 (OpenGL: looks along -z, +y up) at ``eye`` looking at ``target``, metres.
+
+    When the view direction is (nearly) parallel to ``up`` the world +y axis is used as up instead.
+    """
+    eye, target, up = (np.asarray(x, dtype=float) for x in (eye, target, up))
+    back = eye - target
+    back /= np.linalg.norm(back)
+    if abs(float(np.dot(back, up / np.linalg.norm(up)))) > 0.999:
+        up = np.array([0.0, 1.0, 0.0])
+    right = np.cross(up, back)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(back, right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, back, eye
+    return c2w
+
+
+def fibonacci_directions(n: int, rotation: np.ndarray | None = None) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (Fibonacci lattice), [n, 3]."""
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    r = np.sqrt(np.clip(1 - z**2, 0, None))
+    phi = GOLDEN_ANGLE * i
+    d = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+    return d @ rotation.T if rotation is not None else d
+
+
+def hemisphere_directions(n: int, cfg: CaptureConfig, rng: np.random.Generator) -> np.ndarray:
+    """``n`` unit vectors uniform in area within the azimuth/elevation range of ``cfg``, [n, 3]."""
+    lo, hi = np.sin(np.radians([cfg.min_elevation_deg, cfg.max_elevation_deg]))
+    z = rng.uniform(lo, hi, n)
+    az = np.radians(rng.uniform(cfg.min_azimuth_deg, cfg.max_azimuth_deg, n))
+    r = np.sqrt(np.clip(1 - z**2, 0, None))
+    return np.stack([r * np.cos(az), r * np.sin(az), z], 1)
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    return q
+
+
+def camera_distance(radius: float, cfg: CaptureConfig) -> float:
+    """Distance (metres) at which a bounding sphere of ``radius`` spans ``cfg.fill`` of the image width."""
+    if cfg.distance is not None:
+        return float(cfg.distance)
+    # The sphere's silhouette half-angle asin(r/d) should be fill * fov/2.
+    half = math.radians(cfg.fov_deg) / 2 * cfg.fill
+    return radius / math.sin(half)
+
+
+def intrinsics(cfg: CaptureConfig) -> tuple[float, float, float, float]:
+    """Pinhole ``(fx, fy, cx, cy)`` in pixels for a square image of ``cfg.resolution``."""
+    f = cfg.resolution / 2 / math.tan(math.radians(cfg.fov_deg) / 2)
+    return f, f, cfg.resolution / 2, cfg.resolution / 2
+
+
+def camera_poses(radius: float, cfg: CaptureConfig, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Training and test camera-to-world poses ``([N, 4, 4], [M, 4, 4])`` looking at the origin.
+
+    Test views are a second, independently rotated (``sphere``) or sampled (``hemisphere``) set, so they
+    are held out from training.
+    """
+    rng = np.random.default_rng(seed)
+    d = camera_distance(radius, cfg)
+    if cfg.views == "sphere":
+        train = fibonacci_directions(cfg.num_views)
+        test = fibonacci_directions(cfg.num_test_views, _random_rotation(rng))
+    else:
+        train = hemisphere_directions(cfg.num_views, cfg, rng)
+        test = hemisphere_directions(cfg.num_test_views, cfg, rng)
+    return (
+        np.stack([look_at(u * d) for u in train]) if len(train) else np.zeros((0, 4, 4)),
+        np.stack([look_at(u * d) for u in test]) if len(test) else np.zeros((0, 4, 4)),
+    )
+
+
+# -- writing and reading ------------------------------------------------------------------------------------
+def transforms_dict(c2w: np.ndarray, cfg: CaptureConfig, split: str) -> dict[str, Any]:
+    """The ``transforms.json`` content for poses ``c2w`` [N, 4, 4] of one split (``train`` or ``test``)."""
+    fx, fy, cx, cy = intrinsics(cfg)
+    frames = [
+        {
+            "file_path": f"images/{split}_{i:03d}.png",
+            "depth_file_path": f"depth/{split}_{i:03d}.npy",
+            "transform_matrix": m.tolist(),
+        }
+        for i, m in enumerate(c2w)
+    ]
+    return {
+        "camera_model": "OPENCV",  # pinhole without distortion; matrices use nerfstudio's OpenGL convention
+        "fl_x": fx,
+        "fl_y": fy,
+        "cx": cx,
+        "cy": cy,
+        "w": cfg.resolution,
+        "h": cfg.resolution,
+        "camera_angle_x": math.radians(cfg.fov_deg),
+        "camera_angle_y": math.radians(cfg.fov_deg),
+        "depth_unit_scale_factor": 1.0,  # depth files are in metres
+        "frames": frames,
+    }
+
+
+def write_views(
+    folder: Path, split: str, c2w: np.ndarray, rgb: np.ndarray, depth: np.ndarray, cfg: CaptureConfig
+) -> None:
+    """Write RGBA PNGs (alpha from the depth mask), depth .npy files and ``transforms[_test].json``."""
+    from PIL import Image
+
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    (folder / "depth").mkdir(parents=True, exist_ok=True)
+    meta = transforms_dict(c2w, cfg, split)
+    for frame, colour, z in zip(meta["frames"], rgb, depth):
+        alpha = np.where(z > 0, 255, 0).astype(np.uint8)[..., None]
+        Image.fromarray(np.concatenate([colour, alpha], -1), "RGBA").save(folder / frame["file_path"])
+        np.save(folder / frame["depth_file_path"], z.astype(np.float32))
+    name = "transforms.json" if split == "train" else f"transforms_{split}.json"
+    (folder / name).write_text(json.dumps(meta, indent=2) + "\n")
+
+
+def load_transforms(
+    path: str | Path,
+) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float], int, int, np.ndarray | None]:
+    """Read a ``transforms.json`` (a file, or a capture folder meaning its ``transforms.json``).
+
+    Returns:
+        images: [N, H, W, 4] uint8 RGBA (RGB images get alpha 255).
+        c2w: [N, 4, 4] float32 camera-to-world, OpenGL convention, metres.
+        intrinsics: ``(fx, fy, cx, cy)`` in pixels (from fl_x/fl_y/cx/cy, or camera_angle_x).
+        w, h: image size in pixels.
+        depth: [N, H, W] float32 z-depth metres (0 = empty) when every frame has ``depth_file_path``, else None.
+    """
+    from PIL import Image
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "transforms.json"
+    if not path.is_file():
+        raise TnfError(f"transforms file not found: {path}")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise TnfError(f"{path} is not valid JSON: {e}") from None
+    for key in ("w", "h", "frames"):
+        if key not in meta:
+            raise TnfError(f"{path}: missing key {key!r}")
+    w, h = int(meta["w"]), int(meta["h"])
+    if "fl_x" in meta:
+        fx = float(meta["fl_x"])
+        fy = float(meta.get("fl_y", fx))
+    elif "camera_angle_x" in meta:
+        fx = w / 2 / math.tan(float(meta["camera_angle_x"]) / 2)
+        fy = h / 2 / math.tan(float(meta["camera_angle_y"]) / 2) if "camera_angle_y" in meta else fx
+    else:
+        raise TnfError(f"{path}: missing key 'fl_x' or 'camera_angle_x' (the focal length)")
+    cx, cy = float(meta.get("cx", w / 2)), float(meta.get("cy", h / 2))
+    frames = meta["frames"]
+    if not frames:
+        raise TnfError(f"{path}: 'frames' is empty")
+    images, poses, depths = [], [], []
+    for i, fr in enumerate(frames):
+        for key in ("file_path", "transform_matrix"):
+            if key not in fr:
+                raise TnfError(f"{path}: frame {i} is missing key {key!r}")
+        m = np.asarray(fr["transform_matrix"], dtype=np.float32)
+        if m.shape != (4, 4):
+            raise TnfError(f"{path}: frame {i} transform_matrix has shape {list(m.shape)}, expected [4, 4]")
+        img_path = path.parent / fr["file_path"]
+        if not img_path.suffix and not img_path.is_file():
+            img_path = img_path.with_suffix(".png")  # instant-ngp files may omit the extension
+        if not img_path.is_file():
+            raise TnfError(f"{path}: frame {i} image not found: {img_path}")
+        with Image.open(img_path) as im:
+            if im.mode not in ("RGB", "RGBA"):
+                raise TnfError(f"{img_path}: expected an RGB or RGBA image, got mode {im.mode}")
+            arr = np.asarray(im.convert("RGBA"))
+        if arr.shape[:2] != (h, w):
+            raise TnfError(f"{img_path}: image is {arr.shape[1]}x{arr.shape[0]}, transforms file says {w}x{h}")
+        images.append(arr)
+        poses.append(m)
+        if "depth_file_path" in fr:
+            dp = path.parent / fr["depth_file_path"]
+            if not dp.is_file():
+                raise TnfError(f"{path}: frame {i} depth file not found: {dp}")
+            d = np.load(dp).astype(np.float32)
+            if d.shape != (h, w):
+                raise TnfError(f"{dp}: depth is {list(d.shape)}, expected [{h}, {w}]")
+            depths.append(d)
+    depth = np.stack(depths) if len(depths) == len(frames) else None
+    return np.stack(images), np.stack(poses), (fx, fy, cx, cy), w, h, depth

@@ -1,0 +1,168 @@
+"""Object sources: where the rigid objects that tnf captures and touches come from.
+
+An object source (registry ``OBJECTS``) lists object names and loads each as a ``trimesh.Trimesh`` in metres,
+centred at the origin (bounding-box centre), z up, with visual colours (vertex colours or a texture), and
+validated (:func:`validate_mesh`). In-tree sources: ``builtin`` (procedural household objects, the default),
+``mesh_dir`` (a folder of mesh files, YCB layout included) and ``pybullet`` (the objects of ``pybullet_data``).
+
+    src = OBJECTS.build(cfg.objects)          # or: src, names = select(cfg)
+    mesh = src.load("mug")                   # trimesh.Trimesh, metres
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from tnf.errors import TnfError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import trimesh
+
+log = logging.getLogger(__name__)
+
+# A mesh thinner than this along any axis (metres after scaling) is flat, not a solid object.
+MIN_EXTENT = 1e-4
+
+
+class ObjectSource:
+    """Base class of object sources. Subclasses implement ``names`` and ``_load``.
+
+    ``load`` adds centring and validation on top of ``_load`` so that every source returns meshes that
+    follow the same contract.
+    """
+
+    #: registry name of the source, set by subclasses (used as the artifact item key)
+    name: str = "objects"
+    #: when true, callers that go through many objects skip ones that fail to load, logging why
+    skip_invalid: bool = False
+
+    def names(self) -> list[str]:
+        """The object names this source provides, sorted."""
+        raise NotImplementedError
+
+    def _load(self, name: str) -> trimesh.Trimesh:
+        """Load object ``name`` as a mesh in metres (not necessarily centred)."""
+        raise NotImplementedError
+
+    def where(self, name: str) -> str:
+        """Where object ``name`` comes from (a file path or a description), for error messages."""
+        return f"{self.name} object {name!r}"
+
+    def load(self, name: str) -> trimesh.Trimesh:
+        """Object ``name`` as a ``trimesh.Trimesh``: metres, centred at the origin, validated, with colours."""
+        self.check_name(name)
+        mesh = self._load(name)
+        mesh = centre(mesh)
+        validate_mesh(mesh, self.where(name))
+        return mesh
+
+    def load_or_skip(self, name: str) -> trimesh.Trimesh | None:
+        """Like ``load``, but returns None (and logs why) for an invalid mesh when ``skip_invalid`` is set."""
+        try:
+            return self.load(name)
+        except TnfError as e:
+            if not self.skip_invalid:
+                raise
+            log.warning("skipping invalid object %s: %s", name, e)
+            return None
+
+    def check_name(self, name: str) -> None:
+        names = self.names()
+        if name not in names:
+            raise TnfError(f"unknown object {name!r} in source {self.name!r}; available: {_short_list(names)}")
+
+    def info(self, name: str) -> dict[str, Any]:
+        """Size and complexity of object ``name``: ``{"size_m": [dx, dy, dz], "triangles": n, "vertices": n}``."""
+        mesh = self.load(name)
+        return mesh_info(mesh)
+
+
+def mesh_info(mesh: trimesh.Trimesh) -> dict[str, Any]:
+    """``{"size_m": [dx, dy, dz] metres, "triangles": n, "vertices": n, "watertight": bool}`` of a mesh."""
+    return {
+        "size_m": [float(x) for x in mesh.extents],
+        "triangles": int(len(mesh.faces)),
+        "vertices": int(len(mesh.vertices)),
+        "watertight": bool(mesh.is_watertight),
+    }
+
+
+def centre(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Translate ``mesh`` (in place, also returned) so that its bounding-box centre is the origin."""
+    if len(mesh.vertices) and np.isfinite(mesh.vertices).all():
+        lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+        mesh.apply_translation(-(lo + hi) / 2)
+    return mesh
+
+
+def validate_mesh(mesh: Any, where: str) -> None:
+    """Raise a TnfError naming ``where`` (a file or object) if ``mesh`` is not a usable solid object.
+
+    Checks: a ``trimesh.Trimesh`` with vertices and faces, all vertices finite, face indices in range, a
+    positive surface area, an extent of at least 0.1 mm along every axis (not flat or a line), and, when the
+    mesh is closed, a non-zero volume.
+    """
+    import trimesh
+
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise TnfError(f"{where}: expected a triangle mesh, got {type(mesh).__name__}")
+    if len(mesh.vertices) == 0 or len(mesh.faces) == 0:
+        raise TnfError(f"{where}: empty mesh ({len(mesh.vertices)} vertices, {len(mesh.faces)} faces)")
+    v = np.asarray(mesh.vertices)
+    if not np.isfinite(v).all():
+        bad = int((~np.isfinite(v).all(axis=1)).sum())
+        raise TnfError(f"{where}: {bad} vertices are NaN or infinite")
+    f = np.asarray(mesh.faces)
+    if f.min() < 0 or f.max() >= len(v):
+        raise TnfError(f"{where}: face indices out of range 0..{len(v) - 1}")
+    area = float(mesh.area)
+    if not np.isfinite(area) or area <= 0:
+        raise TnfError(f"{where}: degenerate mesh (surface area {area:g} m^2)")
+    ext = v.max(0) - v.min(0)
+    if ext.min() < MIN_EXTENT:
+        raise TnfError(
+            f"{where}: degenerate mesh, extent {ext[0]:.3g} x {ext[1]:.3g} x {ext[2]:.3g} m "
+            f"is flat (needs >= {MIN_EXTENT:g} m along every axis)"
+        )
+    if mesh.is_watertight:
+        vol = abs(float(mesh.volume))
+        if not np.isfinite(vol) or vol < 1e-6 * float(np.prod(ext)):
+            raise TnfError(f"{where}: zero-volume mesh (volume {vol:.3g} m^3, extent {ext.tolist()})")
+
+
+def select(cfg: Any) -> tuple[ObjectSource, list[str]]:
+    """The object source of ``cfg.objects`` and the object names a run uses.
+
+    ``cfg.object`` (one name) wins over ``cfg.object_names`` (a list, or null for every object of the
+    source). Unknown names raise a TnfError listing what is available.
+    """
+    from tnf.registry import OBJECTS, split_spec
+
+    source = OBJECTS.build(cfg.objects)
+    source.name = split_spec(cfg.objects, "objects")[0]
+    available = source.names()
+    single = cfg.get("object") if hasattr(cfg, "get") else getattr(cfg, "object", None)
+    many = cfg.get("object_names") if hasattr(cfg, "get") else getattr(cfg, "object_names", None)
+    if single not in (None, ""):
+        wanted: Sequence[str] = [str(single)]
+    elif many is not None:
+        wanted = [str(n) for n in many]
+    else:
+        wanted = available
+    unknown = [n for n in wanted if n not in available]
+    if unknown:
+        raise TnfError(f"unknown object {unknown[0]!r} in source {source.name!r}; available: {_short_list(available)}")
+    if not wanted:
+        raise TnfError(f"no objects selected from source {source.name!r} (object_names is empty)")
+    return source, list(dict.fromkeys(wanted))
+
+
+def _short_list(names: Sequence[str], limit: int = 40) -> str:
+    if not names:
+        return "none"
+    head = ", ".join(names[:limit])
+    return head + (f", ... ({len(names)} in all)" if len(names) > limit else "")

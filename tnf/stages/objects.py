@@ -1,0 +1,32 @@
+"""``tnf objects objects=SOURCE``: list the objects of an object source with size and triangle count."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def run(cfg: Any) -> list[dict[str, Any]]:
+    """Print a table of the selected objects (name, size in cm, triangles); returns its rows."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from tnf.objects import select
+    from tnf.runtime import progress
+
+    source, names = select(cfg)
+    rows = []
+    with progress(cfg.progress, transient=True) as p:
+        task = p.add_task(f"loading {source.name}", total=len(names))
+        for name in names:
+            mesh = source.load_or_skip(name)
+            if mesh is not None:
+                size = [float(x) * 100 for x in mesh.extents]
+                rows.append({"name": name, "size_cm": size, "triangles": len(mesh.faces), "colour": mesh.visual.kind})
+            p.advance(task)
+    table = Table(title=f"objects of source {source.name!r} ({len(rows)} of {len(names)} valid)", header_style="bold")
+    for col, just in (("name", "left"), ("size (cm)", "right"), ("triangles", "right"), ("colour", "left")):
+        table.add_column(col, justify=just)  # type: ignore[arg-type]
+    for r in rows:
+        table.add_row(r["name"], " x ".join(f"{x:.1f}" for x in r["size_cm"]), str(r["triangles"]), str(r["colour"]))
+    Console(highlight=False).print(table)
+    return rows
