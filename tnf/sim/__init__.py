@@ -1,0 +1,1 @@
+"""Tactile simulation: the warp gel simulator and touch sampling."""

@@ -1,0 +1,147 @@
+"""Touch sampling: sensor start poses on a sphere around the object, pressed toward its centre.
+
+Poses are camera-to-world 4x4 matrices in the OpenGL convention (the sensor looks along its -z axis, +y up),
+metres, in the object's world frame (the same frame as the capture stage's cameras).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from tnf.errors import TnfError
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: Sequence[float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world ``[4, 4]`` of a camera at ``eye`` looking at ``target`` (OpenGL: -z forward, +y up).
+
+    ``up`` fixes the roll; when the view is (nearly) parallel to it, the world y or x axis is used instead.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    fwd = np.asarray(target, dtype=np.float64) - eye
+    fwd /= np.linalg.norm(fwd)
+    for cand in (np.asarray(up, dtype=np.float64), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0])):
+        right = np.cross(fwd, cand)
+        if np.linalg.norm(right) > 1e-3:
+            break
+    right /= np.linalg.norm(right)
+    true_up = np.cross(right, fwd)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, -fwd, eye
+    return m
+
+
+def roll_about_view(c2w: np.ndarray, angle: float) -> np.ndarray:
+    """Rotate a camera about its own view axis by ``angle`` radians."""
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.eye(4)
+    rot[:2, :2] = [[c, -s], [s, c]]
+    return c2w @ rot
+
+
+def sphere_directions(
+    rng: np.random.Generator, n: int, axis: Sequence[float], cone_deg: float, inside: bool
+) -> np.ndarray:
+    """``[n, 3]`` unit vectors uniform on the sphere, inside (or outside) a cone of half-angle ``cone_deg``
+    around ``axis`` (rejection sampling; ``cone_deg <= 0`` with ``inside=False`` means the whole sphere)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a /= np.linalg.norm(a)
+    cos_c = np.cos(np.radians(cone_deg))
+    out: list[np.ndarray] = []
+    while sum(len(o) for o in out) < n:
+        v = rng.normal(size=(max(4 * n, 64), 3))
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        ok = (v @ a >= cos_c) if inside else (v @ a < cos_c if cone_deg > 0 else np.ones(len(v), bool))
+        out.append(v[ok])
+    return np.concatenate(out)[:n]
+
+
+def start_poses(
+    rng: np.random.Generator,
+    directions: np.ndarray,
+    radius: float,
+    center: Sequence[float] = (0.0, 0.0, 0.0),
+    up: Sequence[float] = (0.0, 0.0, 1.0),
+    random_roll: bool = False,
+) -> np.ndarray:
+    """``[n, 4, 4]`` sensor poses at ``center + radius * direction``, looking at ``center``."""
+    c = np.asarray(center, dtype=np.float64)
+    poses = []
+    for d in directions:
+        m = look_at(c + radius * d, c, up)
+        if random_roll:
+            m = roll_about_view(m, rng.uniform(0, 2 * np.pi))
+        poses.append(m)
+    return np.stack(poses)
+
+
+@dataclass
+class Collected:
+    """Touches that made contact: the simulator's outputs for them, their start poses and the misses."""
+
+    start_c2w: np.ndarray
+    results: Any  # TouchBatch of the kept touches
+    discarded: int
+
+
+def collect(
+    sim: Any,
+    mesh: Any,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    radius: float,
+    force: float,
+    batch_size: int,
+    axis: Sequence[float],
+    cone_deg: float,
+    inside: bool,
+    up: Sequence[float],
+    random_roll: bool,
+    seed: int,
+    max_attempts: int,
+) -> Collected:
+    """Simulate touches in batches until ``n`` made contact; touches without contact are discarded and counted.
+
+    Raises a TnfError when fewer than ``n`` touches hit after ``max_attempts * n`` tries.
+    """
+    from tnf.sim.warp_gel import TouchBatch
+
+    kept: list[TouchBatch] = []
+    starts: list[np.ndarray] = []
+    got, discarded, tries, k = 0, 0, 0, 0
+    while got < n:
+        if tries >= max_attempts * max(n, 1):
+            raise TnfError(
+                f"only {got} of {n} touches reached the object after {tries} tries; "
+                "check touch.radius against the object size (sensor must start outside and reach it)"
+            )
+        b = min(batch_size, max(n - got, 1))
+        dirs = sphere_directions(rng, b, axis, cone_deg, inside)
+        poses = start_poses(rng, dirs, radius, up=up, random_roll=random_roll)
+        out = sim.press(mesh, poses, force, seed=seed * 100003 + k)
+        k += 1
+        tries += b
+        keep = np.flatnonzero(out.hit)[: n - got]
+        discarded += int((~out.hit).sum())
+        kept.append(_take(out, keep))
+        starts.append(poses[keep])
+        got += len(keep)
+    return Collected(np.concatenate(starts), _concat(kept), discarded)
+
+
+def _take(batch: Any, idx: np.ndarray) -> Any:
+    from dataclasses import fields, replace
+
+    return replace(batch, **{f.name: getattr(batch, f.name)[idx] for f in fields(batch)})
+
+
+def _concat(batches: list[Any]) -> Any:
+    from dataclasses import fields, replace
+
+    return replace(
+        batches[0], **{f.name: np.concatenate([getattr(b, f.name) for b in batches]) for f in fields(batches[0])}
+    )

@@ -1,0 +1,120 @@
+"""``tnf touch``: simulate tactile touches of each selected object with the configured sensor.
+
+Writes ``<data_root>/touch/<sensor>/<source>/<object>/``: ``images/00000.png``..., ``background.png`` and a
+manifest whose info lists every touch (split, start and contact poses, contact point, force, penetration).
+Finished items are skipped; ``-m sensor=digit,omnitact`` runs several sensors.
+"""
+
+from __future__ import annotations
+
+import zlib
+from typing import Any
+
+SPLITS = ("train", "val", "novel_view")
+
+
+def item_config(cfg: Any, sensor: Any) -> dict[str, Any]:
+    """What decides a touch item's content (its hash decides whether a finished item is reused)."""
+    from omegaconf import OmegaConf
+
+    from tnf.registry import split_spec
+
+    return {
+        "sensor": sensor.describe(),
+        "simulator": split_spec(cfg.simulator, "simulator"),
+        "touch": OmegaConf.to_container(cfg.touch, resolve=True),
+        "seed": int(cfg.seed),
+    }
+
+
+def run(cfg: Any) -> None:
+    import io
+
+    import numpy as np
+    from PIL import Image
+    from rich.console import Console
+
+    from tnf.artifacts import ArtifactStore
+    from tnf.errors import TnfError
+    from tnf.objects import select
+    from tnf.registry import SENSORS, SIMULATORS
+    from tnf.runtime import progress, resolve_device, warp_device
+    from tnf.sim.touch import collect
+
+    console = Console(highlight=False)
+    tc = cfg.touch
+    store = ArtifactStore(cfg.data_root)
+    sensor = SENSORS.build(cfg.sensor)
+    sensor.check_force(float(tc.force))
+    if tc.radius <= 0:
+        raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
+    source, names = select(cfg)
+    config = item_config(cfg, sensor)
+    todo = [n for n in names if not store.is_done("touch", sensor.name, source.name, n, config=config)]
+    for n in names:
+        if n not in todo:
+            console.print(f"touch {sensor.name}/{source.name}/{n}: done, skipped")
+    if not todo:
+        return
+    device = warp_device(resolve_device(cfg.device))
+    sim = SIMULATORS.build(cfg.simulator, sensor=sensor, device=device)
+    counts = {"train": int(tc.n_touches), "val": int(tc.n_val), "novel_view": int(tc.n_novel_view)}
+    with progress(cfg.progress) as bar:
+        task = bar.add_task("touch", total=len(todo) * sum(counts.values()))
+        for name in todo:
+            mesh = source.load(name)
+            seed = (int(cfg.seed) * 1_000_003 + zlib.crc32(f"{source.name}/{name}".encode())) % 2**31
+            rng = np.random.default_rng(seed)
+            touches: list[dict[str, Any]] = []
+            discarded = {}
+            item = ("touch", sensor.name, source.name, name)
+            info: dict[str, Any] = {}
+            with store.writing(*item, config=config, info=info) as tmp:
+                (tmp / "images").mkdir()
+                Image.fromarray(sim.background).save(tmp / "background.png")
+                for split_no, split in enumerate(SPLITS):
+                    if counts[split] == 0:
+                        discarded[split] = 0
+                        continue
+                    got = collect(
+                        sim, mesh, counts[split], rng,
+                        radius=float(tc.radius), force=float(tc.force), batch_size=int(tc.batch_size),
+                        axis=list(tc.novel_view_axis), cone_deg=float(tc.novel_view_cone),
+                        inside=split == "novel_view", up=list(tc.up), random_roll=bool(tc.random_roll),
+                        seed=seed + split_no, max_attempts=int(tc.max_attempts),
+                    )  # fmt: skip
+                    discarded[split] = got.discarded
+                    r = got.results
+                    for i in range(len(r.images)):
+                        index = len(touches)
+                        rel = f"images/{index:05d}.png"
+                        buf = io.BytesIO()
+                        Image.fromarray(r.images[i]).save(buf, format="PNG")
+                        (tmp / rel).write_bytes(buf.getvalue())
+                        touches.append(
+                            {
+                                "index": index,
+                                "split": split,
+                                "image": rel,
+                                "start_c2w": got.start_c2w[i].tolist(),
+                                "contact_c2w": r.contact_c2w[i].tolist(),
+                                "contact_point": r.contact_point[i].astype(float).tolist(),
+                                "force": float(r.force[i]),
+                                "penetration": float(r.penetration[i]),
+                            }
+                        )
+                        bar.advance(task)
+                info.update(
+                    {
+                        "sensor": sensor.describe(),
+                        "object": name,
+                        "source": source.name,
+                        "touches": touches,
+                        "counts": {**{s: counts[s] for s in SPLITS}, "discarded": discarded},
+                        "width": sensor.width,
+                        "height": sensor.height,
+                        "intrinsics": list(sensor.intrinsics()),
+                    }
+                )
+            n_disc = sum(discarded.values())
+            console.print(f"touch {sensor.name}/{source.name}/{name}: {len(touches)} touches, {n_disc} discarded")
