@@ -10,7 +10,7 @@ from typing import Any
 from tnf.data.dataset import MixedPairDataset, PairDataset, augment_batch, collate_pairs
 from tnf.data.preprocess import SIZE, crop_for_sensor, preprocess_rgbd, resize_uint8
 from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
-from tnf.data.store import PairArrays, PairWriter, open_pairs, write_manifest
+from tnf.data.store import PairArrays, PairWriter, dataset_name, open_pairs, write_manifest
 
 __all__ = [
     "SIZE",
@@ -25,6 +25,7 @@ __all__ = [
     "choose_novel_objects",
     "collate_pairs",
     "datamodule_from_config",
+    "dataset_name",
     "crop_for_sensor",
     "open_pairs",
     "preprocess_rgbd",

@@ -122,7 +122,8 @@ def resize(x: torch.Tensor, out: int) -> torch.Tensor:
 
 def resize_uint8(images: np.ndarray | torch.Tensor, out: int = SIZE) -> np.ndarray:
     """[B, H, W, 3] (or [H, W, 3]) uint8 images -> uint8 [B, out, out, 3] (aspect ratio not kept, as the paper)."""
-    t = torch.as_tensor(np.asarray(images))
+    a = np.asarray(images)
+    t = torch.from_numpy(a if a.flags.writeable else a.copy())
     single = t.ndim == 3
     if single:
         t = t[None]

@@ -96,6 +96,14 @@ class PairWriter:
             self.arrays.clear()
 
 
+def dataset_name(cfg: Any) -> str:
+    """``pair.name``, or ``<sensor>-<scene>`` (fitted scenes) / ``<sensor>-mesh`` (ground-truth mesh)."""
+    if cfg.pair.get("name"):
+        return str(cfg.pair.name)
+    source = cfg.pair.scene_source
+    return f"{cfg.sensor.name}-{cfg.scene.name if source == 'fitted' else 'mesh'}"
+
+
 def write_manifest(folder: str | os.PathLike[str], info: Mapping[str, Any]) -> None:
     """Write ``manifest.json`` with the format version and split names added."""
     write_json(Path(folder) / MANIFEST, {"format_version": FORMAT_VERSION, "splits": list(SPLITS), **info})

@@ -1,0 +1,121 @@
+"""`tnf pair` end to end on hand-made capture, scene and touch items; resuming; clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pair_inputs import ASSETS, make_inputs, touch_colour
+from PIL import Image
+
+from tnf.data import SPLITS, PairDataset, open_pairs, resize_uint8
+from tnf.errors import TnfError
+from tnf.stages.pair import run
+from tnf.testing import compose
+
+BASE = ["debug=tiny", "progress=false", "device=cpu", "pair.novel_objects=[box]"]
+
+
+def build(overrides=()):
+    run(compose("pair", [*BASE, *overrides]))
+
+
+def test_pair_end_to_end(data_root):
+    make_inputs(data_root)
+    build(["pair.keep_cache=true"])
+    folder = data_root / "pairs" / "digit-hashgrid"
+    a = open_pairs(folder)
+    m = a.manifest
+    assert m["objects"] == ["ball", "box"] and m["novel_objects"] == ["box"]
+    assert m["counts"] == {"train": 3, "val": 1, "novel_view": 2, "novel_object": 6}
+    assert m["sensor"]["name"] == "digit" and m["scene_source"] == "fitted"
+    assert m["scene_checkpoints"]["ball"].endswith("scenes/hashgrid/builtin/ball/scene.pt")
+    # Gel footprint 30 mm x 1.5 at the median contact distance 0.06 m, focal 60 px -> 45 px.
+    assert m["preprocess"]["crop_px"] == {"ball": 45, "box": 45}
+    assert len(a) == 12 and a.rgb.shape == (12, 128, 128, 3) and a.depth.dtype == np.float16
+    assert [SPLITS[s] for s in a.split[:6]] == ["train", "train", "train", "val", "novel_view", "novel_view"]
+    assert list(a.touch_index) == list(range(6)) * 2 and list(a.object_id) == [0] * 6 + [1] * 6
+    # Tactile images are the touch PNGs scaled to 128 x 128; the background is the sensor's.
+    for row in (0, 7):
+        assert (a.tactile[row] == touch_colour(row // 6, row % 6)).all()
+    bg = resize_uint8(np.asarray(Image.open(ASSETS / "bg_digit_240_320.jpg").convert("RGB")))
+    assert a.backgrounds.shape == (1, 128, 128, 3) and (a.backgrounds[0] == bg).all()
+    # RGB-D: the camera looks at the sphere's centre along the touch axis, so the centre pixel shows the
+    # surface facing the camera (colour (n + 1) / 2, n = the direction to the start pose) at depth 0.5.
+    touches = _touches(data_root, "ball")
+    for row in range(6):
+        n = np.asarray(touches[row]["start_c2w"])[:3, 2]
+        np.testing.assert_allclose(a.rgb[row, 63:65, 63:65].reshape(-1, 3).mean(0), (n + 1) / 2 * 255, atol=4)
+        d = a.depth[row].astype(np.float32)
+        assert d[63:65, 63:65].min() == pytest.approx(0.5, abs=0.01)
+        assert d.min() >= 0.49  # the centre is the nearest point
+        # Crop half-width 20.6 deg: the edge centres hit the sphere (angular radius 23.6 deg), corners miss.
+        assert 0.5 < d[64, 1] < 1 and 0.5 < d[1, 64] < 1 and d[0, 0] == 1
+    assert len(list((folder / "previews").glob("*.png"))) == 2
+    ds = PairDataset(folder, splits=("novel_object",))
+    assert len(ds) == 6 and int(ds[0]["object_id"]) == 1
+
+    # Resuming: done -> nothing rewritten; other held-out objects -> reassembled from the kept caches.
+    cache = data_root / "pairs" / ".cache" / "digit-hashgrid" / "builtin" / "ball" / "manifest.json"
+    stamp, dstamp = cache.stat().st_mtime_ns, (folder / "manifest.json").stat().st_mtime_ns
+    build(["pair.keep_cache=true"])
+    assert (folder / "manifest.json").stat().st_mtime_ns == dstamp
+    build(["pair.keep_cache=true", "pair.novel_objects=[ball]"])
+    assert cache.stat().st_mtime_ns == stamp
+    assert open_pairs(folder).manifest["counts"]["novel_object"] == 6
+    assert open_pairs(folder).manifest["novel_objects"] == ["ball"]
+
+
+def _touches(root, obj):
+    import json
+
+    return json.loads((root / "touch" / "digit" / "builtin" / obj / "manifest.json").read_text())["touches"]
+
+
+def test_cache_removed_and_name_option(data_root):
+    make_inputs(data_root, touches=2)
+    build(["pair.name=mine", "pair.crop_px=32", "pair.depth_norm=minmax"])
+    a = open_pairs(data_root / "pairs" / "mine")
+    assert a.manifest["preprocess"]["crop_px"] == {"ball": 32, "box": 32}
+    assert not (data_root / "pairs" / ".cache" / "mine").exists()
+    assert a.depth.astype(np.float32).min() == 0.0  # minmax: the nearest point is 0
+
+
+def test_missing_scene_names_object_and_stage(data_root):
+    make_inputs(data_root, scenes=False)
+    with pytest.raises(TnfError, match=r"'ball' has touches but no fitted hashgrid scene.*tnf fit-scene"):
+        build()
+    assert not (data_root / "pairs" / "digit-hashgrid").exists()
+
+
+def test_missing_touches(data_root):
+    make_inputs(data_root, objects=("ball",))
+    with pytest.raises(TnfError, match=r"touch.*box.*tnf touch object=box"):
+        build()
+
+
+def test_sensor_mismatch(data_root):
+    make_inputs(data_root)
+    with pytest.raises(TnfError, match=r"sensor mismatch.*gel_width"):
+        build(["sensor.gel_width=0.025"])
+
+
+def test_crop_larger_than_image(data_root):
+    make_inputs(data_root)
+    with pytest.raises(TnfError, match="larger than the 64x64 image"):
+        build(["pair.crop_px=100"])
+
+
+def test_too_many_novel_objects(data_root):
+    make_inputs(data_root)
+    with pytest.raises(TnfError, match="num_novel_objects=3"):
+        run(compose("pair", ["debug=tiny", "progress=false", "pair.num_novel_objects=3"]))
+
+
+def test_cli(data_root, capsys):
+    from tnf.cli import main
+
+    make_inputs(data_root, touches=2)
+    assert main(["pair", *BASE]) == 0
+    assert "paired dataset" in capsys.readouterr().out
+    assert main(["pair", *BASE, "pair.crop_px=1000"]) == 1
+    assert "larger than" in capsys.readouterr().err

@@ -1,0 +1,313 @@
+"""``tnf pair``: pair every touch with RGB-D rendered at its pose, and build a dataset under ``pairs/``.
+
+Inputs per selected object: the capture (``capture/<source>/<object>/transforms.json``, for the camera the
+crop is measured in), the fitted scene (``scenes/<scene>/<source>/<object>/``; not needed with
+``pair.scene_source=mesh``) and the touches (``touch/<sensor>/<source>/<object>/``). Every input is checked
+before any rendering starts.
+
+Two steps, both resumable: each object's touches are rendered and preprocessed into a cache item
+(``pairs/.cache/<name>/<source>/<object>/``, skipped when done with the same settings), then the caches are
+assembled into the dataset's memory-mapped arrays, chunk by chunk, with the split assignment.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from tnf.errors import TnfError
+
+ASSEMBLE_CHUNK = 256  # pairs copied per step while assembling (bounds memory)
+
+
+def run(cfg: Any) -> None:
+    import numpy as np
+    from omegaconf import OmegaConf
+    from rich.console import Console
+
+    from tnf.artifacts import ArtifactStore, read_json
+    from tnf.data.preprocess import SIZE, crop_for_sensor, crop_origin
+    from tnf.data.render import TouchItem, render_pairs_for_touches
+    from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
+    from tnf.data.store import PairWriter, dataset_name, write_manifest
+    from tnf.objects import select
+    from tnf.registry import SENSORS, config_to_dict, split_spec
+    from tnf.runtime import progress, resolve_device, seed_everything
+
+    p = OmegaConf.to_container(cfg.pair, resolve=True)
+    assert isinstance(p, dict)
+    if p["scene_source"] not in ("fitted", "mesh"):
+        raise TnfError(f"pair.scene_source must be 'fitted' or 'mesh', got {p['scene_source']!r}")
+    seed_everything(int(cfg.seed))
+    store = ArtifactStore(cfg.data_root)
+    source, names = select(cfg)
+    src = source.name
+    sensor_name, sensor_params = split_spec(cfg.sensor, "sensor")
+    sensor_cfg = SENSORS.config(sensor_name, sensor_params)
+    sensor = SENSORS.get(sensor_name)(sensor_cfg)
+    sensor_dict = _plain_json(config_to_dict(sensor_cfg))
+    scene_name = str(cfg.scene.name)
+    name = dataset_name(cfg)
+    device = resolve_device(str(cfg.device))
+    console = Console(highlight=False)
+
+    # -- check every input first, so a missing one is reported before hours of rendering ----------------
+    inputs: dict[str, dict[str, Any]] = {}
+    for obj in names:
+        touch_dir = store.require(
+            "touch", sensor_name, src, obj, hint=f"run `tnf touch object={obj} sensor={sensor_name}` first"
+        )
+        item = TouchItem.load(touch_dir)
+        _check_sensor(item, sensor_name, sensor_dict, obj)
+        transforms = store.path("capture", src, obj) / "transforms.json"
+        if not transforms.is_file():
+            raise TnfError(f"object {obj!r}: capture not found ({transforms}); run `tnf capture object={obj}`")
+        cam = read_json(transforms, "capture transforms")
+        focal, w, h = _focal(cam, transforms)
+        scene_dir = store.path("scenes", scene_name, src, obj)
+        scene_hash = None
+        if p["scene_source"] == "fitted":
+            if not (scene_dir / "scene.pt").is_file():
+                raise TnfError(
+                    f"object {obj!r} has touches but no fitted {scene_name} scene ({scene_dir}); "
+                    f"run `tnf fit-scene object={obj} scene={scene_name}` first, or use pair.scene_source=mesh"
+                )
+            scene_hash = (store.manifest("scenes", scene_name, src, obj) or {}).get("config_hash")
+        inputs[obj] = {"item": item, "focal": focal, "size": (w, h), "scene_dir": scene_dir, "scene_hash": scene_hash}
+
+    # -- crop: one physical field of view (the gel footprint at one distance) for every object ----------
+    distance = p.get("footprint_distance")
+    if p["crop_px"] is None and distance is None:
+        all_d = np.concatenate([i["item"].contact_distances() for i in inputs.values()])
+        all_d = all_d[np.isfinite(all_d) & (all_d > 0)]
+        if len(all_d) == 0:
+            raise TnfError(
+                "no touch records a contact in front of its start pose; cannot size the crop (set pair.crop_px)"
+            )
+        distance = float(np.median(all_d))
+    for obj, i in inputs.items():
+        if p["crop_px"] is not None:
+            i["crop_px"] = int(p["crop_px"])
+        else:
+            i["crop_px"] = crop_for_sensor(sensor, (*i["focal"], 0, 0), distance=distance, margin=p["crop_margin"])
+        try:
+            crop_origin(*i["size"], i["crop_px"])
+        except TnfError as e:
+            raise TnfError(f"object {obj!r}: {e} (the capture camera's image)") from None
+
+    # -- step 1: per-object render caches -----------------------------------------------------------------
+    cache_keys: dict[str, dict[str, Any]] = {}
+    todo: list[str] = []
+    for obj, i in inputs.items():
+        key = {
+            "scene_source": p["scene_source"],
+            "scene": scene_name if p["scene_source"] == "fitted" else "mesh",
+            "scene_hash": i["scene_hash"],
+            "touch_hash": i["item"].manifest.get("config_hash"),
+            "touches": len(i["item"].touches),
+            "crop_px": i["crop_px"],
+            "focal": list(i["focal"]),
+            "depth_norm": p["depth_norm"],
+            "depth_window": p["depth_window"],
+            "size": SIZE,
+        }
+        cache_keys[obj] = key
+        if not store.is_done("pairs", ".cache", name, src, obj, config=key):
+            todo.append(obj)
+    n_render = sum(len(inputs[o]["item"].touches) for o in todo)
+    if todo:
+        console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p['scene_source']})")
+    with progress(bool(cfg.progress)) as bar:
+        task = bar.add_task(f"render {name}", total=n_render)
+        for obj in todo:
+            i = inputs[obj]
+            scene = _load_scene(p["scene_source"], i["scene_dir"], source, obj, device)
+            arrays = render_pairs_for_touches(
+                scene,
+                i["item"],
+                sensor,
+                p,
+                focal=i["focal"],
+                crop_px=i["crop_px"],
+                device=device,
+                on_batch=lambda k: bar.advance(task, k),
+            )
+            del scene
+            labels = [t["split"] for t in i["item"].touches]
+            assign_splits(labels, novel_object=False)  # validates the labels before caching
+            with store.writing(
+                "pairs", ".cache", name, src, obj, config=cache_keys[obj], info={"splits": labels}
+            ) as tmp:
+                for k in ("rgb", "depth", "tactile", "background", "touch_index"):
+                    np.save(tmp / f"{k}.npy", arrays[k])
+            del arrays
+
+    # -- step 2: assemble ---------------------------------------------------------------------------------
+    novel = choose_novel_objects(names, p["novel_objects"], int(p["num_novel_objects"]), int(cfg.seed))
+    dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
+    if store.is_done("pairs", name, config=dataset_key):
+        console.print(f"pair: dataset {store.path('pairs', name)} is up to date")
+        return
+    caches = {o: store.path("pairs", ".cache", name, src, o) for o in names}
+    counts = {o: len(inputs[o]["item"].touches) for o in names}
+    n = sum(counts.values())
+    if n == 0:
+        raise TnfError(f"the touch data of {', '.join(names)} has no touches; rerun `tnf touch`")
+    backgrounds: list[np.ndarray] = []
+    bg_of: dict[str, int] = {}
+    for o in names:
+        bg = np.load(caches[o] / "background.npy")
+        match = [j for j, b in enumerate(backgrounds) if np.array_equal(b, bg)]
+        if not match:
+            backgrounds.append(bg)
+        bg_of[o] = match[0] if match else len(backgrounds) - 1
+    split_counts = dict.fromkeys(SPLITS, 0)
+    with store.writing("pairs", name, config=dataset_key) as tmp:
+        start = 0
+        with PairWriter(tmp, n, np.stack(backgrounds)) as writer:
+            for oid, o in enumerate(names):
+                labels = (store.manifest("pairs", ".cache", name, src, o) or {})["splits"]
+                codes = assign_splits(labels, novel_object=o in novel)
+                for c in codes:
+                    split_counts[SPLITS[c]] += 1
+                arr = {
+                    k: np.load(caches[o] / f"{k}.npy", mmap_mode="r")
+                    for k in ("rgb", "depth", "tactile", "touch_index")
+                }
+                for s in range(0, counts[o], ASSEMBLE_CHUNK):
+                    e = min(s + ASSEMBLE_CHUNK, counts[o])
+                    k = e - s
+                    writer.write(
+                        start + s,
+                        rgb=arr["rgb"][s:e],
+                        depth=arr["depth"][s:e],
+                        tactile=arr["tactile"][s:e],
+                        touch_index=arr["touch_index"][s:e],
+                        background_index=np.full(k, bg_of[o], np.int32),
+                        object_id=np.full(k, oid, np.int32),
+                        split=codes[s:e],
+                        sensor_id=np.zeros(k, np.int16),
+                    )
+                start += counts[o]
+        first = inputs[names[0]]["item"].manifest
+        write_manifest(
+            tmp,
+            {
+                "name": name,
+                "objects": names,
+                "sensors": [sensor_name],
+                "novel_objects": novel,
+                "count": n,
+                "counts": {s: c for s, c in split_counts.items()},
+                "counts_per_object": counts,
+                "object_source": _plain_json(cfg.objects),
+                "sensor": {"name": sensor_name, "config": sensor_dict},
+                "simulator": _plain_json(first.get("config", {}).get("simulator", cfg.get("simulator"))),
+                "touch_config_hashes": {o: inputs[o]["item"].manifest.get("config_hash") for o in names},
+                "scene_source": p["scene_source"],
+                "scene": _plain_json(cfg.scene) if p["scene_source"] == "fitted" else {"name": "mesh"},
+                "scene_checkpoints": {
+                    o: (str(inputs[o]["scene_dir"] / "scene.pt") if p["scene_source"] == "fitted" else None)
+                    for o in names
+                },
+                "scene_config_hashes": {o: inputs[o]["scene_hash"] for o in names},
+                "preprocess": {
+                    "crop_px": {o: inputs[o]["crop_px"] for o in names},
+                    "footprint_distance": distance,
+                    "depth_norm": p["depth_norm"],
+                    "depth_window": p["depth_window"],
+                    "size": SIZE,
+                },
+            },
+        )
+        _write_previews(tmp, names, int(p["previews"]), int(cfg.seed))
+    if not p["keep_cache"]:
+        shutil.rmtree(store.path("pairs", ".cache", name), ignore_errors=True)
+    _summary(console, store.path("pairs", name), n, split_counts, names, novel)
+
+
+def _focal(cam: dict[str, Any], path: Path) -> tuple[tuple[float, float], int, int]:
+    try:
+        w, h = int(cam["w"]), int(cam["h"])
+        fx = float(cam["fl_x"])
+        fy = float(cam.get("fl_y", fx))
+    except (KeyError, TypeError, ValueError) as e:
+        raise TnfError(f"{path}: camera intrinsics missing or malformed ({e}); rerun `tnf capture`") from None
+    return (fx, fy), w, h
+
+
+def _plain_json(x: Any) -> Any:
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if isinstance(x, (DictConfig, ListConfig)):
+        x = OmegaConf.to_container(x, resolve=True)
+    return json.loads(json.dumps(x))
+
+
+def _check_sensor(item: Any, name: str, config: dict[str, Any], obj: str) -> None:
+    """The touches must come from the configured sensor with the same settings."""
+    rec = item.manifest.get("sensor") or {}
+    where = item.folder / "manifest.json"
+    if rec.get("name") != name:
+        raise TnfError(f"object {obj!r}: touches in {where} were made with sensor {rec.get('name')!r}, not {name!r}")
+    got = _plain_json(rec.get("config", {}))
+    for key in sorted(set(got) | set(config)):
+        if got.get(key) != config.get(key):
+            raise TnfError(
+                f"object {obj!r}: sensor mismatch in {where}: {name}.{key} is {got.get(key)!r} there but "
+                f"{config.get(key)!r} in this config; rerun `tnf touch` or use the same sensor settings"
+            )
+
+
+def _load_scene(kind: str, scene_dir: Path, source: Any, obj: str, device: str) -> Any:
+    if kind == "fitted":
+        from tnf.scenes import load_scene
+
+        return load_scene(scene_dir, device)
+    from tnf.registry import SCENES
+
+    cls = SCENES.get("mesh")
+    mesh = source.load(obj)
+    return cls.from_mesh(mesh, device=device)
+
+
+def _write_previews(folder: Path, names: list[str], k: int, seed: int) -> None:
+    """``previews/pair_XXXXX.png``: RGB | depth | background | tactile of ``k`` pairs (objects in turn)."""
+    import numpy as np
+    from PIL import Image
+
+    from tnf.data.store import open_pairs
+
+    if k <= 0:
+        return
+    a = open_pairs(folder)
+    rng = np.random.default_rng(seed)
+    oid = np.asarray(a.object_id)
+    picks: list[int] = []
+    for j in range(k):
+        rows = np.flatnonzero(oid == j % len(names))
+        if len(rows):
+            picks.append(int(rng.choice(rows)))
+    out = folder / "previews"
+    out.mkdir(exist_ok=True)
+    for r in sorted(set(picks)):
+        depth = (np.asarray(a.depth[r], np.float32) * 255).round().astype(np.uint8)
+        strip = np.concatenate(
+            [a.rgb[r], np.repeat(depth[..., None], 3, -1), a.backgrounds[a.background_index[r]], a.tactile[r]], axis=1
+        )
+        Image.fromarray(strip).save(out / f"pair_{r:05d}_{names[oid[r]]}.png")
+
+
+def _summary(console: Any, folder: Path, n: int, counts: dict[str, int], names: list[str], novel: list[str]) -> None:
+    from rich.table import Table
+
+    t = Table(title=f"paired dataset {folder}", box=None)
+    t.add_column("split")
+    t.add_column("pairs", justify="right")
+    for s, c in counts.items():
+        t.add_row(s, str(c))
+    t.add_row("all", str(n))
+    console.print(t)
+    console.print(f"{len(names)} objects; novel objects: {', '.join(novel) or 'none'}")
