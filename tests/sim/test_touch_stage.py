@@ -1,0 +1,37 @@
+import json
+
+import numpy as np
+from PIL import Image
+
+from tnf.cli import main
+
+
+def test_touch_tiny_writes_item_and_rerun_skips(data_root, capsys):
+    assert main(["touch", "debug=tiny", "object=ball", "progress=false", "device=cpu"]) == 0
+    item = data_root / "touch" / "digit" / "builtin" / "ball"
+    m = json.loads((item / "manifest.json").read_text())
+    touches = m["touches"]
+    assert [t["split"] for t in touches].count("train") == m["counts"]["train"] == 12
+    assert {t["split"] for t in touches} == {"train", "val", "novel_view"}
+    assert m["sensor"]["name"] == "digit" and m["source"] == "builtin" and m["object"] == "ball"
+    bg = np.asarray(Image.open(item / "background.png"))
+    assert bg.shape == (80, 60, 3)
+    for t in touches[:3]:
+        img = np.asarray(Image.open(item / t["image"]))
+        assert img.shape == (80, 60, 3)
+        assert t["force"] > 0 and 0 < t["penetration"] < 0.003
+        start, contact = np.array(t["start_c2w"]), np.array(t["contact_c2w"])
+        # The sensor moved along its own -z axis from the start pose to the contact pose.
+        step = contact[:3, 3] - start[:3, 3]
+        assert np.allclose(np.cross(step, -start[:3, 2]), 0, atol=1e-6) and step @ -start[:3, 2] > 0
+        assert np.allclose(contact[:3, :3], start[:3, :3])
+    # The held-out cone: novel-view starts lie within 30 degrees of +x, the others outside it.
+    for t in touches:
+        p = np.array(t["start_c2w"])[:3, 3]
+        inside = p[0] / np.linalg.norm(p) >= np.cos(np.radians(30)) - 1e-9
+        assert inside == (t["split"] == "novel_view")
+    mtime = (item / "manifest.json").stat().st_mtime_ns
+    capsys.readouterr()
+    assert main(["touch", "debug=tiny", "object=ball", "progress=false", "device=cpu"]) == 0
+    assert "skipped" in capsys.readouterr().out
+    assert (item / "manifest.json").stat().st_mtime_ns == mtime
