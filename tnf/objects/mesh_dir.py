@@ -56,7 +56,8 @@ def load_mesh_file(path: str | os.PathLike[str], scale: float = 1.0, up_axis: st
     if not path.is_file():
         raise TnfError(f"mesh file not found: {path}")
     try:
-        loaded = trimesh.load(path, process=True, resolver=_Resolver(path.parent))
+        # Not processed while loading: processing silently drops NaN vertices, which validation must see.
+        loaded = trimesh.load(path, process=False, resolver=_Resolver(path.parent))
     except Exception as e:  # trimesh raises many kinds of errors for malformed files
         raise TnfError(f"cannot read mesh {path}: {type(e).__name__}: {e}") from None
     if isinstance(loaded, trimesh.Scene):
@@ -68,6 +69,8 @@ def load_mesh_file(path: str | os.PathLike[str], scale: float = 1.0, up_axis: st
         mesh = loaded
     else:
         raise TnfError(f"{path}: empty mesh (a {type(loaded).__name__}, not triangles)")
+    if len(mesh.vertices) and np.isfinite(mesh.vertices).all():
+        mesh.process()
     if scale != 1.0:
         mesh.apply_scale(scale)
     if up_axis != "z":

@@ -99,7 +99,8 @@ def load_urdf_visual(urdf: Path):
             c = mat.find("color")
             rgba = _floats(c.get("rgba"), 4, 1.0) if c is not None else colours.get(mat.get("name"))
         if part.visual.kind != "texture" and rgba is not None:
-            part.visual = trimesh.visual.ColorVisuals(part, vertex_colors=np.round(np.clip(rgba, 0, 1) * 255))
+            colour = np.round(np.clip(rgba, 0, 1) * 255).astype(np.uint8)
+            part.visual = trimesh.visual.ColorVisuals(part, vertex_colors=np.tile(colour, (len(part.vertices), 1)))
         parts.append(part)
     if not parts:
         raise TnfError(f"{urdf}: empty mesh (no visual geometry)")
