@@ -5,6 +5,19 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+__all__ = ["GeneratorContract", "SceneContract", "SensorContract", "compose", "random_batch", "undocumented_fields"]
+
+# The contract suites import pytest: load them only when asked for.
+_CONTRACTS = {"GeneratorContract", "SceneContract", "SensorContract", "random_batch", "undocumented_fields"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _CONTRACTS:
+        from tnf.testing import contracts
+
+        return getattr(contracts, name)
+    raise AttributeError(f"module 'tnf.testing' has no attribute {name!r}")
+
 
 def compose(stage: str, overrides: Sequence[str] = ()) -> Any:
     """Compose the real Hydra config of ``stage`` (e.g. ``"touch"``) with ``overrides``, as ``tnf`` does.

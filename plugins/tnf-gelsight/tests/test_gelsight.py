@@ -1,0 +1,134 @@
+"""GelSight-specific behaviour: the plugin's registration, its YAML, its geometry and its moving markers."""
+
+import numpy as np
+import pytest
+
+from tnf.registry import SENSORS, SIMULATORS, config_to_dict
+from tnf.testing import compose
+
+
+@pytest.fixture(scope="module")
+def sensor():
+    return SENSORS.build("gelsight")
+
+
+def test_registered_from_the_plugin_distribution():
+    entry = SENSORS.entry("gelsight")
+    assert entry.origin == "tnf-gelsight"
+    assert entry.obj.__module__ == "tnf_gelsight.sensor"
+
+
+def test_yaml_repeats_the_defaults(sensor):
+    cfg = compose("touch", ["sensor=gelsight"])
+    assert _approx(config_to_dict(SENSORS.build(cfg.sensor).cfg), config_to_dict(sensor.cfg))
+
+
+def _approx(a, b):
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_approx(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_approx(x, y) for x, y in zip(a, b))
+    if isinstance(a, float):
+        return a == pytest.approx(b, rel=1e-6)
+    return a == b
+
+
+def test_gelsight_mini_figures(sensor):
+    assert (sensor.width, sensor.height) == (320, 240)
+    assert sensor.gel_surface().max() == 0.0  # flat gel
+    x, y = sensor.gel_grid()
+    # The landscape image spans the whole 18.6 x 14.3 mm gel with a thin dark housing around it.
+    assert 0.0186 < x.max() - x.min() < 0.021 and 0.0143 < y.max() - y.min() < 0.016
+    mask = sensor.gel_mask()
+    assert mask[120, 160] and not mask[120, 0] and not mask[120, -1]
+    assert len(sensor.cfg.lights) == 4
+    assert sensor.marker_rest_positions().shape == (63, 2)  # 9 x 7 markers at 2 mm
+
+
+def test_lights_unlike_digit(sensor):
+    bg = sensor.procedural_background(0).astype(float)  # no markers: compare the lighting alone
+    # Red glows on the right, blue on the left, green at the bottom (Digit: red top right, green top left).
+    assert bg[60:180, 250:300, 0].mean() > bg[60:180, 20:70, 0].mean() + 15
+    assert bg[60:180, 20:70, 2].mean() > bg[60:180, 250:300, 2].mean() + 15
+    assert bg[190:230, 100:220, 1].mean() > bg[10:50, 100:220, 1].mean() + 15
+    digit = SENSORS.build("digit").background(0)[:240, :240].astype(float)
+    assert np.abs(bg[:, 40:280].mean((0, 1)) - digit.mean((0, 1))).max() > 10
+
+
+def _dark_blobs(img, sensor):
+    """Marker centres ``[N, 2]`` (col, row) found in ``img``: dark connected blobs inside the gel."""
+    from scipy import ndimage
+
+    gray = img.astype(float).mean(-1)
+    local = ndimage.uniform_filter(gray, 15)
+    dark = (gray < 0.6 * local) & sensor.gel_mask()
+    labels, n = ndimage.label(dark)
+    sizes = ndimage.sum(dark, labels, range(1, n + 1))
+    keep = [i + 1 for i, s in enumerate(sizes) if s >= 10]
+    centres = ndimage.center_of_mass(dark, labels, keep)
+    return np.array([(c, r) for r, c in centres])
+
+
+def test_markers_visible_on_the_background(sensor):
+    bg = sensor.background()
+    found = _dark_blobs(bg, sensor)
+    expected = sensor.marker_pixels()[0]
+    assert len(found) == len(expected) == 63
+    # Every printed marker is found where it should be, to a fraction of a pixel.
+    dist = np.linalg.norm(found[:, None] - expected[None], axis=-1).min(0)
+    assert dist.max() < 0.5
+    # And dark: a marker's centre pixel keeps about (1 - darkness) of the light.
+    c, r = np.rint(expected[31]).astype(int)
+    plain = sensor.procedural_background(0)
+    assert bg[r, c].mean() == pytest.approx((1 - sensor.cfg.marker_darkness) * plain[r, c].mean(), abs=2)
+    assert np.array_equal(SENSORS.build({"name": "gelsight", "markers": False}).background(), plain)
+
+
+def test_markers_move_away_from_a_press(sensor):
+    x, y = sensor.gel_grid()
+    # A sphere of radius 10 mm pressed 1 mm deep at (2 mm, 0): the gel takes the sphere's shape.
+    r2 = (x - 0.002) ** 2 + y**2
+    ind = np.clip(0.001 - r2 / (2 * 0.01), 0, None)[None].astype(np.float32)
+    rest = sensor.marker_pixels()[0]
+    moved = sensor.marker_pixels(ind)[0]
+    shift = moved - rest
+    centre = sensor._to_pixels(np.array([0.002, 0.0]))
+    outward = rest - centre
+    dist = np.linalg.norm(outward, axis=-1)
+    near = (dist > 5) & (dist < 80)
+    radial = (shift * outward).sum(-1) / np.maximum(dist, 1e-9)
+    assert (radial[near] > 0.3).all(), "markers around the press move outward"
+    assert np.abs(shift[dist > 160]).max() < 0.2, "markers far from the press stay put"
+    assert np.abs(shift).max() > 2  # pixels
+
+
+def test_decorate_redraws_markers_where_the_gel_moved(sensor):
+    bg = sensor.background()
+    x, y = sensor.gel_grid()
+    ind = np.clip(0.001 - (x**2 + y**2) / 0.02, 0, None)[None].astype(np.float32)
+    img = sensor.decorate(bg[None].copy(), ind)[0]
+    found = _dark_blobs(img, sensor)
+    expected = sensor.marker_pixels(ind)[0]
+    assert len(found) == 63
+    assert np.linalg.norm(found[:, None] - expected[None], axis=-1).min(0).max() < 0.7
+    # Unchanged with nothing pressing (up to rounding).
+    same = sensor.decorate(bg[None].copy(), np.zeros_like(ind))[0]
+    assert np.abs(same.astype(int) - bg).max() <= 1
+
+
+def test_press_moves_the_markers_in_the_image(sensor):
+    import trimesh
+
+    sim = SIMULATORS.build("warp_gel", sensor=sensor, device="cpu")
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.01)
+    pose = np.eye(4)
+    pose[:3, 3] = (0.0, 0.0, 0.04)
+    out = sim.press(sphere, pose[None], 3.0, seed=0)
+    assert out.hit[0] and out.contact[0].sum() > 500
+    rest = sensor.marker_pixels()[0]
+    found = _dark_blobs(out.images[0], sensor)
+    expected = sensor.marker_pixels(out.indentation)[0]
+    assert len(found) == 63
+    err = np.linalg.norm(found[:, None] - expected[None], axis=-1).min(0)
+    assert err.max() < 1.0, "every marker shows where the gel carried it"
+    assert np.linalg.norm(expected - rest, axis=-1).max() > 2, "the press moved markers by pixels"

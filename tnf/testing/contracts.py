@@ -1,0 +1,388 @@
+"""Contract test suites: what every sensor, generator and scene (in-tree or from a plugin) must satisfy.
+
+Subclass a suite in a test module and name the component; pytest collects the inherited tests::
+
+    from tnf.testing import SensorContract
+
+    class TestGelSightContract(SensorContract):
+        name = "gelsight"
+
+Each suite has class attributes a subclass may set (``params``: config overrides, e.g. to make a generator
+tiny) and fixtures it may override (``sensor``, ``generator``, ``scene``) when a component needs more than
+its registry name to be built. The tests use real components: real warp presses, real training steps, real
+renders, at tiny sizes so that a suite runs in seconds on a CPU.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import json
+import textwrap
+from typing import Any, ClassVar
+
+import numpy as np
+import pytest
+
+from tnf.errors import TnfError
+from tnf.registry import GENERATORS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict
+
+
+def undocumented_fields(config_class: type) -> list[str]:
+    """Fields of a Config dataclass (and its dataclass bases) without a docstring right below them."""
+    missing = []
+    for klass in config_class.__mro__:
+        if klass is object or not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError):  # no source (e.g. built dynamically): nothing to check
+            continue
+        body = tree.body[0].body  # type: ignore[attr-defined]
+        for stmt, nxt in zip(body, body[1:] + [None]):
+            if isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name):
+                doc = isinstance(nxt, ast.Expr) and isinstance(nxt.value, ast.Constant)
+                if not (doc and isinstance(nxt.value.value, str)):  # type: ignore[union-attr]
+                    missing.append(f"{klass.__qualname__}.{stmt.target.id}")
+    return missing
+
+
+class _ComponentContract:
+    """Checks shared by every kind: registration, documentation and the config round trip."""
+
+    registry: ClassVar[Registry]
+    name: ClassVar[str]
+    """Registry name of the component under test."""
+    params: ClassVar[dict[str, Any]] = {}
+    """Config overrides used to build it (keep tests tiny)."""
+
+    @classmethod
+    def spec(cls) -> dict[str, Any]:
+        """``{"name": name, **params}``: the config node the component is built from."""
+        return {"name": cls.name, **cls.params}
+
+    def test_registered_with_description(self):
+        entry = self.registry.entry(self.name)
+        doc = (entry.obj.__doc__ or "").strip()
+        assert doc, f"{entry.obj.__qualname__} needs a docstring: its first line is what `tnf list` shows"
+        assert dataclasses.is_dataclass(entry.config_class), "the component must declare a nested Config dataclass"
+
+    def test_config_fields_documented(self):
+        missing = undocumented_fields(self.registry.entry(self.name).config_class)
+        assert not missing, f"Config fields need a docstring below them (units): {missing}"
+
+    def test_config_round_trip(self):
+        cfg = self.registry.config(self.name, self.params)
+        data = config_to_dict(cfg)
+        assert json.loads(json.dumps(data)) == data, "config_to_dict must give plain JSON data"
+        again = self.registry.config(self.name, data)
+        assert config_to_dict(again) == data
+        for k, v in self.params.items():
+            assert _close(data[k], v), f"override {k}={v!r} did not reach the config ({data[k]!r})"
+
+    def test_unknown_key_is_an_error_naming_it(self):
+        with pytest.raises(TnfError, match="no_such_key"):
+            self.registry.config(self.name, {**self.params, "no_such_key": 1})
+
+
+def _close(a: Any, b: Any) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    if isinstance(a, float) or isinstance(b, float):
+        return bool(np.isclose(a, b))
+    return bool(a == b)
+
+
+# -- sensors ----------------------------------------------------------------------------------------
+class SensorContract(_ComponentContract):
+    """A tactile sensor (``tnf.sensors.Sensor`` subclass) works with the config tree and the warp simulator.
+
+    Checks: registration and documented Config fields; config round trip through the registry and
+    ``config_to_dict``; the sensor's YAML (``conf/sensor/<name>.yaml``, or a plugin's through ``tnf.conf``)
+    composes and builds; camera, gel and shading outputs have the documented shapes and dtypes; the
+    background is ``[H, W, 3]`` uint8, the same for the same seed and different for another; a sphere pressed
+    with the ``warp_gel`` simulator makes contact and an image that differs from the background, and a press
+    that misses leaves the background (plus noise).
+    """
+
+    registry = SENSORS
+    simulator: ClassVar[dict[str, Any]] = {"name": "warp_gel"}
+    """Simulator config used for the press test."""
+    sphere_radius: ClassVar[float] = 0.01
+    """Radius of the pressed sphere, metres."""
+
+    @pytest.fixture(scope="class")
+    @classmethod
+    def sensor(cls) -> Any:
+        """The sensor under test (built once per test class)."""
+        return SENSORS.build(cls.spec())
+
+    @classmethod
+    def press_force(cls, sensor: Any) -> float:
+        """Target force of the press test, newtons: a tenth of the way into the sensor's force range."""
+        lo, hi = sensor.cfg.force_range
+        return float(lo + 0.1 * (hi - lo))
+
+    def test_is_a_sensor_named_as_registered(self, sensor):
+        from tnf.sensors import Sensor
+
+        assert isinstance(sensor, Sensor)
+        assert sensor.name == self.name, "set the class attribute `name` to the registry name"
+        assert sensor.describe() == {"name": self.name, "config": config_to_dict(sensor.cfg)}
+
+    def test_yaml_composes_and_builds(self):
+        from tnf.testing import compose
+
+        cfg = compose("touch", [f"sensor={self.name}"])
+        built = SENSORS.build(cfg.sensor)
+        assert built.name == self.name
+
+    def test_camera_and_gel_shapes(self, sensor):
+        h, w = sensor.height, sensor.width
+        fx, fy, cx, cy = sensor.intrinsics()
+        assert fx > 0 and fy > 0 and 0 < cx < w and 0 < cy < h
+        x, y = sensor.gel_grid()
+        assert x.shape == y.shape == (h, w) and x.dtype == y.dtype == np.float32
+        assert x[0, 0] < x[0, -1] and y[0, 0] > y[-1, 0], "columns grow with +x, rows with -y"
+        surf = sensor.gel_surface()
+        assert surf.shape == (h, w) and surf.dtype == np.float32
+        assert np.isfinite(surf).all() and surf.min() >= 0
+        mask = sensor.gel_mask()
+        assert mask.shape == (h, w) and mask.dtype == bool and mask.mean() > 0.25
+        pts = sensor.gel_points()
+        assert pts.shape == (h, w, 3) and pts.dtype == np.float32 and (pts[..., 2] < 0).all()
+        n = sensor.surface_normals(surf)
+        assert n.shape == (h, w, 3) and np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4) and (n[..., 2] > 0).all()
+        lit = sensor.shade(pts, n)
+        assert lit.shape == (h, w, 3) and lit.dtype == np.float32 and np.isfinite(lit).all() and lit.min() >= 0
+
+    def test_background_shape_dtype_determinism(self, sensor):
+        bg = sensor.background()
+        assert bg.shape == (sensor.height, sensor.width, 3) and bg.dtype == np.uint8
+        assert np.array_equal(bg, sensor.background()), "the background must be deterministic"
+        assert 10 < bg.mean() < 245, "a background should be neither black nor white"
+        if sensor.cfg.background_image:
+            return  # a photo does not vary with the seed
+        b0, b1 = sensor.background(0), sensor.background(1)
+        assert np.array_equal(b0, sensor.background(0))
+        assert np.abs(b0.astype(np.int16) - b1).mean() > 1, "another seed should give another background"
+
+    @pytest.fixture(scope="class")
+    @classmethod
+    def pressed(cls, sensor) -> tuple[Any, Any, float]:
+        """``(simulator, TouchBatch, target force)`` of three presses on a sphere (the third one misses)."""
+        import trimesh
+
+        r = cls.sphere_radius
+        sim = SIMULATORS.build(cls.simulator, sensor=sensor, device="cpu")
+        sphere = trimesh.creation.icosphere(subdivisions=3, radius=r)
+        # Camera above the sphere looking down (-z): centred, off-centre by a third of the sphere's radius,
+        # and one beside the sphere that misses it.
+        poses = np.repeat(np.eye(4)[None], 3, 0)
+        poses[:, 2, 3] = r + sensor.cfg.camera_distance + 0.01
+        poses[1, 0, 3] = r / 3
+        poses[2, 0, 3] = 10 * r
+        force = cls.press_force(sensor)
+        return sim, sim.press(sphere, poses, force, seed=0), force
+
+    def test_press_on_sphere_makes_contact(self, sensor, pressed):
+        _, out, force = pressed
+        h, w = sensor.height, sensor.width
+        assert out.images.shape == (3, h, w, 3) and out.images.dtype == np.uint8
+        assert out.indentation.shape == (3, h, w) and out.indentation.dtype == np.float32
+        assert out.contact.shape == (3, h, w) and out.contact.dtype == bool
+        assert out.hit.tolist() == [True, True, False]
+        for i in (0, 1):
+            assert out.contact[i].any() and out.indentation[i].max() > 0
+            assert 0 < out.force[i] <= force * 1.05
+            assert 0 < out.penetration[i] <= sensor.cfg.max_penetration * 1.001
+        assert not out.contact[2].any()
+
+    def test_press_changes_the_image_and_a_miss_does_not(self, sensor, pressed):
+        _, out, _ = pressed
+        bg = sensor.background().astype(np.float32)
+        for i in (0, 1):
+            diff = np.abs(out.images[i].astype(np.float32) - bg).mean(-1)
+            assert diff[out.contact[i]].mean() > 8, "the contact should show in the image"
+        miss = np.abs(out.images[2].astype(np.float32) - bg)
+        assert miss.mean() < 3 * max(sensor.cfg.noise_std, 1.0), "no contact should give the background plus noise"
+
+
+# -- generators -------------------------------------------------------------------------------------
+def random_batch(batch_size: int = 2, size: int = 128, seed: int = 0) -> dict[str, Any]:
+    """A batch of conditions and targets as ``tnf.data`` yields them: float32 in [-1, 1], ``object_id`` long."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+
+    def img(c: int) -> torch.Tensor:
+        return torch.rand(batch_size, c, size, size, generator=g) * 2 - 1
+
+    return {
+        "rgb": img(3),
+        "depth": img(1),
+        "background": img(3),
+        "tactile": img(3),
+        "object_id": torch.arange(batch_size, dtype=torch.long),
+    }
+
+
+class GeneratorContract(_ComponentContract):
+    """A generator (``tnf.generators.Generator`` subclass) builds from its name, generates, trains and saves.
+
+    Checks: registration and documented Config; config round trip; built from its registry name it is a
+    ``Generator``; ``generate`` on a batch of ``batch_size`` gives ``[B, 3, 128, 128]`` in [-1, 1]; one
+    ``training_step`` returns finite losses and changes the weights; a Lightning checkpoint stores the
+    registry name and config (no class paths: it loads with ``weights_only=True``) and loads back.
+    Set ``params`` to make the networks tiny.
+    """
+
+    registry = GENERATORS
+    batch_size: ClassVar[int] = 2
+    image_size: ClassVar[int] = 128
+
+    @pytest.fixture
+    def generator(self) -> Any:
+        import torch
+
+        torch.manual_seed(0)
+        return GENERATORS.build(self.spec())
+
+    def test_is_a_generator(self, generator):
+        from tnf.generators import Generator
+
+        assert isinstance(generator, Generator)
+        assert generator.inputs and set(generator.inputs) <= {"rgb", "depth", "background"}
+
+    def test_generate_shape_and_range(self, generator):
+        import torch
+
+        generator.eval()
+        with torch.no_grad():
+            out = generator.generate(random_batch(self.batch_size, self.image_size))
+        assert out.shape == (self.batch_size, 3, self.image_size, self.image_size)
+        assert out.dtype == torch.float32 and torch.isfinite(out).all()
+        assert out.min() >= -1 and out.max() <= 1
+
+    def test_one_training_step(self, generator):
+        import torch
+
+        from tnf.generators import PlainOptimisation
+
+        generator.train()
+        before = {k: v.detach().clone() for k, v in generator.named_parameters()}
+        losses = generator.training_step(random_batch(self.batch_size, self.image_size), PlainOptimisation(generator))
+        assert losses and all(torch.isfinite(v).all() and v.numel() == 1 for v in losses.values()), losses
+        changed = [k for k, v in generator.named_parameters() if not torch.equal(v, before[k])]
+        assert changed, "a training step must update some weights"
+
+    def test_checkpoint_stores_name_not_class_path(self, generator, tmp_path):
+        import lightning as L
+        import torch
+
+        from tnf.generators import GeneratorSystem, load_generator
+        from tnf.generators.system import read_checkpoint
+
+        system = GeneratorSystem(self.spec(), epochs=1, decay_epochs=0, grid_rows=0)
+        loader = torch.utils.data.DataLoader([_unbatch(random_batch(1, self.image_size, s)) for s in range(2)], 2)
+        trainer = L.Trainer(
+            max_steps=1,
+            accelerator="cpu",
+            logger=False,
+            enable_checkpointing=False,
+            enable_progress_bar=False,
+            enable_model_summary=False,
+            limit_val_batches=0,
+            default_root_dir=tmp_path,
+        )
+        trainer.fit(system, loader)
+        path = tmp_path / "last.ckpt"
+        trainer.save_checkpoint(path)
+        ckpt = read_checkpoint(path)  # loads with weights_only=True: no pickled classes inside
+        assert ckpt["tnf"]["generator"]["name"] == self.name
+        module = type(system.generator).__module__
+        text = json.dumps({k: v for k, v in ckpt.items() if k in ("tnf", "hyper_parameters")}, default=str)
+        assert module not in text, f"the checkpoint names a class path ({module})"
+        loaded = load_generator(path, expected=self.name)
+        for k, v in system.state_dict().items():
+            assert torch.equal(v.cpu(), loaded.state_dict()[k].cpu()), k
+
+
+def _unbatch(batch: dict[str, Any]) -> dict[str, Any]:
+    return {k: v[0] for k, v in batch.items()}
+
+
+# -- scenes -----------------------------------------------------------------------------------------
+class SceneContract(_ComponentContract):
+    """A scene (``tnf.scenes.base.Scene``) renders RGB-D with the documented shapes and ranges.
+
+    Checks: registration and documented Config; config round trip; ``render_rgbd`` for B cameras looking at
+    the origin gives rgb ``[B, H, W, 3]`` in [0, 1], depth ``[B, H, W]`` >= 0 and opacity ``[B, H, W]`` in
+    [0, 1], all finite float32; ``intrinsics`` may be ``[4]`` or ``[B, 4]``; a registered scene saves and
+    loads back by name (``save_scene`` / ``load_scene``) and renders the same. Override the ``scene`` fixture
+    for a scene that needs more than its config (e.g. a mesh); set ``params`` to make it tiny.
+    """
+
+    registry = SCENES
+    width: ClassVar[int] = 16
+    height: ClassVar[int] = 12
+    distance: ClassVar[float] = 0.3
+    """Camera distance from the origin, metres (scenes are objects of a few centimetres at the origin)."""
+
+    @pytest.fixture
+    def scene(self) -> Any:
+        import torch
+
+        torch.manual_seed(0)
+        return SCENES.build(self.spec()).eval()
+
+    def cameras(self, batch: int = 2) -> tuple[Any, Any]:
+        """``c2w [B, 4, 4]`` looking at the origin from around it, and intrinsics ``[4]`` (45 degree vertical fov)."""
+        import torch
+
+        from tnf.sim.touch import look_at
+
+        eyes = [(self.distance, 0.0, 0.05), (0.0, -self.distance, 0.1), (0.0, 0.0, self.distance)][:batch]
+        c2w = torch.tensor(np.stack([look_at(np.array(e), np.zeros(3)) for e in eyes]), dtype=torch.float32)
+        f = 0.5 * self.height / np.tan(np.radians(22.5))
+        return c2w, torch.tensor([f, f, self.width / 2, self.height / 2], dtype=torch.float32)
+
+    def _check(self, out: Any, batch: int) -> None:
+        import torch
+
+        h, w = self.height, self.width
+        assert set(out) >= {"rgb", "depth", "opacity"}
+        assert out["rgb"].shape == (batch, h, w, 3)
+        assert out["depth"].shape == out["opacity"].shape == (batch, h, w)
+        for k in ("rgb", "depth", "opacity"):
+            assert out[k].dtype == torch.float32 and torch.isfinite(out[k]).all(), k
+        assert out["rgb"].min() >= 0 and out["rgb"].max() <= 1
+        assert out["opacity"].min() >= 0 and out["opacity"].max() <= 1 + 1e-5
+        assert out["depth"].min() >= 0
+
+    def test_render_rgbd_shapes_and_ranges(self, scene):
+        import torch
+
+        c2w, k = self.cameras(2)
+        with torch.no_grad():
+            self._check(scene.render_rgbd(c2w, k, self.width, self.height), 2)
+            self._check(scene.render_rgbd(c2w[:1], k[None], self.width, self.height, chunk=37), 1)
+
+    def test_save_and_load_by_name(self, scene, tmp_path):
+        import torch
+
+        from tnf.scenes import load_scene, save_scene
+
+        path = save_scene(scene, tmp_path)
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        assert blob["name"] == self.name
+        loaded = load_scene(tmp_path)
+        c2w, k = self.cameras(1)
+        with torch.no_grad():
+            a = scene.render_rgbd(c2w, k, self.width, self.height)
+            b = loaded.render_rgbd(c2w, k, self.width, self.height)
+        for key in ("rgb", "depth", "opacity"):
+            assert torch.allclose(a[key], b[key], atol=1e-5), key
