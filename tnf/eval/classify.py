@@ -224,12 +224,17 @@ def load_touch_images(
     limit: int | None = None,
     seed: int = 0,
 ) -> torch.Tensor:
-    """Tactile images of a touch-format folder as uint8 ``[N, 3, size, size]`` (resized with antialiasing).
+    """Tactile images of a touch-format folder as uint8 ``[N, 3, size, size]``.
+
+    Images are resized (bilinear, antialiased, aspect ratio not kept) to 128 x 128 like the paired datasets' tactile
+    images, then to ``size``.
 
     ``splits`` keeps touches whose ``split`` is listed (None: all); ``limit`` keeps a random subset of that many
     (chosen with ``seed``, in the manifest's order), the way the ``Sim`` set takes a fixed number per object.
     """
     from PIL import Image
+
+    from tnf.data.preprocess import SIZE, resize_uint8
 
     folder = Path(folder)
     recs = [t for t in touch_records(folder) if splits is None or t.get("split") in splits]
@@ -241,7 +246,9 @@ def load_touch_images(
         path = folder / t["image"]
         try:
             with Image.open(path) as im:
-                out[i] = np.asarray(im.convert("RGB").resize((size, size), Image.Resampling.BILINEAR))
+                # As the paired datasets do: every tactile image at 128 x 128 first, then the classifier's size.
+                img = resize_uint8(np.array(im.convert("RGB")), SIZE)
+            out[i] = img if size == SIZE else resize_uint8(img, size)
         except FileNotFoundError:
             raise TnfError(f"touch image {path} listed in {folder / 'manifest.json'} is missing") from None
     return torch.from_numpy(out).permute(0, 3, 1, 2).contiguous()

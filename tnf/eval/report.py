@@ -53,14 +53,21 @@ def _ordered_methods(table: str, data: TableData) -> list[str]:
     return order + [m for m in data.methods if m not in order]
 
 
+def _row_methods(table: str, data: TableData) -> list[str]:
+    """The paper's methods of this table (so its figures show even without a run of ours), then ours."""
+    paper = METHOD_ORDER.get(table, [])
+    return paper + [m for m in _ordered_methods(table, data) if m not in paper]
+
+
 def image_rows(table: str, data: TableData) -> list[dict[str, Any]]:
     """Rows of table a: per test set each method then BG, last the pooled BG row; ours and the paper's."""
     paper = PAPER.get(table, {}).get("image", {})
-    test_sets = [t for t in ("novel_view", "novel_object") if any(k[0] == t for k in data.image)]
-    test_sets += sorted({k[0] for k in data.image} - set(test_sets) - {"all"})
+    keys = set(data.image) | set(paper)
+    test_sets = [t for t in ("novel_view", "novel_object") if any(k[0] == t for k in keys)]
+    test_sets += sorted({k[0] for k in keys} - set(test_sets) - {"all"})
     rows = []
     for ts in test_sets:
-        for method in [*_ordered_methods(table, data), BG]:
+        for method in [*_row_methods(table, data), BG]:
             if (ts, method) in data.image or (ts, method) in paper:
                 rows.append(_image_row(ts, method, data.image.get((ts, method), {}), paper.get((ts, method), {})))
     if ("all", BG) in data.image or ("all", BG) in paper:
@@ -74,7 +81,7 @@ def _image_row(ts: str, method: str, ours: dict[str, Stat], paper: dict[str, tup
 
 def accuracy_rows(table: str, data: TableData) -> list[dict[str, Any]]:
     paper = PAPER.get(table, {}).get("accuracy", {})
-    methods = _ordered_methods(table, data)
+    methods = _row_methods(table, data)
     names = ["Sim", *[f"Sim + {m}" for m in methods], *[f"{m} only" for m in methods]]
     names = [n for n in names if n in data.accuracy or n in paper]
     names += [n for n in data.accuracy if n not in names]

@@ -141,21 +141,19 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     import torch
     from torch.utils.data import DataLoader
 
+    from tnf.data import PairDataset, collate_pairs
+    from tnf.data.datamodule import resolve_dataset
     from tnf.eval.scoring import BG, score_batches
 
     ecfg = cfg.evaluate
-    if not ecfg.dataset:
-        raise TnfError(
-            "evaluate.dataset is not set: name the paired dataset (a folder under pairs/) with the test splits"
-        )
     try:
-        from tnf.data import PairDataset
         from tnf.generators import load_generator
     except ImportError as e:
-        raise TnfError(
-            f"image metrics need tnf.data and tnf.generators ({e}); set evaluate.splits=[] to skip"
-        ) from None
-    pairs = store.require("pairs", str(ecfg.dataset), hint="run `tnf pair` first")
+        raise TnfError(f"image metrics need tnf.generators ({e}); set evaluate.splits=[] to skip them") from None
+    dataset = ecfg.dataset or (list(cfg.data.datasets)[0] if cfg.data.get("datasets") else None)
+    if not dataset:
+        raise TnfError("evaluate.dataset is not set: name the paired dataset (under pairs/) with the test splits")
+    pairs = resolve_dataset(str(dataset), cfg.data_root)
     ckpt = store.path("models", str(ecfg.model), str(ecfg.checkpoint))
     if not ckpt.is_file():
         raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check evaluate.model/checkpoint")
@@ -173,7 +171,15 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     for split in splits:
         ds = PairDataset(pairs, splits=[split], per_object=ecfg.per_object, seed=int(cfg.seed))
         names = _object_names(ds)
-        loader = DataLoader(ds, batch_size=int(ecfg.batch_size), shuffle=False, num_workers=int(ecfg.num_workers))
+        if len(ds) == 0:
+            raise TnfError(f"split {split!r} of dataset {pairs} is empty; check evaluate.splits")
+        loader = DataLoader(
+            ds,
+            batch_size=int(ecfg.batch_size),
+            shuffle=False,
+            num_workers=int(ecfg.num_workers),
+            collate_fn=collate_pairs,
+        )
         task = bar.add_task(f"score {split}", total=len(loader))
         keep = int(ecfg.examples) if split == example_split else 0
         accs, kept = score_batches(loader, generate, names, keep_examples=keep, on_batch=lambda t=task: bar.advance(t))

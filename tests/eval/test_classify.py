@@ -1,0 +1,68 @@
+"""The tactile object classifier and the touch-format image loader."""
+
+import numpy as np
+import pytest
+import torch
+from eval_fixtures import tactile_image, write_touch_folder
+
+from tnf.errors import TnfError
+from tnf.eval.classify import (
+    ClassifierConfig,
+    LabelledImages,
+    accuracy,
+    load_touch_images,
+    run_rows,
+    train_classifier,
+)
+
+TINY = ClassifierConfig(image_size=32, width=8, steps=40, batch_size=16, lr=3e-3, shift=2)
+
+
+def _separable(n_per_class: int, seed: int) -> LabelledImages:
+    rng = np.random.default_rng(seed)
+    imgs, labels = [], []
+    for label in range(3):
+        for _ in range(n_per_class):
+            imgs.append(tactile_image(label, rng, 64, 64))
+            labels.append(label)
+    x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).contiguous()
+    return LabelledImages(x, torch.tensor(labels))
+
+
+def test_classifier_learns_a_separable_set():
+    train, test = _separable(12, seed=0), _separable(8, seed=1)
+    model = train_classifier(train.images, train.labels, 3, TINY, seed=0)
+    assert accuracy(model, test.images, test.labels, TINY.image_size) >= 95.0
+
+
+def test_same_seed_same_classifier_and_rows_share_the_schedule():
+    train, test = _separable(6, seed=2), _separable(4, seed=3)
+    cfg = ClassifierConfig(image_size=32, width=4, steps=5, batch_size=8)
+    a = train_classifier(train.images, train.labels, 3, cfg, seed=7)
+    b = train_classifier(train.images, train.labels, 3, cfg, seed=7)
+    for pa, pb in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
+        assert torch.equal(pa, pb)
+    steps = []
+    rows = run_rows({"A": train, "B": LabelledImages.concat([train, train])}, test, 3, cfg, on_step=steps.append)
+    assert set(rows) == {"A", "B"} and all(0 <= v <= 100 for v in rows.values())
+    assert len(steps) == 2 * cfg.steps  # a larger training set gets no extra steps
+
+
+def test_config_rejects_unknown_and_bad_values():
+    with pytest.raises(TnfError, match="evaluate.classifier.epochs"):
+        ClassifierConfig.from_dict({"epochs": 3})
+    with pytest.raises(TnfError, match="image_size"):
+        ClassifierConfig.from_dict({"image_size": 8})
+
+
+def test_load_touch_images_filters_splits_and_subsamples(tmp_path):
+    folder = write_touch_folder(tmp_path / "ball", "ball", 0, {"train": 5, "novel_view": 3})
+    x = load_touch_images(folder, 32, splits=["train"])
+    assert x.shape == (5, 3, 32, 32) and x.dtype == torch.uint8
+    assert load_touch_images(folder, 128, splits=["novel_view"]).shape == (3, 3, 128, 128)
+    a = load_touch_images(folder, 32, splits=["train"], limit=2, seed=1)
+    b = load_touch_images(folder, 32, splits=["train"], limit=2, seed=1)
+    assert a.shape[0] == 2 and torch.equal(a, b)
+    (folder / "images" / "00000.png").unlink()
+    with pytest.raises(TnfError, match="00000.png"):
+        load_touch_images(folder, 32)

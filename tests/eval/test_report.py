@@ -1,0 +1,137 @@
+"""The report renders from tiny runs: synthetic results, and `tnf evaluate` on touch folders made by code."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+from eval_fixtures import write_touch_folder
+from PIL import Image
+
+from tnf.eval.figures import example_grid
+from tnf.eval.report import write_report
+from tnf.eval.scoring import score_batches
+from tnf.testing import compose
+
+
+def _batches(n_batches=2, b=3):
+    g = torch.Generator().manual_seed(0)
+    for k in range(n_batches):
+        bg = torch.zeros(b, 3, 128, 128) - 0.2
+        tactile = bg.clone()
+        tactile[:, :, 40:80, 40:80] += torch.rand(b, 3, 1, 1, generator=g)
+        yield {
+            "rgb": torch.rand(b, 3, 128, 128, generator=g) * 2 - 1,
+            "depth": torch.rand(b, 1, 128, 128, generator=g) * 2 - 1,
+            "background": bg,
+            "tactile": tactile,
+            "object_id": torch.tensor([k % 2] * b),
+        }
+
+
+def test_scoring_perfect_generator_and_background_row():
+    accs, ex = score_batches(_batches(), lambda batch: batch["tactile"], ["ball", "box"], keep_examples=4)
+    g, bg = accs["G"].summary(), accs["BG"].summary()
+    assert g["n"] == 6 and g["ssim"] == pytest.approx(1.0, abs=1e-4) and g["mse"] == 0
+    assert set(g["per_object"]) == {"ball", "box"} and g["per_object"]["ball"]["n"] == 3
+    assert bg["ssim"] < 1 and bg["mse"] > 0
+    assert ex["generated"].shape == (4, 3, 128, 128) and ex["depth"].shape == (4, 1, 128, 128)
+    img = example_grid(ex, threshold=20, labels=["ball"] * 4)
+    assert img.size[1] > 4 * 128
+    # perfect generation: the thresholded difference column is black
+    arr = torch.from_numpy(np.array(img))
+    last = arr[30:150, -132:-4]
+    assert last.max() == 0
+
+
+def _result(table, method, seed, ssim, mse, acc):
+    return {
+        "schema": 1,
+        "table": table,
+        "method": method,
+        "seed": seed,
+        "image": {
+            "novel_view": {method: {"ssim": ssim, "mse": mse, "per_object": {"ball": {"ssim": ssim, "mse": mse}}}},
+            "novel_object": {
+                method: {"ssim": ssim - 0.01, "mse": mse, "per_object": {"box": {"ssim": ssim, "mse": mse}}},
+                "BG": {"ssim": 0.92, "mse": 67.0, "per_object": {"box": {"ssim": 0.92, "mse": 67.0}}},
+            },
+            "all": {"BG": {"ssim": 0.92, "mse": 67.0}},
+        },
+        "accuracy": {"Sim": 80.0 + seed, f"Sim + {method}": acc + seed},
+    }
+
+
+def test_report_tables_checks_and_figures(tmp_path):
+    results = [
+        _result("main", m, s, ssim, mse, acc)
+        for s in range(3)
+        for m, ssim, mse, acc in (("T-N", 0.97, 20.0, 95.0), ("Lee", 0.70, 1000.0, 70.0), ("Cycle", 0.6, 1600.0, 82.0))
+    ] + [_result("transfer", "FS", 0, 0.8, 900.0, 81.0)]
+    tables = write_report(results, tmp_path / "rep", name="tiny")
+    assert set(tables) == {"main", "transfer"}
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "## Table 1" in md and "## Table 2" in md
+    assert "| Novel view | T-N | 0.970 ± 0.000 | 0.980 ± 0.001 | 20.0 ± 0.0 | 14.5 ± 0.8 | 3 |" in md
+    assert "| Sim + T-N | 96.0 ± 0.6 | 96.0 ± 2.0 | 3 |" in md
+    assert "| T-N SSIM > Lee SSIM (novel view) | holds |" in md
+    assert "| Sim + T-N accuracy > Sim + Cycle | holds |" in md
+    assert "| T-N SSIM > BG SSIM (novel object) | holds |" in md
+    with open(tmp_path / "rep" / "table1a_image.csv") as f:
+        rows = list(csv.DictReader(f))
+    lee = next(r for r in rows if r["test_set"] == "novel_view" and r["method"] == "Lee")
+    assert float(lee["ssim_mean"]) == pytest.approx(0.70) and float(lee["paper_mse_mean"]) == 1040
+    bg = next(r for r in rows if r["test_set"] == "all")
+    assert float(bg["paper_ssim_mean"]) == 0.921 and float(bg["seeds"]) == 3
+    with open(tmp_path / "rep" / "table2b_accuracy.csv") as f:
+        acc = {r["training_set"]: r for r in csv.DictReader(f)}
+    assert float(acc["Sim + FS"]["accuracy_mean"]) == 81.0 and float(acc["Sim + FS"]["paper_accuracy_mean"]) == 82
+    assert acc["Sim + T-N"]["accuracy_mean"] == ""  # paper row without a run of ours
+    png = tmp_path / "rep" / "ssim_per_object_main_novel_object.png"
+    assert "ssim_per_object_main_novel_object.png" in md
+    with Image.open(png) as im:
+        assert im.size[0] >= 360
+
+
+def _touch_data(root, generated_run="fake", good_generator=True):
+    for label, obj in enumerate(["ball", "box"]):
+        write_touch_folder(root / "touch/digit/builtin" / obj, obj, label, {"train": 6, "novel_view": 4}, seed=0)
+        # a generator that draws the right object's pattern, or the wrong one
+        g_label = label if good_generator else 1 - label
+        write_touch_folder(root / "generated" / generated_run / "builtin" / obj, obj, g_label, {"gen": 8}, seed=1)
+
+
+def test_tnf_evaluate_classification_and_report(data_root):
+    _touch_data(data_root)
+    from tnf.stages.evaluate import run
+
+    over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.model=fake", "evaluate.splits=[]"]
+    for seed in (0, 1):
+        out = run(compose("evaluate", [*over, f"seed={seed}"]))
+        acc = out["results"]["accuracy"]
+        assert set(acc) == {"Sim", "Sim + T-N", "T-N only"}
+        assert out["results"]["classify"]["classes"] == ["ball", "box"]
+        assert out["results"]["classify"]["train_images"] == {"Sim": 8, "Sim + T-N": 24, "T-N only": 16}
+        assert out["results"]["classify"]["test_images"] == 8
+    runs = data_root / "reports/default/runs"
+    assert sorted(p.name for p in runs.iterdir()) == ["main_T-N_seed0", "main_T-N_seed1"]
+    assert out["tables"]["main"].accuracy["Sim"].n == 2
+    md = (data_root / "reports/default/report.md").read_text()
+    assert "| Sim + T-N |" in md and "| Sim | " in md
+    # a second call with the same settings reuses the results; the sweep folder mode collects results files
+    again = run(compose("evaluate", [*over, "seed=1"]))
+    assert again["results"]["accuracy"] == json.loads((runs / "main_T-N_seed1/results.json").read_text())["accuracy"]
+    out = run(compose("evaluate", ["progress=false", f"evaluate.sweep_dir={runs}", "evaluate.name=collected"]))
+    assert out["tables"]["main"].accuracy["Sim + T-N"].n == 2
+    assert (data_root / "reports/collected/table1b_accuracy.csv").is_file()
+
+
+def test_tnf_evaluate_refuses_missing_inputs(data_root):
+    from tnf.errors import TnfError
+    from tnf.stages.evaluate import run
+
+    with pytest.raises(TnfError, match="nothing to report"):
+        run(compose("evaluate", ["progress=false"]))
+    with pytest.raises(TnfError, match="tnf touch"):
+        run(compose("evaluate", ["debug=tiny", "progress=false", "evaluate.model=x", "evaluate.splits=[]"]))
