@@ -1,0 +1,299 @@
+"""``hashgrid``: a multiresolution hash encoding (Instant-NGP) with small MLPs, in pure PyTorch.
+
+The object sits in the cube [-bound, bound]^3 around the origin. Rays are marched with a fixed step
+(``samples_per_ray`` steps across the cube's diagonal); an occupancy grid, refreshed during training from
+the field's own density, removes samples in empty space before the network sees them, so only the few
+samples near the surface cost a hash-grid lookup.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from tnf.registry import SCENES
+from tnf.scenes.render import FieldScene, RayOutput, ray_box, volume_render
+
+# Instant-NGP's spatial hash primes (the first is 1 so that x varies fastest, for cache coherence).
+PRIMES = (1, 2654435761, 805459861)
+
+
+class HashEncoding(nn.Module):
+    """Multiresolution hash encoding: L levels of F features each, trilinearly interpolated.
+
+    Level l has resolution ``N_l = floor(base * b**l)`` cells per axis with b chosen so that the last
+    level has ``max_resolution``. A level whose ``(N_l + 1)**3`` vertices fit in the table is indexed
+    directly (no collisions); finer levels use the spatial hash ``(x * 1) ^ (y * p1) ^ (z * p2) mod T``.
+
+    Input: [P, 3] positions in [0, 1]^3. Output: [P, L * F].
+    """
+
+    def __init__(
+        self,
+        levels: int = 16,
+        features: int = 2,
+        log2_table_size: int = 19,
+        base_resolution: int = 16,
+        max_resolution: int = 2048,
+    ):
+        super().__init__()
+        self.levels, self.features = levels, features
+        self.table_size = T = 1 << log2_table_size
+        growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / max(levels - 1, 1))
+        res = [int(math.floor(base_resolution * growth**lvl)) for lvl in range(levels)]
+        self.resolutions = res
+        dense = [(r + 1) ** 3 <= T for r in res]
+        self.register_buffer("res", torch.tensor(res, dtype=torch.float32), persistent=False)
+        # Direct indexing strides (1, N+1, (N+1)^2) for dense levels; hash primes for the others.
+        # Coarse levels are indexed directly; they come first since resolution grows with the level.
+        self.n_dense = sum(dense)
+        self.register_buffer(
+            "stride", torch.tensor([[1, r + 1, (r + 1) ** 2] for r in res], dtype=torch.int32), persistent=False
+        )
+        primes32 = [p - (1 << 32) if p >= (1 << 31) else p for p in PRIMES]  # same low bits as the primes
+        self.register_buffer("primes", torch.tensor(primes32, dtype=torch.int32), persistent=False)
+        self.register_buffer("level_offset", torch.arange(levels, dtype=torch.int32) * T, persistent=False)
+        # One table of L * T rows; small uniform init as in Instant-NGP.
+        self.table = nn.Parameter(torch.empty(levels * T, features).uniform_(-1e-4, 1e-4))
+
+    @property
+    def out_dim(self) -> int:
+        return self.levels * self.features
+
+    def corner_index(self, base: torch.Tensor) -> torch.Tensor:
+        """Table rows of the 8 corners of the cells whose lowest corners are ``base`` [P, L, 3] -> [P, L, 2, 2, 2].
+
+        Corner (i, j, k) is ``base + (i, j, k)``. Arithmetic is in int32: the hash only keeps the low bits,
+        which wrap-around multiplication leaves intact, and direct indices are below the table size.
+        """
+        nd = self.n_dense
+        parts = []
+        for sl, mult, combine in ((slice(0, nd), self.stride, "add"), (slice(nd, None), self.primes, "xor")):
+            b = base[:, sl]
+            if b.shape[1] == 0:
+                continue
+            m = mult[sl] if mult.dim() == 2 else mult
+            # Per axis, the two coordinates (lower, upper) times the axis multiplier, broadcast to 2x2x2.
+            c = [torch.stack([b[..., a] * m[..., a], (b[..., a] + 1) * m[..., a]], dim=-1) for a in range(3)]
+            c0, c1, c2 = c[0][..., :, None, None], c[1][..., None, :, None], c[2][..., None, None, :]
+            if combine == "add":
+                parts.append(c0 + c1 + c2)
+            else:
+                parts.append((c0 ^ c1 ^ c2) & (self.table_size - 1))
+        idx = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+        return idx + self.level_offset.view(1, -1, 1, 1, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        P = x.shape[0]
+        scaled = x.clamp(0.0, 1.0).unsqueeze(1) * self.res.view(1, -1, 1)  # [P, L, 3]
+        base = scaled.floor()
+        # The top face of the cube (x == 1) belongs to the last cell, not to a cell outside the grid.
+        base = torch.minimum(base, self.res.view(1, -1, 1) - 1).to(torch.int32)
+        frac = scaled - base
+        idx = self.corner_index(base)  # [P, L, 2, 2, 2]
+        # Trilinear weights, broadcast the same way as the corners.
+        w = [torch.stack([1.0 - frac[..., a], frac[..., a]], dim=-1) for a in range(3)]
+        weights = w[0][..., :, None, None] * w[1][..., None, :, None] * w[2][..., None, None, :]
+        feats = self.table.index_select(0, idx.reshape(-1)).view(P, self.levels, 8, self.features)
+        out = (feats * weights.reshape(P, self.levels, 8, 1)).sum(2)
+        return out.reshape(P, -1)
+
+
+def spherical_harmonics(d: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics up to degree 4 (16 values) of unit directions [P, 3] -> [P, 16]."""
+    x, y, z = d.unbind(-1)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, yz, xz = x * y, y * z, x * z
+    return torch.stack(
+        [
+            torch.full_like(x, 0.28209479177387814),
+            -0.48860251190291987 * y,
+            0.48860251190291987 * z,
+            -0.48860251190291987 * x,
+            1.0925484305920792 * xy,
+            -1.0925484305920792 * yz,
+            0.94617469575755997 * zz - 0.31539156525251999,
+            -1.0925484305920792 * xz,
+            0.54627421529603959 * (xx - yy),
+            0.59004358992664352 * y * (-3.0 * xx + yy),
+            2.8906114426405538 * xy * z,
+            0.45704579946446572 * y * (1.0 - 5.0 * zz),
+            0.3731763325901154 * z * (5.0 * zz - 3.0),
+            0.45704579946446572 * x * (1.0 - 5.0 * zz),
+            1.4453057213202769 * z * (xx - yy),
+            0.59004358992664352 * x * (-xx + 3.0 * yy),
+        ],
+        dim=-1,
+    )
+
+
+def mlp(inp: int, hidden: int, out: int, layers: int) -> nn.Sequential:
+    """``layers`` hidden layers of width ``hidden`` with ReLU, then a linear output layer."""
+    mods: list[nn.Module] = []
+    d = inp
+    for _ in range(layers):
+        mods += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    mods.append(nn.Linear(d, out))
+    return nn.Sequential(*mods)
+
+
+@SCENES.register("hashgrid")
+class HashGridScene(FieldScene):
+    """Instant-NGP style hash-grid radiance field with an occupancy grid (pure PyTorch, CPU or CUDA)."""
+
+    @dataclass
+    class Config:
+        levels: int = 16
+        """Number of hash-grid levels."""
+        features_per_level: int = 2
+        """Features stored per grid vertex and level."""
+        log2_table_size: int = 19
+        """log2 of the entries per level's hash table (19 -> 524288)."""
+        base_resolution: int = 16
+        """Cells per axis of the coarsest level."""
+        max_resolution: int = 2048
+        """Cells per axis of the finest level."""
+        hidden: int = 64
+        """Width of the density and colour MLPs."""
+        geo_features: int = 15
+        """Features the density MLP passes to the colour MLP."""
+        density_layers: int = 1
+        """Hidden layers of the density MLP."""
+        color_layers: int = 2
+        """Hidden layers of the colour MLP."""
+        samples_per_ray: int = 512
+        """Ray-marching steps across the cube's diagonal (step = 2 sqrt(3) bound / samples_per_ray)."""
+        occupancy_resolution: int = 64
+        """Cells per axis of the occupancy grid."""
+        occupancy_threshold: float = 0.01
+        """A cell is empty when a step through it would absorb less than this fraction of light."""
+        occupancy_update_every: int = 16
+        """Training steps between occupancy-grid refreshes."""
+        occupancy_warmup: int = 256
+        """Training steps before empty cells start being skipped."""
+        occupancy_decay: float = 0.95
+        """Decay of the grid's running density at each refresh (forgets floaters that training removes)."""
+        bound: float | None = None
+        """Half-size of the cube [-bound, bound]^3 around the origin that holds the object, metres;
+        null: derived from the training cameras when fitting."""
+        background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+        """RGB colour in [0, 1] behind the object."""
+
+        def validate(self) -> None:
+            if self.levels < 1 or self.features_per_level < 1:
+                raise ValueError(f"levels and features_per_level must be >= 1, got {self.levels}")
+            if not 8 <= self.log2_table_size <= 26:
+                raise ValueError(f"log2_table_size must be in 8..26, got {self.log2_table_size}")
+            if not 1 <= self.base_resolution <= self.max_resolution:
+                raise ValueError(
+                    f"need 1 <= base_resolution <= max_resolution, got {self.base_resolution}, {self.max_resolution}"
+                )
+            if self.samples_per_ray < 8 or self.occupancy_resolution < 4:
+                raise ValueError("samples_per_ray must be >= 8 and occupancy_resolution >= 4")
+            if self.bound is not None and self.bound <= 0:
+                raise ValueError(f"bound must be > 0 metres, got {self.bound}")
+
+    def __init__(self, cfg: Config):
+        if cfg.bound is None:
+            raise ValueError("hashgrid scene needs a bound; fitting derives it from the cameras")
+        super().__init__(cfg.bound, cfg.background)
+        self.cfg = cfg
+        self.encoding = HashEncoding(
+            cfg.levels, cfg.features_per_level, cfg.log2_table_size, cfg.base_resolution, cfg.max_resolution
+        )
+        self.density_net = mlp(self.encoding.out_dim, cfg.hidden, 1 + cfg.geo_features, cfg.density_layers)
+        self.color_net = mlp(16 + cfg.geo_features, cfg.hidden, 3, cfg.color_layers)
+        G = cfg.occupancy_resolution
+        self.step_size = 2.0 * math.sqrt(3.0) * self.bound / cfg.samples_per_ray
+        self.register_buffer("occ_density", torch.zeros(G**3))
+        self.register_buffer("occupied", torch.ones(G**3, dtype=torch.bool))
+
+    # -- field --------------------------------------------------------------------------------------
+    def _normalise(self, pos: torch.Tensor) -> torch.Tensor:
+        return (pos + self.bound) / (2.0 * self.bound)
+
+    def density(self, pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density [P] (1/metre) and geometry features [P, geo] at world positions [P, 3] (metres)."""
+        h = self.density_net(self.encoding(self._normalise(pos)))
+        # exp activation (clamped against overflow) as in Instant-NGP; biased down so space starts thin.
+        sigma = torch.exp((h[:, 0] - 1.0).clamp(max=15.0))
+        return sigma, h[:, 1:]
+
+    def field(self, pos: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density [P] and colour [P, 3] in [0, 1] at positions [P, 3] seen along unit dirs [P, 3]."""
+        sigma, geo = self.density(pos)
+        rgb = torch.sigmoid(self.color_net(torch.cat([spherical_harmonics(dirs), geo], dim=-1)))
+        return sigma, rgb
+
+    # -- occupancy grid -----------------------------------------------------------------------------
+    def _cell_index(self, pos: torch.Tensor) -> torch.Tensor:
+        G = self.cfg.occupancy_resolution
+        c = (self._normalise(pos) * G).long().clamp(0, G - 1)
+        return (c[..., 0] * G + c[..., 1]) * G + c[..., 2]
+
+    @torch.no_grad()
+    def update_occupancy(self, step: int) -> None:
+        """Refresh the occupancy grid every ``occupancy_update_every`` steps from the field's density."""
+        cfg = self.cfg
+        if step % cfg.occupancy_update_every != 0:
+            return
+        G = cfg.occupancy_resolution
+        dev = self.occ_density.device
+        ar = torch.arange(G, device=dev)
+        cells = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3).float()
+        sigma = torch.empty(G**3, device=dev)
+        chunk = 1 << 18
+        for i in range(0, G**3, chunk):
+            c = cells[i : i + chunk]
+            # A random point in each cell, so thin structures between cell centres are found over time.
+            pos = ((c + torch.rand_like(c)) / G) * (2 * self.bound) - self.bound
+            sigma[i : i + chunk] = self.density(pos)[0]
+        self.occ_density.copy_(torch.maximum(self.occ_density * cfg.occupancy_decay, sigma))
+        if step < cfg.occupancy_warmup:
+            self.occupied.fill_(True)
+            return
+        threshold = -math.log(1.0 - cfg.occupancy_threshold) / self.step_size
+        threshold = min(threshold, float(self.occ_density.mean()))
+        self.occupied.copy_(self.occ_density > threshold)
+
+    # -- rendering ----------------------------------------------------------------------------------
+    def render_rays(
+        self,
+        origins: torch.Tensor,
+        dirs: torch.Tensor,
+        background: torch.Tensor | None = None,
+        perturb: bool = False,
+    ) -> RayOutput:
+        """Render R rays: origins [R, 3] (metres), unit dirs [R, 3]. ``perturb`` jitters the samples."""
+        R, N = origins.shape[0], self.cfg.samples_per_ray
+        dt = self.step_size
+        near, far = ray_box(origins, dirs, self.bound)
+        offset = torch.rand(R, 1, device=origins.device) if perturb else torch.full((R, 1), 0.5, device=origins.device)
+        t = near.unsqueeze(1) + (torch.arange(N, device=origins.device) + offset) * dt  # [R, N]
+        valid = t < far.unsqueeze(1)
+        # Cheap pre-selection by the cube, then the occupancy grid, before any network evaluation.
+        ri, si = valid.nonzero(as_tuple=True)
+        pos = origins[ri] + t[ri, si].unsqueeze(-1) * dirs[ri]
+        keep = self.occupied[self._cell_index(pos)]
+        ri, si, pos = ri[keep], si[keep], pos[keep]
+        sigma = origins.new_zeros(R, N)
+        rgb = origins.new_zeros(R, N, 3)
+        if ri.numel() > 0:
+            s, c = self.field(pos, dirs[ri])
+            sigma = sigma.index_put((ri, si), s)
+            rgb = rgb.index_put((ri, si), c)
+        delta = valid.float() * dt
+        bg = self.background if background is None else background
+        out = volume_render(sigma, rgb, t, delta, bg)
+        return {"rgb": out["rgb"], "depth": out["depth"], "opacity": out["opacity"]}
+
+    def param_groups(self, lr: float) -> list[dict]:
+        """Optimizer groups: the hash table without weight decay, the MLPs with a little (Instant-NGP)."""
+        return [
+            {"params": [self.encoding.table], "lr": lr, "weight_decay": 0.0},
+            {"params": [*self.density_net.parameters(), *self.color_net.parameters()], "lr": lr, "weight_decay": 1e-6},
+        ]

@@ -1,0 +1,169 @@
+"""The one volume renderer shared by every fitted scene kind (``nerf``, ``hashgrid``).
+
+Conventions: cameras are camera-to-world 4x4 matrices in the OpenGL convention (the camera looks along its
+-z axis, +y up, image rows go down), metres; intrinsics are ``(fx, fy, cx, cy)`` in pixels and rays go
+through pixel centres. Ray directions are unit vectors, so a ray parameter ``t`` is a distance in metres.
+
+A fitted scene implements ``render_rays(origins, dirs, background, perturb)`` for a flat batch of rays;
+``FieldScene.render_rgbd`` turns cameras into rays, renders them in chunks and converts the expected
+termination distance into z-depth.
+"""
+
+from __future__ import annotations
+
+from typing import TypedDict
+
+import torch
+
+from tnf.scenes.base import RGBD, Scene
+
+# Accumulated opacity below which a pixel counts as empty (depth 0).
+EMPTY_OPACITY = 1e-4
+
+
+class RayOutput(TypedDict, total=False):
+    """What ``render_rays`` returns for R rays."""
+
+    rgb: torch.Tensor  # [R, 3] in [0, 1], composited over the background
+    depth: torch.Tensor  # [R] expected termination distance along the ray (metres), normalised by opacity
+    opacity: torch.Tensor  # [R] accumulated opacity in [0, 1]
+    rgb_coarse: torch.Tensor  # [R, 3] the coarse network's colour (NeRF only; trained too)
+
+
+def camera_rays(
+    c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rays through the pixel centres of B pinhole cameras.
+
+    Args:
+        c2w: [B, 4, 4] camera-to-world (OpenGL: looks along -z, +y up), metres.
+        intrinsics: [B, 4] or [4], ``(fx, fy, cx, cy)`` in pixels.
+    Returns:
+        origins [B, H, W, 3] (metres), unit directions [B, H, W, 3], and z_scale [B, H, W]: the cosine
+        between each ray and the optical axis, so that ``z_depth = distance * z_scale``.
+    """
+    c2w = c2w.reshape(-1, 4, 4).float()
+    B = c2w.shape[0]
+    intr = intrinsics.to(c2w).reshape(-1, 4).expand(B, 4)
+    dev = c2w.device
+    v, u = torch.meshgrid(
+        torch.arange(height, device=dev, dtype=torch.float32) + 0.5,
+        torch.arange(width, device=dev, dtype=torch.float32) + 0.5,
+        indexing="ij",
+    )
+    fx, fy, cx, cy = (intr[:, i].view(B, 1, 1) for i in range(4))
+    x = (u - cx) / fx
+    y = -(v - cy) / fy  # image rows go down, camera +y goes up
+    d_cam = torch.stack([x, y, -torch.ones_like(x)], dim=-1)  # [B, H, W, 3]
+    norm = d_cam.norm(dim=-1, keepdim=True)
+    d_cam = d_cam / norm
+    dirs = torch.einsum("bij,bhwj->bhwi", c2w[:, :3, :3], d_cam)
+    origins = c2w[:, None, None, :3, 3].expand_as(dirs)
+    z_scale = 1.0 / norm[..., 0]  # cos of the angle to the optical axis
+    return origins.contiguous(), dirs.contiguous(), z_scale
+
+
+def volume_render(
+    sigma: torch.Tensor,
+    rgb: torch.Tensor,
+    t: torch.Tensor,
+    delta: torch.Tensor,
+    background: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """The quadrature of the paper's Eq. 1 over N samples on each of R rays.
+
+    ``C = sum_n T_n (1 - exp(-sigma_n delta_n)) c_n + (1 - sum_n w_n) * background`` with
+    ``T_n = exp(-sum_{n'<n} sigma_n' delta_n')``.
+
+    Args:
+        sigma: [R, N] volume density (1/metre), >= 0.
+        rgb: [R, N, 3] colour in [0, 1].
+        t: [R, N] sample distances along the ray (metres).
+        delta: [R, N] length of each sample's interval (metres); 0 for padding samples.
+        background: [3] or [R, 3] colour seen where the ray is not absorbed; None means black.
+    Returns:
+        rgb [R, 3], depth [R] (expected termination distance normalised by opacity; 0 where empty),
+        opacity [R], weights [R, N].
+    """
+    tau = sigma * delta
+    alpha = 1.0 - torch.exp(-tau)
+    # Exclusive cumulative sum: transmittance up to (not including) each sample.
+    trans = torch.exp(-(torch.cumsum(tau, dim=-1) - tau))
+    weights = alpha * trans
+    opacity = weights.sum(-1)
+    color = (weights.unsqueeze(-1) * rgb).sum(-2)
+    if background is not None:
+        color = color + (1.0 - opacity).unsqueeze(-1) * background
+    depth = (weights * t).sum(-1) / opacity.clamp_min(1e-10)
+    depth = torch.where(opacity > EMPTY_OPACITY, depth, torch.zeros_like(depth))
+    return {"rgb": color, "depth": depth, "opacity": opacity, "weights": weights}
+
+
+def ray_box(origins: torch.Tensor, dirs: torch.Tensor, bound: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distances [R] of rays through the cube [-bound, bound]^3; exit <= entry on a miss."""
+    safe = torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
+    inv = 1.0 / safe
+    t0 = (-bound - origins) * inv
+    t1 = (bound - origins) * inv
+    near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
+    far = torch.maximum(t0, t1).amin(-1)
+    return near, far
+
+
+class FieldScene(Scene):
+    """A scene rendered by volume rendering of a learned field inside the cube [-bound, bound]^3.
+
+    Subclasses implement ``render_rays``; this class renders whole cameras in chunks of rays.
+    Buffers: ``background`` [3], the colour composited behind the object.
+    """
+
+    background: torch.Tensor
+
+    def __init__(self, bound: float, background: tuple[float, float, float]):
+        super().__init__()
+        self.bound = float(bound)
+        self.register_buffer("background", torch.tensor(background, dtype=torch.float32))
+
+    def render_rays(
+        self,
+        origins: torch.Tensor,
+        dirs: torch.Tensor,
+        background: torch.Tensor | None = None,
+        perturb: bool = False,
+    ) -> RayOutput:
+        """Render R rays: origins [R, 3], unit dirs [R, 3]; background [3] or [R, 3] (default the scene's)."""
+        raise NotImplementedError
+
+    def update_occupancy(self, step: int) -> None:
+        """Called once per training step before rendering; scenes with an occupancy grid refresh it here."""
+
+    default_chunk: int = 1 << 15
+
+    @torch.no_grad()
+    def render_rgbd(
+        self,
+        c2w: torch.Tensor,
+        intrinsics: torch.Tensor,
+        width: int,
+        height: int,
+        chunk: int | None = None,
+    ) -> RGBD:
+        """Render B views: c2w [B, 4, 4] (or [4, 4]), intrinsics [B, 4] or [4]; ``chunk`` rays per batch."""
+        dev = self.background.device
+        c2w = c2w.to(dev)
+        origins, dirs, z_scale = camera_rays(c2w, intrinsics.to(dev), width, height)
+        B = origins.shape[0]
+        o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        chunk = chunk or self.default_chunk
+        rgb, depth, opacity = [], [], []
+        for i in range(0, o.shape[0], chunk):
+            out = self.render_rays(o[i : i + chunk], d[i : i + chunk])
+            rgb.append(out["rgb"])
+            depth.append(out["depth"])
+            opacity.append(out["opacity"])
+        shape = (B, height, width)
+        return {
+            "rgb": torch.cat(rgb).reshape(*shape, 3).clamp(0, 1),
+            "depth": torch.cat(depth).reshape(shape) * z_scale,
+            "opacity": torch.cat(opacity).reshape(shape).clamp(0, 1),
+        }
