@@ -15,7 +15,7 @@ from tnf.eval.classify import (
     train_classifier,
 )
 
-TINY = ClassifierConfig(image_size=32, width=8, steps=40, batch_size=16, lr=3e-3, shift=2)
+TINY = ClassifierConfig(image_size=32, width=8, steps=60, batch_size=16, lr=3e-3, shift=2)
 
 
 def _separable(n_per_class: int, seed: int) -> LabelledImages:
