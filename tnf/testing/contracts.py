@@ -279,7 +279,8 @@ class GeneratorContract(_ComponentContract):
         changed = [k for k, v in generator.named_parameters() if not torch.equal(v, before[k])]
         assert changed, "a training step must update some weights"
 
-    def test_checkpoint_stores_name_not_class_path(self, generator, tmp_path):
+    @pytest.mark.filterwarnings("ignore:.*validation_step.*:UserWarning")
+    def test_checkpoint_stores_name_not_class_path(self, tmp_path):
         import lightning as L
         import torch
 
@@ -288,8 +289,9 @@ class GeneratorContract(_ComponentContract):
 
         system = GeneratorSystem(self.spec(), epochs=1, decay_epochs=0, grid_rows=0)
         loader = torch.utils.data.DataLoader([_unbatch(random_batch(1, self.image_size, s)) for s in range(2)], 2)
+        # No steps: the training step has its own test; this one is about what a checkpoint stores.
         trainer = L.Trainer(
-            max_steps=1,
+            max_steps=0,
             accelerator="cpu",
             logger=False,
             enable_checkpointing=False,
@@ -331,6 +333,8 @@ class SceneContract(_ComponentContract):
     height: ClassVar[int] = 12
     distance: ClassVar[float] = 0.3
     """Camera distance from the origin, metres (scenes are objects of a few centimetres at the origin)."""
+    saveable: ClassVar[bool] = True
+    """Whether ``save_scene`` / ``load_scene`` apply (false for scenes built from data they do not store)."""
 
     @pytest.fixture
     def scene(self) -> Any:
@@ -374,6 +378,8 @@ class SceneContract(_ComponentContract):
     def test_save_and_load_by_name(self, scene, tmp_path):
         import torch
 
+        if not self.saveable:
+            pytest.skip(f"{self.name} scenes are not saved as checkpoints")
         from tnf.scenes import load_scene, save_scene
 
         path = save_scene(scene, tmp_path)
