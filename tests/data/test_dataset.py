@@ -171,3 +171,22 @@ def test_datamodule_missing_dataset(tmp_path, data_root):
 
     with pytest.raises(TnfError, match="tnf pair"):
         PairDataModule(["nope"])
+
+
+def test_compact_batches_convert_to_the_same_floats(tmp_path):
+    from tnf.data import PairDataModule, to_float_batch
+
+    make_dataset(tmp_path / "ds")
+    idx = [4, 1, 7]
+    plain = PairDataset(tmp_path / "ds").__getitems__(idx)
+    compact = PairDataset(tmp_path / "ds", compact=True).__getitems__(idx)
+    assert compact["rgb"].dtype == torch.uint8 and compact["rgb"].shape == (3, 128, 128, 3)
+    assert compact["depth"].dtype == torch.float16 and compact["depth"].shape == (3, 128, 128)
+    converted = to_float_batch(compact)
+    for k, v in plain.items():
+        assert converted[k].shape == v.shape and converted[k].dtype == v.dtype
+        torch.testing.assert_close(converted[k], v)
+    assert to_float_batch(plain)["rgb"] is plain["rgb"]  # float batches pass through
+    dm = PairDataModule([tmp_path / "ds"], batch_size=4, convert_on_device=True)
+    batch = dm.on_after_batch_transfer(next(iter(dm.val_dataloader())), 0)
+    assert batch["rgb"].dtype == torch.float32 and batch["rgb"].shape == (2, 3, 128, 128)

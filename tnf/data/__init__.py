@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.data.dataset import MixedPairDataset, PairDataset, augment_batch, collate_pairs
+from tnf.data.dataset import MixedPairDataset, PairDataset, augment_batch, collate_pairs, to_float_batch
 from tnf.data.preprocess import SIZE, crop_for_sensor, preprocess_rgbd, resize_uint8
 from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
 from tnf.data.store import PairArrays, PairWriter, dataset_name, open_pairs, write_manifest
@@ -31,6 +31,7 @@ __all__ = [
     "preprocess_rgbd",
     "render_pairs_for_touches",
     "resize_uint8",
+    "to_float_batch",
     "write_manifest",
 ]
 

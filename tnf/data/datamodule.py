@@ -11,7 +11,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from tnf.artifacts import MANIFEST, data_root, read_json
-from tnf.data.dataset import MixedPairDataset, PairDataset, collate_pairs
+from tnf.data.dataset import Batch, MixedPairDataset, PairDataset, augment_batch, collate_pairs, to_float_batch
 from tnf.errors import TnfError
 
 TEST_SPLITS = ("novel_view", "novel_object")
@@ -44,6 +44,9 @@ class PairDataModule(L.LightningDataModule):
         train_splits, val_splits: splits served by ``train_dataloader`` / ``val_dataloader``.
         drop_last: drop the last, incomplete training batch.
         data_root: where dataset names are looked up (default the configured artifact root).
+        convert_on_device: the loaders serve compact batches (uint8 images, float16 depth; see
+            ``PairDataset``), and ``on_after_batch_transfer`` converts them to the float form (and augments)
+            on the training device; 4x less data to load, pin and copy. Off: the loaders serve float batches.
     """
 
     def __init__(
@@ -59,6 +62,7 @@ class PairDataModule(L.LightningDataModule):
         val_splits: Sequence[str] = ("val",),
         drop_last: bool = False,
         data_root: str | os.PathLike[str] | None = None,
+        convert_on_device: bool = False,
     ):
         super().__init__()
         if isinstance(folders, (str, os.PathLike)):
@@ -77,6 +81,7 @@ class PairDataModule(L.LightningDataModule):
         self.train_splits = tuple(train_splits)
         self.val_splits = tuple(val_splits)
         self.drop_last = drop_last
+        self.convert_on_device = convert_on_device
         names: list[str] = []
         for f in self.folders:
             for n in read_json(f / MANIFEST, "dataset manifest")["objects"]:
@@ -87,7 +92,15 @@ class PairDataModule(L.LightningDataModule):
     def dataset(self, splits: Sequence[str], augment: bool = False) -> PairDataset | MixedPairDataset:
         """The pairs of ``splits`` over all folders (one dataset, or a mix)."""
         parts = [
-            PairDataset(f, splits, self.per_object, self.seed, object_names=self.object_names, augment=augment)
+            PairDataset(
+                f,
+                splits,
+                self.per_object,
+                self.seed,
+                object_names=self.object_names,
+                augment=augment,
+                compact=self.convert_on_device,
+            )
             for f in self.folders
         ]
         return parts[0] if len(parts) == 1 else MixedPairDataset(parts)
@@ -108,6 +121,15 @@ class PairDataModule(L.LightningDataModule):
             collate_fn=collate_pairs,
             generator=g if train else None,
         )
+
+    def on_after_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Batch:
+        if not self.convert_on_device:
+            return batch
+        batch = to_float_batch(batch)
+        trainer = getattr(self, "trainer", None)
+        if self.augment and trainer is not None and trainer.training:
+            augment_batch(batch)
+        return batch
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_splits, train=True)

@@ -18,11 +18,13 @@ Batch = dict[str, torch.Tensor]
 
 
 def _to_unit_range(x: np.ndarray) -> torch.Tensor:
-    """uint8 [B, H, W, C] -> float32 [B, C, H, W] in [-1, 1] (contiguous)."""
-    t = torch.from_numpy(np.ascontiguousarray(x))
-    out = torch.empty((t.shape[0], t.shape[3], t.shape[1], t.shape[2]), dtype=torch.float32)
-    out.copy_(t.permute(0, 3, 1, 2))
-    return out.mul_(2.0 / 255.0).sub_(1.0)
+    """uint8 [B, H, W, C] -> float32 [B, C, H, W] in [-1, 1], in channels-last memory layout.
+
+    Converting in place of the stored HWC order avoids a transposing copy (about 2x faster on a CPU);
+    convolutions take channels-last tensors as they are, ``.contiguous()`` gives the NCHW layout.
+    """
+    t = torch.from_numpy(x if x.flags.writeable else np.array(x))
+    return t.float().mul_(2.0 / 255.0).sub_(1.0).permute(0, 3, 1, 2)
 
 
 class PairDataset(Dataset):
@@ -43,6 +45,10 @@ class PairDataset(Dataset):
             Datasets that are mixed share one vocabulary so an object keeps its id.
         augment: random horizontal/vertical flips (the same flip on all four images of a pair) and
             brightness/contrast jitter of the RGB image.
+        compact: serve batches as stored (``rgb``, ``background``, ``tactile`` uint8 [B, 128, 128, 3],
+            ``depth`` float16 [B, 128, 128]), 4x fewer bytes to load, pin and copy; ``to_float_batch``
+            turns them into the float form, best on the GPU after the copy. ``augment`` is then not applied
+            here (apply ``augment_batch`` after ``to_float_batch``).
     """
 
     def __init__(
@@ -53,12 +59,14 @@ class PairDataset(Dataset):
         seed: int = 0,
         object_names: Sequence[str] | None = None,
         augment: bool = False,
+        compact: bool = False,
     ):
         if isinstance(splits, str):
             splits = (splits,)
         self.arrays: PairArrays = open_pairs(folder)
         self.splits = tuple(splits)
-        self.augment = augment
+        self.augment = augment and not compact
+        self.compact = compact
         own = self.arrays.objects
         self.object_names = list(object_names) if object_names is not None else own
         missing = [n for n in own if n not in self.object_names]
@@ -74,8 +82,9 @@ class PairDataset(Dataset):
                 rows, np.asarray(self.arrays.object_id), np.asarray(self.arrays.touch_index), per_object, seed
             )
         self.index = rows.astype(np.int64)
-        # Backgrounds are few: convert once, then a batch is one index_select.
-        self._backgrounds = _to_unit_range(np.array(self.arrays.backgrounds))
+        # Backgrounds are few: convert once, then a batch is one gather.
+        self._backgrounds_u8 = np.array(self.arrays.backgrounds)
+        self._backgrounds_hwc = _to_unit_range(self._backgrounds_u8).permute(0, 2, 3, 1)  # [K, H, W, 3]
         self._bg_index = torch.from_numpy(np.asarray(self.arrays.background_index).astype(np.int64))
         self._object_id = torch.from_numpy(np.asarray(self.arrays.object_id).astype(np.int64))
 
@@ -95,12 +104,21 @@ class PairDataset(Dataset):
         """A batch of pairs as one dict of stacked tensors."""
         rows = self.index[np.asarray(indices, dtype=np.int64)]
         a = self.arrays
+        rows_t = torch.from_numpy(rows)
+        # (Advanced indexing, not index_select: the latter is far slower for large rows on the CPU.)
+        object_id = self._id_map[self._object_id[rows_t]]
+        if self.compact:
+            return {
+                "rgb": torch.from_numpy(a.rgb[rows]),
+                "depth": torch.from_numpy(a.depth[rows]),
+                "background": torch.from_numpy(self._backgrounds_u8[a.background_index[rows]]),
+                "tactile": torch.from_numpy(a.tactile[rows]),
+                "object_id": object_id,
+            }
         rgb = _to_unit_range(a.rgb[rows])
         tactile = _to_unit_range(a.tactile[rows])
         depth = torch.from_numpy(a.depth[rows]).unsqueeze(1).float().mul_(2.0).sub_(1.0)
-        rows_t = torch.from_numpy(rows)
-        background = self._backgrounds.index_select(0, self._bg_index.index_select(0, rows_t))
-        object_id = self._id_map.index_select(0, self._object_id.index_select(0, rows_t))
+        background = self._backgrounds_hwc[self._bg_index[rows_t]].permute(0, 3, 1, 2)
         batch = {"rgb": rgb, "depth": depth, "background": background, "tactile": tactile, "object_id": object_id}
         if self.augment:
             augment_batch(batch)
@@ -110,6 +128,23 @@ class PairDataset(Dataset):
         """Number of pairs per split in this (possibly subsampled) dataset."""
         codes = np.asarray(self.arrays.split)[self.index]
         return {s: int((codes == i).sum()) for i, s in enumerate(SPLITS) if s in self.splits}
+
+
+def to_float_batch(batch: Batch) -> Batch:
+    """A compact batch (uint8 HWC images, float16 depth) as float32 [B, C, H, W] tensors in [-1, 1] (images
+    channels-last in memory), on the batch's device.
+
+    Float batches pass through unchanged, so it is safe to call on any batch.
+    """
+    out = dict(batch)
+    for k in ("rgb", "background", "tactile"):
+        x = batch[k]
+        if x.dtype == torch.uint8:
+            out[k] = x.float().mul_(2.0 / 255.0).sub_(1.0).permute(0, 3, 1, 2)
+    d = batch["depth"]
+    if d.ndim == 3:
+        out["depth"] = d.unsqueeze(1).float().mul_(2.0).sub_(1.0)
+    return out
 
 
 def _subsample_touches(
