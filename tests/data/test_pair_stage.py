@@ -119,3 +119,15 @@ def test_cli(data_root, capsys):
     assert "paired dataset" in capsys.readouterr().out
     assert main(["pair", *BASE, "pair.crop_px=1000"]) == 1
     assert "larger than" in capsys.readouterr().err
+
+
+def test_mesh_source_needs_no_fitted_scene(data_root):
+    make_inputs(data_root, touches=3, scenes=False)
+    build(["pair.scene_source=mesh"])
+    a = open_pairs(data_root / "pairs" / "digit-mesh")
+    assert a.manifest["scene_source"] == "mesh" and a.manifest["scene_checkpoints"] == {"ball": None, "box": None}
+    assert len(a) == 6
+    depth = a.depth.astype(np.float32)
+    hit = depth[:, 63:65, 63:65].min(axis=(1, 2)) < 1
+    assert hit.any()  # the builtin objects are hit by the centre ray of (at least some) touches
+    assert np.allclose(depth[hit, 63:65, 63:65].min(axis=(1, 2)), 0.5, atol=0.01)

@@ -268,9 +268,7 @@ def _load_scene(kind: str, scene_dir: Path, source: Any, obj: str, device: str) 
         return load_scene(scene_dir, device)
     from tnf.registry import SCENES
 
-    cls = SCENES.get("mesh")
-    mesh = source.load(obj)
-    return cls.from_mesh(mesh, device=device)
+    return SCENES.get("mesh").from_mesh(source.load(obj)).to(device)
 
 
 def _write_previews(folder: Path, names: list[str], k: int, seed: int) -> None:
