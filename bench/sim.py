@@ -1,17 +1,24 @@
-"""Speed of the warp gel simulator: Digit frames per second at 120x160 and 240x320, and peak GPU memory.
+"""Speed of the warp gel simulator: Digit frames per second at 120x160 and 240x320, per phase, and peak memory.
 
-    python bench/sim.py                       # CPU, batch 1 (per-frame latency, compared with TACTO)
+    python bench/sim.py                       # CPU: batches of 16 touches on builtin objects, 3 measurements
     python bench/sim.py --device cuda --batch 512
     python bench/sim.py --examples results/sim  # also write example images (ball, edge, ridge)
 
+Each measurement presses the sensor onto several builtin objects (and an icosphere) from poses around them, a
+batch per object, and counts every frame: ray cast, force solve, deformation, shading, blur and noise (and the
+copy to NumPy with ``--host``). It is repeated ``--runs`` times (the machine may be shared): best and median are
+printed, as wall-clock time and as this process's CPU time (what the frames cost when cores are free).
+
 TACTO (PyBullet + PyRender on Mesa) measured 43.5 ms per Digit frame at 120x160 and 67 ms at 240x320 on the
-reference 2-core CPU machine; the goals are >= 5x faster on CPU and >= 5000 frames/s at 240x320 on one H100.
+reference 2-core CPU machine; the goals are >= 5x faster on that CPU and >= 5000 frames/s at 240x320 on one H100.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
+import statistics
 import time
 from pathlib import Path
 
@@ -21,35 +28,48 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 import warp as wp  # noqa: E402
 
-from tnf.registry import SENSORS, SIMULATORS  # noqa: E402
-from tnf.sim.touch import look_at  # noqa: E402
+from tnf.registry import OBJECTS, SENSORS, SIMULATORS  # noqa: E402
+from tnf.sim.touch import sphere_directions, start_poses  # noqa: E402
 
-TACTO_MS = {(120, 160): 43.5, (240, 320): 67.0}
+TACTO_MS = {(120, 160): 43.5, (240, 320): 67.0}  # ms per Digit frame, TACTO on the reference 2-core CPU
+OBJECTS_USED = ("golf_ball", "gear", "mug", "wrench", "sponge")
 
 
-def poses(n: int, rng: np.random.Generator, radius: float = 0.05) -> np.ndarray:
-    """Start poses looking at the origin from the upper hemisphere, jittered so touches differ."""
+def workload(batch: int) -> list[tuple[str, trimesh.Trimesh, np.ndarray]]:
+    """(name, mesh, ``[batch, 4, 4]`` start poses) per object: poses on a sphere 3 cm beyond the object."""
+    src = OBJECTS.build({"name": "builtin"})
+    meshes = [(name, src.load(name)) for name in OBJECTS_USED]
+    meshes.append(("icosphere", trimesh.creation.icosphere(subdivisions=5, radius=0.01)))
     out = []
-    for _ in range(n):
-        d = rng.normal(size=3) * 0.15 + np.array([0.0, 0.0, 1.0])
-        d /= np.linalg.norm(d)
-        out.append(look_at(radius * d, rng.normal(size=3) * 0.002))
-    return np.stack(out)
+    for k, (name, mesh) in enumerate(meshes):
+        rng = np.random.default_rng(k)
+        radius = float(np.linalg.norm(mesh.vertices, axis=1).max()) + 0.03
+        out.append((name, mesh, start_poses(rng, sphere_directions(rng, batch, (0, 0, 1), 0, False), radius)))
+    return out
 
 
-def bench(device: str, size: tuple[int, int], batch: int, repeats: int, host: bool) -> dict:
+def bench(device: str, size: tuple[int, int], batch: int, runs: int, host: bool) -> dict:
     sensor = SENSORS.build({"name": "digit", "width": size[0], "height": size[1]})
     sim = SIMULATORS.build({"name": "warp_gel"}, sensor=sensor, device=device)
-    mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.01)
-    c2w = poses(batch, np.random.default_rng(0))
-    sim.press(mesh, c2w, 3.0, host=host)  # compile and allocate
+    work = workload(batch)
+    forces = np.linspace(1.0, 8.0, batch)
+    for _, mesh, c2w in work:  # compile, build the meshes' BVHs, allocate
+        sim.press(mesh, c2w, forces, host=host)
     wp.synchronize_device(device)
-    t0 = time.perf_counter()
-    for i in range(repeats):
-        sim.press(mesh, c2w, 3.0, seed=i, host=host)
-    wp.synchronize_device(device)
-    dt = (time.perf_counter() - t0) / repeats
-    out = {"ms_per_batch": dt * 1e3, "ms_per_frame": dt * 1e3 / batch, "fps": batch / dt}
+    frames = batch * len(work)
+    walls, cpus, phases = [], [], []
+    for run in range(runs):
+        sim.timings = {}
+        t0, c0 = time.perf_counter(), time.process_time()
+        for i, (_, mesh, c2w) in enumerate(work):
+            sim.press(mesh, c2w, forces, seed=run * 100 + i, host=host)
+        wp.synchronize_device(device)
+        walls.append((time.perf_counter() - t0) * 1e3 / frames)
+        cpus.append((time.process_time() - c0) * 1e3 / frames)
+        phases.append({k: v * 1e3 / frames for k, v in sim.timings.items()})
+    sim.timings = None
+    best = int(np.argmin(walls))
+    out = {"wall": walls, "cpu": cpus, "phases": phases[best], "frames": frames}
     if device.startswith("cuda"):
         try:
             out["peak_gib"] = wp.get_mempool_used_mem_high(device) / 2**30
@@ -83,25 +103,37 @@ def examples(folder: Path, device: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu", help="warp device: cpu, cuda, cuda:N")
-    ap.add_argument("--batch", type=int, default=None, help="touches per launch (default: 1 on cpu, 512 on cuda)")
-    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--batch", type=int, default=None, help="touches per launch (default: 16 on cpu, 512 on cuda)")
+    ap.add_argument("--runs", type=int, default=3, help="measurements per resolution (best and median printed)")
     ap.add_argument("--host", action="store_true", help="include copying results to NumPy")
     ap.add_argument("--examples", type=Path, default=None, help="write example images into this folder")
     args = ap.parse_args()
     device = "cuda:0" if args.device == "cuda" else args.device
+    wp.config.quiet = True
     wp.init()
     gpu = device.startswith("cuda")
-    batch = args.batch or (512 if gpu else 1)
-    repeats = args.repeats or (20 if gpu else 5)
-    print(f"device {wp.get_device(device).name} ({device}), batch {batch}, repeats {repeats}, host copy {args.host}")
+    batch = args.batch or (512 if gpu else 16)
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"device {wp.get_device(device).name} ({device}), {os.cpu_count()} CPU cores, load average {load}")
+    print(f"batch {batch}, objects {', '.join(OBJECTS_USED)}, icosphere; {args.runs} runs; host copy {args.host}")
     for size in ((120, 160), (240, 320)):
-        r = bench(device, size, batch, repeats, args.host)
-        line = f"digit {size[0]}x{size[1]}: {r['ms_per_frame']:.3f} ms/frame, {r['fps']:.0f} frames/s"
+        r = bench(device, size, batch, args.runs, args.host)
+        wall, cpu = r["wall"], r["cpu"]
+        name = f"digit {size[0]}x{size[1]}"
+        print(
+            f"{name}: {r['frames']} frames/run; wall ms/frame best {min(wall):.2f} median {statistics.median(wall):.2f}"
+            f" ({1e3 / min(wall):.0f} frames/s); CPU ms/frame best {min(cpu):.2f} median {statistics.median(cpu):.2f}"
+        )
         if not gpu:
-            line += f"; TACTO {TACTO_MS[size]} ms/frame -> {TACTO_MS[size] / r['ms_per_frame']:.1f}x"
+            ref = TACTO_MS[size]
+            print(
+                f"  vs TACTO {ref} ms/frame (measured on the reference 2-core CPU): {ref / min(wall):.1f}x wall (best),"
+                f" {ref / statistics.median(wall):.1f}x wall (median), {ref / min(cpu):.1f}x CPU time (best)"
+            )
+        print("  phases (ms/frame, best run): " + ", ".join(f"{k} {v:.2f}" for k, v in r["phases"].items()))
         if "peak_gib" in r:
-            line += f"; peak GPU memory {r['peak_gib']:.2f} GiB"
-        print(line, flush=True)
+            print(f"  peak GPU memory (warp mempool) {r['peak_gib']:.2f} GiB")
+        print(f"  peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10:.0f} MiB", flush=True)
     if args.examples:
         examples(args.examples, device)
 

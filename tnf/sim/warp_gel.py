@@ -31,6 +31,7 @@ the penetration ``d`` (m), the first-contact point and the sensor pose at contac
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -591,6 +592,17 @@ class WarpGel:
         self._span = 1 if self.device.is_cuda else s.width
         self._meshes: dict[int, tuple[Any, wp.Mesh, wp.array, wp.array]] = {}
         self._buffers: dict[str, Any] = {}
+        self.timings: dict[str, float] | None = None
+        """Set to ``{}`` to accumulate seconds per phase of ``press`` (synchronises the device; for benchmarks)."""
+        self._last = 0.0
+
+    def _phase(self, name: str) -> None:
+        if self.timings is None:
+            return
+        wp.synchronize_device(self.device)
+        now = time.perf_counter()
+        self.timings[name] = self.timings.get(name, 0.0) + now - self._last
+        self._last = now
 
     # -- meshes -------------------------------------------------------------------------------------
     def mesh(self, mesh: Any) -> wp.Mesh:
@@ -633,6 +645,7 @@ class WarpGel:
             host: copy results to NumPy (``False`` leaves them on the device and returns None; for benchmarks).
         """
         s = self.sensor
+        self._last = time.perf_counter()
         c2w = np.asarray(start_c2w, dtype=np.float32).reshape(-1, 4, 4)
         batch = c2w.shape[0]
         forces = np.broadcast_to(np.asarray(force, dtype=np.float32), (batch,)).copy()
@@ -686,17 +699,20 @@ class WarpGel:
         else:
             args = [wmesh.id, poses, self._points, self._gel, max_t, t, t_min]
             wp.launch(_raycast, (batch, hh, ww), args, device=dev)
+        self._phase("ray cast")
         rows = (batch, hh, nblk)
         wp.launch(_gap_histogram, rows, [t, t_min, bin_width, poses, self._points, span, hist, point], device=dev)
         e_star = s.effective_modulus
         args = [hist, target, t_min, bin_width, dx * dy, e_star, s.cfg.thickness, depth, fout]
         wp.launch(_solve_force, batch, args, device=dev)
+        self._phase("force solve")
         coarse = (batch, hc, nblk_c)
         wp.launch(_coarse_constraint, coarse, [t, t_min, depth, k, span, cval, cmask, ra], device=dev)
         for _ in range(self.cfg.relax_iterations):
             wp.launch(_relax_step, coarse, [ra, cval, cmask, screen, span, rb], device=dev)
             ra, rb = rb, ra
         wp.launch(_compose, rows, [t, t_min, depth, ra, k, span, u, contact], device=dev)
+        self._phase("deformation")
         if s.custom_shading:
             diff = self._shade_on_host(u)
         else:
@@ -705,6 +721,7 @@ class WarpGel:
             args += [c.camera_distance, dx, dy, c.ambient, c.diffuse, c.specular, c.shininess, self._int_shininess]
             args += [c.contrast, span, diff]
             wp.launch(_shade, rows, args, device=dev)
+        self._phase("shading")
         weights = self._no_blur
         if self._blur is not None:
             tmp = self._buffer("diff_tmp", (batch, hh, ww), wp.vec3)
@@ -712,6 +729,7 @@ class WarpGel:
             diff, weights = tmp, self._blur
         args = [diff, weights, self._background, self._noise_table, float(s.cfg.noise_std), int(seed), span, image]
         wp.launch(_blur_cols_finish, rows, args, device=dev)
+        self._phase("blur, noise")
         if not host:
             return None
 
@@ -727,7 +745,7 @@ class WarpGel:
         ind = u.numpy().copy()
         if s.decorates:
             images = s.decorate(images, ind)
-        return TouchBatch(
+        out = TouchBatch(
             images=images,
             indentation=ind,
             contact=contact.numpy().astype(bool),
@@ -738,6 +756,8 @@ class WarpGel:
             contact_point=point.numpy().copy(),
             contact_c2w=contact_c2w,
         )
+        self._phase("host copy")
+        return out
 
     def _shade_on_host(self, u: wp.array) -> wp.array:
         """Shading through an overridden ``Sensor.shade`` (NumPy, per touch)."""
