@@ -1,0 +1,188 @@
+"""Generator architectures: shapes, skip connections, configs, one optimisation step, a tiny overfit."""
+
+import pytest
+import torch
+
+from tests.generators.synthetic import make_pairs
+from tnf.errors import TnfError
+from tnf.eval import metrics
+from tnf.generators import PlainOptimisation
+from tnf.generators.nets import NoiseDropout
+from tnf.registry import GENERATORS
+
+TINY = {
+    "tn_cgan": {"ngf": 4, "ndf": 4},
+    "lee": {"ngf": 4, "ndf": 4},
+    "cyclegan": {"ngf": 4, "ndf": 4, "n_blocks": 2},
+}
+
+
+def build(name, **kw):
+    return GENERATORS.build({"name": name, **TINY[name], **kw})
+
+
+def test_registered():
+    assert {"tn_cgan", "lee", "cyclegan"} <= set(GENERATORS.names())
+
+
+@pytest.mark.parametrize("name", ["tn_cgan", "lee", "cyclegan"])
+@pytest.mark.parametrize("size", [32, 128])
+def test_output_shape_and_range(name, size):
+    torch.manual_seed(0)
+    g = build(name, image_size=size).eval()
+    batch = make_pairs(2, size)
+    with torch.no_grad():
+        out = g.generate(batch)
+    assert out.shape == (2, 3, size, size)
+    assert out.dtype == torch.float32
+    assert out.abs().max() <= 1.0 and torch.isfinite(out).all()
+
+
+def test_tn_cgan_default_architecture():
+    g = GENERATORS.build({"name": "tn_cgan"})
+    # One encoder per input, each down to 1 x 1 at 128 px (7 stride-2 levels).
+    assert set(g.net_g.encoders) == {"rgb", "depth", "background"}
+    assert all(len(e.blocks) == 7 for e in g.net_g.encoders.values())
+    assert g.net_g.encoders["depth"].blocks[0].in_channels == 1
+    # Dropout 0.5 in the three innermost decoder blocks, on when generating.
+    drops = [m for m in g.net_g.decoder.modules() if isinstance(m, NoiseDropout)]
+    assert len(drops) == 3 and all(d.p == 0.5 and d.always_on for d in drops)
+    # PatchGAN on condition (3 + 1 + 3) + tactile (3) channels: 14 x 14 logits for 128 px.
+    assert g.net_d.net[0].in_channels == 10
+    assert g.net_d(torch.zeros(1, 10, 128, 128)).shape == (1, 1, 14, 14)
+    assert g.cfg.lambda_l1 == 100 and g.cfg.lr == 2e-4 and g.cfg.beta1 == 0.5
+
+
+def test_tn_cgan_skips_come_from_background_encoder():
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=32).eval()
+    batch = make_pairs(2, 32)
+    feats = {k: g.net_g.encoders[k](batch[k]) for k in g.inputs}
+    seen = []
+    hooks = [b.register_forward_pre_hook(lambda m, i: seen.append(i[0].clone())) for b in g.net_g.decoder.blocks]
+    with torch.no_grad():
+        g.net_g.encoders.eval()
+        g.generate(batch)
+    for h in hooks:
+        h.remove()
+    # Bottleneck = concatenated innermost features of the three encoders.
+    assert torch.equal(seen[0], torch.cat([feats[k][-1] for k in ("rgb", "depth", "background")], 1))
+    # Every later block's input ends with the background encoder's feature at that scale.
+    n = len(seen)
+    for k in range(1, n):
+        f = feats["background"][n - 1 - k]
+        assert seen[k].shape[-2:] == f.shape[-2:]
+        assert torch.equal(seen[k][:, -f.shape[1] :], f)
+
+
+def test_tn_cgan_inputs_are_configurable():
+    g = build("tn_cgan", inputs=["rgb", "background"], image_size=32)
+    assert set(g.net_g.encoders) == {"rgb", "background"}
+    assert g.net_d.net[0].in_channels == 9
+    batch = make_pairs(2, 32)
+    del batch["depth"]
+    assert g.generate(batch).shape == (2, 3, 32, 32)
+    with pytest.raises(TnfError, match="skips"):
+        build("tn_cgan", inputs=["rgb", "depth"])  # the default skips (background) are not an input
+    with pytest.raises(TnfError, match="needs batch keys"):
+        build("tn_cgan", image_size=32).generate({"rgb": batch["rgb"]})
+
+
+def test_bad_configs_are_errors():
+    with pytest.raises(TnfError, match="image_size"):
+        build("tn_cgan", image_size=100)
+    with pytest.raises(TnfError, match="norm"):
+        build("lee", norm="group")
+    with pytest.raises(TnfError, match="unknown key"):
+        build("cyclegan", n_block=3)
+
+
+def test_dropout_at_generation_makes_outputs_stochastic():
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=32).eval()
+    batch = make_pairs(2, 32)
+    with torch.no_grad():
+        assert not torch.equal(g.generate(batch), g.generate(batch))
+    g = build("tn_cgan", image_size=32, dropout_at_generation=False).eval()
+    with torch.no_grad():
+        assert torch.equal(g.generate(batch), g.generate(batch))
+
+
+def test_lee_architecture():
+    g = build("lee", image_size=32)
+    convs = [m for m in g.net_g.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
+    assert all(c.kernel_size == (5, 5) and c.stride == (2, 2) for c in convs)
+    assert list(g.net_g.encoders) == ["rgb"] and g.net_g.skips == ("rgb",)
+    d_convs = [m for m in g.net_d.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert len(d_convs) == 4 and isinstance(g.net_d.fc, torch.nn.Linear)
+    assert g.net_d(torch.zeros(3, 6, 32, 32)).shape == (3, 1)
+    assert g.cfg.lambda_l1 == 0
+    assert all(isinstance(o, torch.optim.RMSprop) for o in g.configure_optimizers())
+
+
+def test_cyclegan_architecture():
+    from tnf.generators.nets import ResnetBlock
+
+    g = GENERATORS.build({"name": "cyclegan"})
+    assert sum(isinstance(m, ResnetBlock) for m in g.net_g.modules()) == 6
+    assert g.cfg.lambda_cycle == 10 and g.cfg.lambda_identity == 0.5 and g.cfg.pool_size == 50
+    assert g.pool_tactile.size == 50
+
+
+def _l1(g, batch):
+    with torch.no_grad():
+        return (g.generate(batch) - batch["tactile"]).abs().mean().item()
+
+
+@pytest.mark.parametrize(
+    "name,kw",
+    [
+        ("tn_cgan", {"norm": "instance", "dropout": 0.0}),
+        ("lee", {"norm": "instance", "dropout": 0.0, "lambda_l1": 100.0}),
+    ],
+)
+def test_one_step_lowers_l1(name, kw):
+    torch.manual_seed(0)
+    g = build(name, image_size=32, **kw)
+    batch = make_pairs(4, 32)
+    opt = PlainOptimisation(g)
+    before = _l1(g, batch)
+    losses = g.training_step(batch, opt)
+    assert {"loss_g", "loss_d", "d_real", "d_fake"} <= set(losses)
+    assert all(torch.isfinite(v) for v in losses.values())
+    assert _l1(g, batch) < before
+
+
+def test_cyclegan_step_lowers_cycle_loss():
+    torch.manual_seed(0)
+    g = build("cyclegan", image_size=32)
+    batch = make_pairs(4, 32)
+
+    def cycle():
+        with torch.no_grad():
+            return (g.net_f(g.net_g(batch["rgb"])) - batch["rgb"]).abs().mean().item()
+
+    opt = PlainOptimisation(g)
+    before = cycle()
+    losses = g.training_step(batch, opt)
+    assert cycle() < before
+    assert {"loss_cycle", "loss_idt", "loss_d"} <= set(losses)
+    assert len(g.pool_tactile.images) == 4  # the pool filled with this step's fakes
+
+
+def test_tn_cgan_overfits_a_handful_of_pairs():
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=16, ngf=16, ndf=8, d_layers=2, dropout=0.0, lr=2e-3)
+    batch = make_pairs(4, 16)
+    opt = PlainOptimisation(g)
+    with torch.no_grad():
+        start = metrics.ssim(g.eval().generate(batch), batch["tactile"]).mean().item()
+    g.train()
+    for _ in range(100):
+        g.training_step(batch, opt)
+    g.eval()
+    with torch.no_grad():
+        s = metrics.ssim(g.generate(batch), batch["tactile"]).mean().item()
+    # Far better than the untrained network and than predicting the background: the blobs were learnt.
+    bg = metrics.ssim(batch["background"], batch["tactile"]).mean().item()
+    assert s > 0.98 and s > start + 0.2 and s > bg + 0.02, (start, bg, s)

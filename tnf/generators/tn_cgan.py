@@ -1,0 +1,293 @@
+"""``tn_cgan``: the Touch-NeRF conditional GAN (the paper's Fig. 2).
+
+The RGB image, the depth image and the sensor's background image go through separate convolutional encoders;
+their innermost features are concatenated and decoded by a U-Net decoder into the tactile image, with skip
+connections from the background encoder (configurable) at every scale. Dropout in the innermost decoder
+blocks is the noise z and stays on when generating. A PatchGAN discriminator judges (condition, tactile)
+pairs; the generator minimises the cGAN loss plus lambda_L1 times the L1 distance to the real image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from tnf.generators.base import Generator, Optimisation
+from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
+from tnf.registry import GENERATORS
+
+CHANNELS = {"rgb": 3, "depth": 1, "background": 3}
+
+
+def level_channels(ngf: int, level: int) -> int:
+    """Feature channels at encoder level ``level`` (0 = first, half resolution): ngf, 2ngf, 4ngf, 8ngf, 8ngf..."""
+    return ngf * min(2**level, 8)
+
+
+class Encoder(nn.Module):
+    """pix2pix encoder: ``num_downs`` 4x4 stride-2 convolutions, [B, C, H, W] -> features per level.
+
+    Level i has ``level_channels(ngf, i)`` channels at H / 2**(i+1); the last is the 1 x 1 bottleneck for
+    H = 2**num_downs. The first and the innermost convolutions have no normalisation (as pix2pix).
+    """
+
+    def __init__(self, in_ch: int, ngf: int, num_downs: int, norm: str, kernel: int = 4):
+        super().__init__()
+        nl = norm_layer(norm)
+        use_bias = norm != "batch"
+        pad = (kernel - 1) // 2
+        blocks: list[nn.Module] = [nn.Conv2d(in_ch, ngf, kernel, 2, pad, bias=use_bias)]
+        for i in range(1, num_downs):
+            cin, cout = level_channels(ngf, i - 1), level_channels(ngf, i)
+            innermost = i == num_downs - 1
+            # Not in-place: the block's input is also a skip feature.
+            layers: list[nn.Module] = [nn.LeakyReLU(0.2), nn.Conv2d(cin, cout, kernel, 2, pad, bias=use_bias)]
+            if not innermost:
+                layers.append(nl(cout))
+            blocks.append(nn.Sequential(*layers))
+        self.blocks = nn.ModuleList(blocks)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        feats = []
+        for b in self.blocks:
+            x = b(x)
+            feats.append(x)
+        return feats
+
+
+class UNetDecoder(nn.Module):
+    """U-Net decoder from a concatenated bottleneck, with skip features concatenated at every level.
+
+    Args:
+        bottleneck_ch: channels of the 1 x 1 (or 2**-num_downs) bottleneck.
+        skip_ch: channels concatenated at each level 0..num_downs-2 (0 for no skip).
+        dropout_blocks: how many of the innermost up-blocks apply ``NoiseDropout(dropout)``.
+    """
+
+    def __init__(
+        self,
+        bottleneck_ch: int,
+        skip_ch: list[int],
+        ngf: int,
+        num_downs: int,
+        out_ch: int,
+        norm: str,
+        dropout: float,
+        dropout_blocks: int,
+        kernel: int = 4,
+    ):
+        super().__init__()
+        nl = norm_layer(norm)
+        use_bias = norm != "batch"
+        pad, out_pad = (kernel - 1) // 2, kernel % 2  # exact 2x upsampling for 4x4 and 5x5 kernels
+        blocks = []
+        cin = bottleneck_ch
+        for k, level in enumerate(reversed(range(num_downs))):  # level of the input's resolution
+            last = level == 0
+            cout = out_ch if last else level_channels(ngf, level - 1)
+            layers: list[nn.Module] = [
+                nn.ReLU(True),
+                nn.ConvTranspose2d(cin, cout, kernel, 2, pad, output_padding=out_pad, bias=use_bias or last),
+            ]
+            if last:
+                layers.append(nn.Tanh())
+            else:
+                layers.append(nl(cout))
+                if k < dropout_blocks and dropout > 0:
+                    layers.append(NoiseDropout(dropout))
+            blocks.append(nn.Sequential(*layers))
+            if not last:
+                cin = cout + skip_ch[level - 1]
+        self.blocks = nn.ModuleList(blocks)
+
+    def forward(self, bottleneck: torch.Tensor, skips: list[list[torch.Tensor]]) -> torch.Tensor:
+        """``skips[level]``: tensors to concatenate after upsampling to ``level``'s resolution."""
+        x = bottleneck
+        n = len(self.blocks)
+        for k, block in enumerate(self.blocks):
+            x = block(x)
+            level = n - 2 - k
+            if level >= 0 and skips[level]:
+                x = torch.cat([x, *skips[level]], 1)
+        return x
+
+
+class MultiEncoderUNet(nn.Module):
+    """The generator network: one encoder per input, concatenated bottleneck, U-Net decoder with skip
+    connections from the encoders named in ``skips``.
+
+    ``forward(inputs)`` takes a dict with the input keys ([B, C_k, H, W] each) and returns [B, 3, H, W] in
+    [-1, 1]; H = W = 2**num_downs.
+    """
+
+    def __init__(
+        self,
+        inputs: list[str],
+        skips: list[str],
+        ngf: int,
+        num_downs: int,
+        norm: str,
+        dropout: float,
+        dropout_blocks: int,
+        kernel: int = 4,
+    ):
+        super().__init__()
+        self.inputs = tuple(inputs)
+        self.skips = tuple(skips)
+        n = num_downs
+        self.encoders = nn.ModuleDict({k: Encoder(CHANNELS[k], ngf, n, norm, kernel) for k in self.inputs})
+        bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
+        skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
+        self.decoder = UNetDecoder(bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel)
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        feats = {k: self.encoders[k](inputs[k]) for k in self.inputs}
+        bottleneck = torch.cat([feats[k][-1] for k in self.inputs], 1)
+        n = len(next(iter(feats.values())))
+        skips = [[feats[k][lv] for k in self.skips] for lv in range(n - 1)]
+        return self.decoder(bottleneck, skips)
+
+
+def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
+    """GAN loss of discriminator ``logits`` against the label real/fake: ``vanilla`` (sigmoid cross-entropy)
+    or ``lsgan`` (least squares)."""
+    target = torch.ones_like(logits) if real else torch.zeros_like(logits)
+    if mode == "lsgan":
+        return F.mse_loss(logits.float(), target.float())
+    return F.binary_cross_entropy_with_logits(logits.float(), target.float())
+
+
+@GENERATORS.register("tn_cgan")
+class TNcGAN(Generator):
+    """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, L1 + cGAN loss."""
+
+    @dataclass
+    class Config:
+        inputs: list[str] = field(default_factory=lambda: ["rgb", "depth", "background"])
+        """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations)."""
+        skips: list[str] = field(default_factory=lambda: ["background"])
+        """Inputs whose encoder features are skip-connected to the decoder (the paper: background only)."""
+        image_size: int = 128
+        """Input and output image size in pixels (square, a power of two)."""
+        ngf: int = 64
+        """Channels of the first encoder/last decoder layer (doubling per level up to 8 x ngf)."""
+        ndf: int = 64
+        """Channels of the discriminator's first layer."""
+        d_layers: int = 3
+        """PatchGAN depth: 3 gives 70 x 70 pixel patches."""
+        norm: str = "batch"
+        """Normalisation in generator and discriminator: batch, instance or none."""
+        dropout: float = 0.5
+        """Dropout probability in the innermost decoder blocks (the noise z)."""
+        dropout_blocks: int = 3
+        """How many innermost decoder blocks have dropout (pix2pix: 3)."""
+        dropout_at_generation: bool = True
+        """Keep dropout on when generating (the noise z), as pix2pix; false for deterministic outputs."""
+        gan_mode: str = "vanilla"
+        """Adversarial loss: vanilla (sigmoid cross-entropy, the paper's Eq. 3) or lsgan."""
+        lambda_l1: float = 100.0
+        """Weight lambda of the L1 loss (Eq. 2)."""
+        lr: float = 2e-4
+        """Adam learning rate of generator and discriminator."""
+        beta1: float = 0.5
+        """Adam beta1."""
+        beta2: float = 0.999
+        """Adam beta2."""
+
+        @property
+        def num_downs(self) -> int:
+            return int(round(math.log2(self.image_size)))
+
+        def validate(self) -> None:
+            bad = [k for k in self.inputs if k not in CHANNELS]
+            if bad or not self.inputs:
+                raise ValueError(f"inputs must be a non-empty subset of {list(CHANNELS)}, got {self.inputs}")
+            if len(set(self.inputs)) != len(self.inputs):
+                raise ValueError(f"inputs has duplicates: {self.inputs}")
+            extra = [k for k in self.skips if k not in self.inputs]
+            if extra:
+                raise ValueError(f"skips {extra} are not in inputs {self.inputs}; set skips to a subset of inputs")
+            if self.image_size < 16 or 2**self.num_downs != self.image_size:
+                raise ValueError(f"image_size must be a power of two >= 16, got {self.image_size}")
+            if self.image_size < 2 ** (self.d_layers + 2):
+                raise ValueError(f"image_size {self.image_size} is too small for d_layers={self.d_layers}")
+            if self.norm not in ("batch", "instance", "none"):
+                raise ValueError(f"norm must be batch, instance or none, got {self.norm!r}")
+            if self.gan_mode not in ("vanilla", "lsgan"):
+                raise ValueError(f"gan_mode must be vanilla or lsgan, got {self.gan_mode!r}")
+            if not 0 <= self.dropout < 1:
+                raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+            if self.ngf < 1 or self.ndf < 1:
+                raise ValueError(f"ngf and ndf must be >= 1, got {self.ngf}, {self.ndf}")
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        self.cfg = cfg
+        self.inputs = tuple(cfg.inputs)
+        self.net_g = MultiEncoderUNet(
+            cfg.inputs, cfg.skips, cfg.ngf, cfg.num_downs, cfg.norm, cfg.dropout, cfg.dropout_blocks
+        )
+        cond_ch = sum(CHANNELS[k] for k in self.inputs)
+        self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
+        init_weights(self.net_g)
+        init_weights(self.net_d)
+        for m in self.net_g.modules():
+            if isinstance(m, NoiseDropout):
+                m.always_on = cfg.dropout_at_generation
+
+    def condition(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([batch[k] for k in self.inputs], 1)
+
+    def generate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        self.check_batch(batch, self.inputs)
+        return self.net_g({k: batch[k] for k in self.inputs})
+
+    def configure_optimizers(self) -> list[torch.optim.Optimizer]:
+        betas = (self.cfg.beta1, self.cfg.beta2)
+        return [
+            torch.optim.Adam(self.trainable(self.net_g), lr=self.cfg.lr, betas=betas),
+            torch.optim.Adam(self.trainable(self.net_d), lr=self.cfg.lr, betas=betas),
+        ]
+
+    def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:
+        self.check_batch(batch, (*self.inputs, "tactile"))
+        opt_g, opt_d = opt.optimizers()
+        real = batch["tactile"]
+        cond = self.condition(batch)
+        fake = self.generate(batch)
+
+        # Discriminator: real pairs -> 1, generated pairs -> 0.
+        self.set_requires_grad(self.net_d, True)
+        logits_fake = self.net_d(torch.cat([cond, fake.detach()], 1))
+        logits_real = self.net_d(torch.cat([cond, real], 1))
+        loss_d = 0.5 * (
+            gan_loss(logits_fake, False, self.cfg.gan_mode) + gan_loss(logits_real, True, self.cfg.gan_mode)
+        )
+        opt_d.zero_grad(set_to_none=True)
+        opt.backward(loss_d)
+        opt_d.step()
+
+        # Generator: fool the (frozen) discriminator and stay close to the real image.
+        self.set_requires_grad(self.net_d, False)
+        logits_g = self.net_d(torch.cat([cond, fake], 1))
+        loss_g_gan = gan_loss(logits_g, True, self.cfg.gan_mode)
+        loss_l1 = F.l1_loss(fake.float(), real.float())
+        loss_g = loss_g_gan + self.cfg.lambda_l1 * loss_l1
+        opt_g.zero_grad(set_to_none=True)
+        opt.backward(loss_g)
+        opt_g.step()
+        self.set_requires_grad(self.net_d, True)
+
+        return {
+            "loss_g": loss_g.detach(),
+            "loss_g_gan": loss_g_gan.detach(),
+            "loss_l1": loss_l1.detach(),
+            "loss_d": loss_d.detach(),
+            # Mean D outputs: d_real -> 1 and d_fake -> 0 together means the discriminator has won.
+            "d_real": torch.sigmoid(logits_real.detach().float()).mean(),
+            "d_fake": torch.sigmoid(logits_fake.detach().float()).mean(),
+        }
