@@ -1,0 +1,169 @@
+"""GeneratorSystem with Lightning: a tiny training run, checkpoints, loading, resume, NaN guard, fine-tuning."""
+
+import hashlib
+import json
+
+import pytest
+import torch
+
+from tests.generators.synthetic import SyntheticPairs, make_pairs
+from tnf.errors import TnfError
+from tnf.generators import GeneratorSystem, load_generator
+from tnf.generators.system import NonFiniteLoss, image_grid
+from tnf.generators.training import fit
+
+SPEC = {"name": "tn_cgan", "image_size": 32, "ngf": 4, "ndf": 4, "dropout_at_generation": False}
+CPU = {"accelerator": "cpu", "devices": 1, "precision": "32-true"}
+
+
+def train(run_dir, epochs=2, dm=None, system=None, resume=True, **kw):
+    torch.manual_seed(0)
+    system = system or GeneratorSystem(SPEC, epochs=epochs, decay_epochs=1, grid_rows=3, finite_check_every=1)
+    dm = dm or SyntheticPairs(n_train=8, n_val=4, size=32, batch_size=4)
+    summary = fit(
+        system,
+        dm,
+        run_dir,
+        config={"spec": SPEC, "epochs": epochs, **kw},
+        trainer_cfg=CPU,
+        progress=False,
+        resume=resume,
+        log_every_n_steps=1,
+    )
+    return system, summary
+
+
+def sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("models") / "run"
+    system, summary = train(run_dir, epochs=2)
+    return run_dir, system, summary
+
+
+def test_run_folder(trained):
+    run_dir, system, summary = trained
+    for f in ("last.ckpt", "best.ckpt", "metrics.csv", "manifest.json", "grids/epoch_000.png", "grids/epoch_001.png"):
+        assert (run_dir / f).is_file(), f
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["epochs"] == 2 and 0 < manifest["best_val_ssim"] <= 1
+    csv = (run_dir / "metrics.csv").read_text().splitlines()[0].split(",")
+    # Both players' losses and D's outputs are logged, so a collapsing discriminator is visible.
+    for col in ("train/loss_g_step", "train/loss_d_step", "train/d_real_step", "train/d_fake_step", "val_ssim", "lr/g"):
+        assert col in csv, col
+    from PIL import Image
+
+    grid = Image.open(run_dir / "grids/epoch_001.png")
+    assert grid.size == (5 * 32, 3 * 32)
+
+
+def test_learning_rate_schedule_decays(trained):
+    import csv
+
+    run_dir, _, _ = trained
+    rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
+    lrs = [float(r["lr/g"]) for r in rows if r.get("lr/g")]
+    # 2 epochs, the last decaying linearly (pix2pix): 2e-4, then 2e-4 * (1 - 1/2).
+    assert lrs == pytest.approx([2e-4, 1e-4])
+
+
+def test_load_generator_reproduces_outputs(trained):
+    run_dir, system, _ = trained
+    loaded = load_generator(run_dir / "last.ckpt", "cpu")
+    assert not loaded.training and loaded.generator_name == "tn_cgan"
+    batch = make_pairs(3, 32, seed=5)
+    system.eval()
+    with torch.no_grad():
+        assert torch.allclose(loaded.generate(batch), system.generator.generate(batch), atol=1e-6)
+    ckpt = torch.load(run_dir / "last.ckpt", weights_only=True)
+    assert ckpt["tnf"]["generator"]["name"] == "tn_cgan"
+    assert not any("class_path" in k or "_target_" in k for k in json.dumps(ckpt["hyper_parameters"]))
+
+
+def test_load_errors(trained, tmp_path):
+    run_dir, _, _ = trained
+    with pytest.raises(TnfError, match="not found"):
+        load_generator(tmp_path / "missing.ckpt")
+    bad = tmp_path / "bad.ckpt"
+    torch.save({"state_dict": {}}, bad)
+    with pytest.raises(TnfError, match="not a tnf generator checkpoint"):
+        load_generator(bad)
+    ckpt = torch.load(run_dir / "last.ckpt", weights_only=True)
+    ckpt["tnf"]["format"] = 99
+    torch.save(ckpt, bad)
+    with pytest.raises(TnfError, match="format 99"):
+        load_generator(bad)
+    ckpt["tnf"]["format"] = 1
+    ckpt["tnf"]["generator"]["ngf"] = 8  # weights of another architecture
+    torch.save(ckpt, bad)
+    with pytest.raises(TnfError, match="does not fit"):
+        load_generator(bad)
+    with pytest.raises(TnfError, match="expected 'lee'"):
+        load_generator(run_dir / "last.ckpt", expected="lee")
+
+
+def test_resume_continues_from_last(tmp_path):
+    run_dir = tmp_path / "run"
+    _, s1 = train(run_dir, epochs=1)
+    assert s1["epochs"] == 1
+    steps = s1["global_step"]
+    system = GeneratorSystem(SPEC, epochs=2, decay_epochs=1, grid_rows=3, finite_check_every=1)
+    # Same run config -> resume from last.ckpt: only the second epoch runs.
+    with pytest.raises(TnfError, match="another config"):
+        train(run_dir, epochs=2, system=system)
+    _, s2 = train(run_dir, epochs=1, system=GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1))
+    assert s2["epochs"] == 2 and s2["global_step"] == 2 * steps
+
+
+def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
+    run_dir = tmp_path / "run"
+    train(run_dir, epochs=1)
+    good = sha(run_dir / "last.ckpt")
+    dm = SyntheticPairs(n_train=8, n_val=4, size=32, batch_size=4)
+    dm.train["tactile"][5] = float("nan")  # a corrupt pair in the second batch
+    system = GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1)
+    with pytest.raises(NonFiniteLoss, match="non-finite training loss .*last good checkpoint"):
+        train(run_dir, epochs=1, dm=dm, system=system)
+    assert sha(run_dir / "last.ckpt") == good
+    assert torch.load(run_dir / "last.ckpt", weights_only=True)["epoch"] == 0
+
+
+def test_finetune_changes_only_unfrozen_parameters(trained, tmp_path):
+    run_dir, _, _ = trained
+    src = run_dir / "best.ckpt"
+    before = sha(src)
+    system = GeneratorSystem.from_checkpoint(src, "cpu", generator_overrides={"lr": 1e-3}, epochs=1, decay_epochs=0)
+    start = {k: v.clone() for k, v in system.generator.state_dict().items()}
+    src_state = torch.load(src, weights_only=True)["state_dict"]
+    assert all(torch.equal(start[k], src_state["generator." + k]) for k in start)  # starts from the checkpoint
+    frozen = system.generator.freeze(["net_g.encoders.rgb", "net_g.encoders.depth"])
+    assert frozen and all(n.startswith("net_g.encoders.") for n in frozen)
+    dm = SyntheticPairs(n_train=8, n_val=4, size=32, batch_size=4, seed=7)
+    train(tmp_path / "ft", epochs=1, dm=dm, system=system)
+    end = system.generator.state_dict()
+    for k in start:
+        same = torch.equal(start[k], end[k])
+        if k.startswith(("net_g.encoders.rgb", "net_g.encoders.depth")):
+            assert same, f"frozen {k} changed"
+        elif (
+            k.endswith(".weight")
+            and "encoders.background" in k
+            or k.startswith("net_g.decoder")
+            and k.endswith(".weight")
+        ):
+            assert not same, f"trainable {k} did not change"
+    assert sha(src) == before  # the source checkpoint is untouched
+    ft = load_generator(tmp_path / "ft" / "last.ckpt")
+    assert ft.hparams["generator"]["lr"] == 1e-3
+
+
+def test_image_grid_layout():
+    b = make_pairs(2, 16)
+    b["fake"] = b["tactile"].clone()
+    grid = image_grid(b)
+    assert grid.shape == (32, 80, 3) and grid.dtype.name == "uint8"
+    assert grid[:, 64:].max() == 0  # identical images: the difference column is black
+    assert (grid[:, 32:48] == grid[:, 48:64]).all()  # generated == real

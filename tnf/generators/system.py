@@ -1,0 +1,315 @@
+"""``GeneratorSystem``: the one LightningModule that trains any registered generator.
+
+It builds the generator from its registry name and config (both stored in the checkpoint, never a class
+path, so a checkpoint loads wherever the generator's package is installed), runs the generator's own GAN
+step with Lightning's manual optimisation (mixed precision and gradient scaling come from the trainer's
+``precision``), applies the learning-rate schedule (constant, then linear decay to zero), validates with
+``tnf.eval.metrics`` (L1, SSIM, MSE), writes an image grid each epoch and stops on a non-finite loss.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+
+from tnf.errors import TnfError
+from tnf.generators.base import Generator
+from tnf.registry import GENERATORS, config_to_dict, split_spec
+
+#: Version of the checkpoint layout written by ``GeneratorSystem``; loading another one is an error.
+CHECKPOINT_FORMAT = 1
+
+
+class NonFiniteLoss(TnfError):
+    """A training loss became NaN or infinite; training stopped before any checkpoint was overwritten."""
+
+
+class _LightningOptimisation:
+    """The ``Optimisation`` a generator sees inside Lightning: wrapped optimisers and ``manual_backward``."""
+
+    def __init__(self, system: GeneratorSystem):
+        self.system = system
+
+    def optimizers(self) -> Sequence[Any]:
+        opts = self.system.optimizers()
+        return opts if isinstance(opts, list) else [opts]
+
+    def backward(self, loss: torch.Tensor) -> None:
+        self.system.manual_backward(loss)
+
+
+def generator_spec(spec: Mapping[str, Any] | str) -> dict[str, Any]:
+    """A generator's ``{name, **params}`` with every field filled in (validated), as plain JSON data."""
+    name, params = split_spec(spec, "generator")
+    return {"name": name, **config_to_dict(GENERATORS.config(name, params))}
+
+
+class GeneratorSystem(L.LightningModule):
+    """Trains and validates the generator named in ``generator`` (``{"name": ..., **config}``).
+
+    Args:
+        generator: registry name and config of the generator.
+        epochs: total training epochs (for the learning-rate schedule).
+        decay_epochs: the last ``decay_epochs`` epochs decay the learning rate linearly to zero (pix2pix).
+        grid_rows: validation pairs shown in the per-epoch image grid.
+        grid_dir: folder for ``epoch_XXX.png`` grids; None writes none.
+        finite_check_every: check the losses for NaN/Inf every this many steps (each check synchronises
+            with the GPU); they are always checked before validation and at the end of an epoch.
+    """
+
+    def __init__(
+        self,
+        generator: Mapping[str, Any] | str,
+        epochs: int = 200,
+        decay_epochs: int = 100,
+        grid_rows: int = 8,
+        grid_dir: str | None = None,
+        finite_check_every: int = 50,
+    ):
+        super().__init__()
+        spec = generator_spec(generator)
+        if decay_epochs < 0 or decay_epochs > epochs:
+            raise TnfError(f"decay_epochs must be in [0, epochs={epochs}], got {decay_epochs}")
+        self.save_hyperparameters(
+            {
+                "generator": spec,
+                "epochs": epochs,
+                "decay_epochs": decay_epochs,
+                "grid_rows": grid_rows,
+                "finite_check_every": finite_check_every,
+            }
+        )
+        self.grid_dir = grid_dir
+        self.automatic_optimization = False
+        self.generator: Generator = GENERATORS.build(spec)
+        self._opt = _LightningOptimisation(self)
+        self._finite = True
+        self._last_losses: dict[str, torch.Tensor] = {}
+        self._bad: torch.Tensor | None = None
+        self._val: dict[str, list[torch.Tensor]] = {}
+        self._grid_batch: dict[str, torch.Tensor] | None = None
+
+    @property
+    def generator_name(self) -> str:
+        return self.hparams["generator"]["name"]
+
+    # -- generation -------------------------------------------------------------------------------------
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Tactile images [B, 3, H, W] in [-1, 1] for a batch of conditions."""
+        return self.generator.generate(batch)
+
+    @torch.no_grad()
+    def generate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Generate in eval mode without gradients (dropout stays on where the generator keeps it)."""
+        was = self.training
+        self.eval()
+        try:
+            return self.generator.generate(batch)
+        finally:
+            self.train(was)
+
+    # -- optimisation -----------------------------------------------------------------------------------
+    def configure_optimizers(self) -> Any:
+        opts = self.generator.configure_optimizers()
+        epochs, decay = self.hparams["epochs"], self.hparams["decay_epochs"]
+        constant = epochs - decay
+
+        def factor(epoch: int) -> float:  # 1 for `constant` epochs, then linearly towards 0
+            return 1.0 - max(0, epoch + 1 - constant) / float(decay + 1)
+
+        scheds = [torch.optim.lr_scheduler.LambdaLR(o, factor) for o in opts]
+        return opts, scheds
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        losses = self.generator.training_step(batch, self._opt)
+        self._last_losses = losses
+        bad = torch.stack([~torch.isfinite(v.float()).all() for v in losses.values()]).any()
+        self._bad = bad if self._bad is None else (self._bad | bad)
+        every = self.hparams["finite_check_every"]
+        if every > 0 and (batch_idx + 1) % every == 0:
+            self._check_finite()
+        bs = next(iter(batch.values())).shape[0]
+        self.log_dict({f"train/{k}": v for k, v in losses.items()}, on_step=True, on_epoch=True, batch_size=bs)
+        for k in ("loss_g", "loss_d"):
+            if k in losses:
+                self.log(k, losses[k], prog_bar=True, on_step=True, on_epoch=False, logger=False, batch_size=bs)
+
+    def _check_finite(self) -> None:
+        if self._bad is not None and bool(self._bad):
+            names = [k for k, v in self._last_losses.items() if not torch.isfinite(v.float()).all()]
+            raise NonFiniteLoss(
+                f"non-finite training loss ({', '.join(names) or 'earlier in the epoch'}) at epoch "
+                f"{self.current_epoch}, step {self.global_step}; training stopped (lower the learning rate, "
+                "use precision=32-true, or check the dataset for NaN)"
+            )
+
+    def on_train_epoch_end(self) -> None:
+        # Runs before the checkpoint callback: a diverged model never overwrites last.ckpt.
+        self._check_finite()
+        opts = self._opt.optimizers()
+        for name, o in zip(self.generator.optimizer_names, opts):  # the rate this epoch trained with
+            self.log(f"lr/{name}", o.param_groups[0]["lr"], on_epoch=True, on_step=False)
+        scheds = self.lr_schedulers()
+        for s in scheds if isinstance(scheds, list) else [scheds]:
+            if s is not None:
+                s.step()
+
+    # -- validation -------------------------------------------------------------------------------------
+    def on_validation_epoch_start(self) -> None:
+        if not self.trainer.sanity_checking:
+            self._check_finite()
+        self._val = {"l1": [], "ssim": [], "mse": []}
+        self._grid_batch = None
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        from tnf.eval import metrics
+
+        fake = self.generator.generate(batch).float()
+        real = batch["tactile"].float()
+        self._val["l1"].append((fake - real).abs().flatten(1).mean(1))
+        self._val["ssim"].append(metrics.ssim(fake, real))
+        self._val["mse"].append(metrics.mse(fake, real))
+        rows = self.hparams["grid_rows"]
+        if rows > 0 and (self._grid_batch is None or len(self._grid_batch["fake"]) < rows):
+            part = {k: v[:rows].detach().float().cpu() for k, v in batch.items() if v.ndim == 4}
+            part["fake"] = fake[:rows].detach().cpu()
+            if self._grid_batch is None:
+                self._grid_batch = part
+            else:
+                need = rows - len(self._grid_batch["fake"])
+                self._grid_batch = {
+                    k: torch.cat([self._grid_batch[k], part[k][:need]]) for k in self._grid_batch if k in part
+                }
+
+    def on_validation_epoch_end(self) -> None:
+        if not self._val["l1"]:
+            return
+        vals = {f"val_{k}": torch.cat(v).mean() for k, v in self._val.items()}
+        self.log_dict(vals, prog_bar=True, sync_dist=True)
+        if self.trainer.sanity_checking or self._grid_batch is None or not self.trainer.is_global_zero:
+            return
+        grid = image_grid(self._grid_batch)
+        if self.grid_dir is not None:
+            from PIL import Image
+
+            os.makedirs(self.grid_dir, exist_ok=True)
+            Image.fromarray(grid).save(Path(self.grid_dir) / f"epoch_{self.current_epoch:03d}.png")
+        for logger in self.loggers:
+            _log_image(logger, grid, self.global_step)
+
+    # -- checkpoints ------------------------------------------------------------------------------------
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        from tnf import __version__
+
+        checkpoint["tnf"] = {
+            "format": CHECKPOINT_FORMAT,
+            "kind": "generator",
+            "generator": dict(self.hparams["generator"]),
+            "tnf_version": __version__,
+        }
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | os.PathLike[str],
+        device: str | torch.device = "cpu",
+        expected: str | None = None,
+        generator_overrides: Mapping[str, Any] | None = None,
+        **kw: Any,
+    ) -> GeneratorSystem:
+        """Build the system a checkpoint was saved from and load its weights (not its optimiser state).
+
+        ``expected``: the generator name the caller needs (a checkpoint of another one is an error).
+        ``generator_overrides``: generator config fields to change (e.g. ``{"lr": 1e-4}`` for fine-tuning);
+        ``kw`` override the other hyper-parameters (epochs, decay_epochs, grid_rows, finite_check_every).
+        """
+        ckpt = read_checkpoint(path)
+        meta = ckpt["tnf"]
+        spec = {**meta["generator"], **dict(generator_overrides or {})}
+        if expected is not None and spec.get("name") != expected:
+            raise TnfError(f"checkpoint {path} holds generator {spec.get('name')!r}, expected {expected!r}")
+        hp = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k != "generator"}
+        hp.update(kw)
+        system = cls(spec, **hp)
+        missing, unexpected = _load_state(system, ckpt["state_dict"])
+        if missing or unexpected:
+            raise TnfError(
+                f"checkpoint {path} does not fit generator {spec.get('name')!r} of this tnf version "
+                f"(missing {missing[:3]}, unexpected {unexpected[:3]}); retrain or use the tnf version that wrote it"
+            )
+        return system.to(device)
+
+
+def _load_state(module: torch.nn.Module, state: Mapping[str, torch.Tensor]) -> tuple[list[str], list[str]]:
+    try:
+        res = module.load_state_dict(state, strict=False)
+    except RuntimeError as e:  # shape mismatches
+        first = str(e).splitlines()[1:2]
+        return [first[0].strip() if first else "shapes differ"], []
+    return list(res.missing_keys), list(res.unexpected_keys)
+
+
+def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Load a generator checkpoint on the CPU; not a tnf generator checkpoint or another format -> TnfError."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise TnfError(f"generator checkpoint not found: {p}")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for files that are not checkpoints
+        raise TnfError(f"cannot read generator checkpoint {p}: {str(e).splitlines()[0][:200]}") from None
+    meta = ckpt.get("tnf") if isinstance(ckpt, dict) else None
+    if not isinstance(meta, dict) or meta.get("kind") != "generator" or "state_dict" not in ckpt:
+        raise TnfError(f"{p} is not a tnf generator checkpoint (written by `tnf train`)")
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise TnfError(
+            f"checkpoint {p} has format {meta.get('format')!r} (tnf {meta.get('tnf_version')}); this tnf reads "
+            f"format {CHECKPOINT_FORMAT}"
+        )
+    return ckpt
+
+
+def load_generator(
+    path: str | os.PathLike[str], device: str | torch.device = "cpu", expected: str | None = None
+) -> GeneratorSystem:
+    """A trained generator from a checkpoint, in eval mode on ``device``; ``system.generate(batch)`` runs it."""
+    return GeneratorSystem.from_checkpoint(path, device, expected=expected).eval()
+
+
+# -- image grids ----------------------------------------------------------------------------------------
+def image_grid(batch: Mapping[str, torch.Tensor]) -> np.ndarray:
+    """Rows of RGB | depth | generated | real | absolute difference (x4, so small errors show) as uint8
+    [rows*S, 5*S, 3]. ``batch`` holds [N, C, S, S] tensors in [-1, 1]: fake, tactile and optionally rgb, depth."""
+    fake = batch["fake"].float().clamp(-1, 1)
+    n, _, h, w = fake.shape
+
+    def col(x: torch.Tensor | None) -> torch.Tensor:
+        if x is None:
+            return torch.zeros(n, 3, h, w)
+        x = x.float().clamp(-1, 1)
+        x = x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x
+        return (x + 1) / 2
+
+    real = batch["tactile"].float().clamp(-1, 1)
+    diff = ((fake - real).abs() * 2).clamp(0, 1)  # |a - b| / 2 in [0, 1], times 4
+    cols = [col(batch.get("rgb")), col(batch.get("depth")), col(fake), col(real), diff]
+    grid = torch.cat([torch.cat(cols, 3)], 0)  # [N, 3, H, 5W]
+    grid = grid.permute(0, 2, 3, 1).reshape(n * h, 5 * w, 3)
+    return (grid * 255).round().clamp(0, 255).to(torch.uint8).numpy()
+
+
+def _log_image(logger: Any, grid: np.ndarray, step: int) -> None:
+    name = type(logger).__name__
+    try:
+        if name == "TensorBoardLogger":
+            logger.experiment.add_image("val/grid", grid, step, dataformats="HWC")
+        elif name == "WandbLogger":
+            logger.log_image(key="val/grid", images=[grid], step=step)
+    except Exception:  # an image is a convenience; a logger hiccup must not stop training
+        pass
