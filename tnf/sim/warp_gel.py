@@ -454,6 +454,7 @@ def _blur_cols_finish(
     noise_table: wp.array(dtype=float),
     noise_std: float,
     seed: int,
+    b0: int,
     span: int,
     image: wp.array4d(dtype=wp.uint8),
 ):
@@ -472,7 +473,7 @@ def _blur_cols_finish(
             acc += weights[k] * src[b, rr, c]
         v = background[r, c] + acc
         if noise_std > 0.0:
-            state = wp.rand_init(seed, (b * hh + r) * ww + c)
+            state = wp.rand_init(seed, ((b0 + b) * hh + r) * ww + c)  # b0: first touch of this part
             n0 = noise_table[int(wp.randu(state) >> wp.uint32(20))]
             n1 = noise_table[int(wp.randu(state) >> wp.uint32(20))]
             n2 = noise_table[int(wp.randu(state) >> wp.uint32(20))]
@@ -537,6 +538,8 @@ class WarpGel:
         """Decay length of the gel's deformation around the contact, as a multiple of the gel thickness."""
         max_distance: float = 2.0
         """Longest ray cast from the gel toward the object, metres."""
+        cpu_threads: int = 2
+        """Threads that share a batch on the ``cpu`` device (warp runs each CPU launch on one thread); 1 = off."""
 
         def validate(self) -> None:
             if self.histogram_bins < 8:
@@ -545,6 +548,8 @@ class WarpGel:
                 raise ValueError(f"coarse_factor must be >= 1, got {self.coarse_factor}")
             if self.relax_iterations < 0:
                 raise ValueError(f"relax_iterations must be >= 0, got {self.relax_iterations}")
+            if self.cpu_threads < 1:
+                raise ValueError(f"cpu_threads must be >= 1, got {self.cpu_threads}")
             if self.falloff <= 0 or self.max_distance <= 0:
                 raise ValueError("falloff and max_distance must be > 0")
 
@@ -596,9 +601,9 @@ class WarpGel:
         """Set to ``{}`` to accumulate seconds per phase of ``press`` (synchronises the device; for benchmarks)."""
         self._last = 0.0
 
-    def _phase(self, name: str) -> None:
-        if self.timings is None:
-            return
+    def _phase(self, part: int, name: str) -> None:
+        if self.timings is None or part != 0:
+            return  # with a batch split over threads, the phases are those of the first part
         wp.synchronize_device(self.device)
         now = time.perf_counter()
         self.timings[name] = self.timings.get(name, 0.0) + now - self._last
@@ -624,11 +629,12 @@ class WarpGel:
         self._meshes = {key: (mesh, m, points, indices)}  # one object at a time: keep the newest only
         return m, points, indices
 
-    def _buffer(self, name: str, shape: tuple[int, ...], dtype: Any) -> Any:
-        buf = self._buffers.get(name)
+    def _buffer(self, part: int, name: str, shape: tuple[int, ...], dtype: Any) -> Any:
+        key = f"{part}/{name}"  # each part of a batch split over threads has its own buffers
+        buf = self._buffers.get(key)
         if buf is None or buf.shape != shape:
             buf = wp.empty(shape, dtype=dtype, device=self.device)
-            self._buffers[name] = buf
+            self._buffers[key] = buf
         return buf
 
     # -- simulation ---------------------------------------------------------------------------------
@@ -651,11 +657,35 @@ class WarpGel:
         forces = np.broadcast_to(np.asarray(force, dtype=np.float32), (batch,)).copy()
         for f in np.unique(forces):
             s.check_force(float(f))
+        meshes = self._mesh_arrays(mesh)
+        parts = min(batch, self.cfg.cpu_threads) if self.device.is_cpu else 1
+        if parts == 1:
+            return self._press(meshes, c2w, forces, seed, host, 0, 0)
+        # Warp releases the GIL during a CPU launch: parts of the batch run concurrently, one thread each.
+        from concurrent.futures import ThreadPoolExecutor
+
+        bounds = np.linspace(0, batch, parts + 1).astype(int)
+        with ThreadPoolExecutor(parts) as pool:
+            jobs = [
+                pool.submit(self._press, meshes, c2w[b0:b1], forces[b0:b1], seed, host, i, int(b0))
+                for i, (b0, b1) in enumerate(zip(bounds[:-1], bounds[1:]))
+            ]
+            outs = [j.result() for j in jobs]
+        if not host:
+            return None
+        return TouchBatch(**{f: np.concatenate([getattr(o, f) for o in outs]) for f in TouchBatch.__dataclass_fields__})
+
+    def _press(
+        self, meshes: tuple, c2w: np.ndarray, forces: np.ndarray, seed: int, host: bool, part: int, b0: int
+    ) -> TouchBatch | None:
+        """Simulate touches ``b0 .. b0 + len(c2w)`` of a batch with the buffers of ``part``."""
+        s = self.sensor
+        batch = c2w.shape[0]
         hh, ww = s.height, s.width
         k = self.cfg.coarse_factor
         hc, wc = -(-hh // k), -(-ww // k)
         dev = self.device
-        wmesh, verts, tris = self._mesh_arrays(mesh)
+        wmesh, verts, tris = meshes
         dx, dy = s.pixel_size()
         nb = self.cfg.histogram_bins
         bin_width = 0.5 * s.cfg.max_penetration / nb
@@ -666,20 +696,20 @@ class WarpGel:
         nblk, nblk_c = -(-ww // span), -(-wc // span)
         poses = wp.array(c2w, dtype=wp.mat44, device=dev)
         target = wp.array(forces, dtype=float, device=dev)
-        t = self._buffer("t", (batch, hh, ww), float)
-        t_min = self._buffer("t_min", (batch,), float)
-        hist = self._buffer("hist", (batch, nb), wp.int32)
-        depth = self._buffer("depth", (batch,), float)
-        fout = self._buffer("force", (batch,), float)
-        cval = self._buffer("cval", (batch, hc, wc), float)
-        cmask = self._buffer("cmask", (batch, hc, wc), wp.uint8)
-        ra = self._buffer("relax_a", (batch, hc, wc), float)
-        rb = self._buffer("relax_b", (batch, hc, wc), float)
-        u = self._buffer("u", (batch, hh, ww), float)
-        contact = self._buffer("contact", (batch, hh, ww), wp.uint8)
-        diff = self._buffer("diff", (batch, hh, ww), wp.vec3)
-        image = self._buffer("image", (batch, hh, ww, 3), wp.uint8)
-        point = self._buffer("point", (batch,), wp.vec3)
+        t = self._buffer(part, "t", (batch, hh, ww), float)
+        t_min = self._buffer(part, "t_min", (batch,), float)
+        hist = self._buffer(part, "hist", (batch, nb), wp.int32)
+        depth = self._buffer(part, "depth", (batch,), float)
+        fout = self._buffer(part, "force", (batch,), float)
+        cval = self._buffer(part, "cval", (batch, hc, wc), float)
+        cmask = self._buffer(part, "cmask", (batch, hc, wc), wp.uint8)
+        ra = self._buffer(part, "relax_a", (batch, hc, wc), float)
+        rb = self._buffer(part, "relax_b", (batch, hc, wc), float)
+        u = self._buffer(part, "u", (batch, hh, ww), float)
+        contact = self._buffer(part, "contact", (batch, hh, ww), wp.uint8)
+        diff = self._buffer(part, "diff", (batch, hh, ww), wp.vec3)
+        image = self._buffer(part, "image", (batch, hh, ww, 3), wp.uint8)
+        point = self._buffer(part, "point", (batch,), wp.vec3)
         t_min.fill_(MISS)
         hist.zero_()
         point.fill_(wp.vec3(float("nan")))
@@ -699,20 +729,20 @@ class WarpGel:
         else:
             args = [wmesh.id, poses, self._points, self._gel, max_t, t, t_min]
             wp.launch(_raycast, (batch, hh, ww), args, device=dev)
-        self._phase("ray cast")
+        self._phase(part, "ray cast")
         rows = (batch, hh, nblk)
         wp.launch(_gap_histogram, rows, [t, t_min, bin_width, poses, self._points, span, hist, point], device=dev)
         e_star = s.effective_modulus
         args = [hist, target, t_min, bin_width, dx * dy, e_star, s.cfg.thickness, depth, fout]
         wp.launch(_solve_force, batch, args, device=dev)
-        self._phase("force solve")
+        self._phase(part, "force solve")
         coarse = (batch, hc, nblk_c)
         wp.launch(_coarse_constraint, coarse, [t, t_min, depth, k, span, cval, cmask, ra], device=dev)
         for _ in range(self.cfg.relax_iterations):
             wp.launch(_relax_step, coarse, [ra, cval, cmask, screen, span, rb], device=dev)
             ra, rb = rb, ra
         wp.launch(_compose, rows, [t, t_min, depth, ra, k, span, u, contact], device=dev)
-        self._phase("deformation")
+        self._phase(part, "deformation")
         if s.custom_shading:
             diff = self._shade_on_host(u)
         else:
@@ -721,15 +751,15 @@ class WarpGel:
             args += [c.camera_distance, dx, dy, c.ambient, c.diffuse, c.specular, c.shininess, self._int_shininess]
             args += [c.contrast, span, diff]
             wp.launch(_shade, rows, args, device=dev)
-        self._phase("shading")
+        self._phase(part, "shading")
         weights = self._no_blur
         if self._blur is not None:
-            tmp = self._buffer("diff_tmp", (batch, hh, ww), wp.vec3)
+            tmp = self._buffer(part, "diff_tmp", (batch, hh, ww), wp.vec3)
             wp.launch(_blur_rows, rows, [diff, self._blur, span, tmp], device=dev)
             diff, weights = tmp, self._blur
-        args = [diff, weights, self._background, self._noise_table, float(s.cfg.noise_std), int(seed), span, image]
+        args = [diff, weights, self._background, self._noise_table, float(s.cfg.noise_std), int(seed), b0, span, image]
         wp.launch(_blur_cols_finish, rows, args, device=dev)
-        self._phase("blur, noise")
+        self._phase(part, "blur, noise")
         if not host:
             return None
 
@@ -756,7 +786,7 @@ class WarpGel:
             contact_point=point.numpy().copy(),
             contact_c2w=contact_c2w,
         )
-        self._phase("host copy")
+        self._phase(part, "host copy")
         return out
 
     def _shade_on_host(self, u: wp.array) -> wp.array:
