@@ -359,6 +359,12 @@ def _compose(
 
 
 @wp.func
+def _unit(v: wp.vec3) -> wp.vec3:
+    # v / |v| with one division (wp.normalize divides each component); v is never near zero here.
+    return v * (1.0 / wp.sqrt(wp.dot(v, v)))
+
+
+@wp.func
 def _power(x: float, e: float, ie: int) -> float:
     # x^e; by repeated squaring when the exponent is a small whole number (ie >= 0), far cheaper than pow.
     if ie < 0:
@@ -415,15 +421,15 @@ def _shade(
             hrm = h0[rm, c] - u[b, rm, c]
             dzdx = -(hcp - hcm) / (float(cp - cm) * dx)
             dzdy = (hrp - hrm) / (float(rp - rm) * dy)  # rows grow toward -y
-            n = wp.normalize(wp.vec3(-dzdx, -dzdy, 1.0))
+            n = _unit(wp.vec3(-dzdx, -dzdy, 1.0))
             p2 = xy[r, c]
             p = wp.vec3(p2[0], p2[1], -(cam_dist + h0[r, c] - u[b, r, c]))
-            view = wp.normalize(-p)
+            view = _unit(-p)
             col = wp.vec3(ambient, ambient, ambient)
             for k in range(light_pos.shape[0]):
-                ldir = wp.normalize(light_pos[k] - p)
+                ldir = _unit(light_pos[k] - p)
                 ndl = wp.max(wp.dot(n, ldir), 0.0)
-                half = wp.normalize(ldir + view)
+                half = _unit(ldir + view)
                 ndh = wp.max(wp.dot(n, half), 0.0)
                 col += light_rad[k] * (diffuse * ndl + specular * _power(ndh, shininess, int_shininess))
             diff[b, r, c] = contrast * (col - base[r, c])
