@@ -182,9 +182,7 @@ def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
     from tnf.data import PairDataModule
 
     d = cfg.data
-    names = [str(x) for x in (datasets if datasets is not None else d.datasets)]
-    if not names or any(n in ("", "None", "null") for n in names):
-        raise TnfError("data.datasets is empty: name the paired dataset(s) under pairs/ to train on")
+    names = dataset_names(cfg) if datasets is None else [str(x) for x in datasets]
     return PairDataModule(
         names,
         batch_size=int(d.batch_size),
@@ -198,6 +196,20 @@ def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
         drop_last=bool(d.get("drop_last", False)),
         data_root=cfg.data_root,
     )
+
+
+def dataset_names(cfg: Any) -> list[str]:
+    """``data.datasets``, with an unset name (``pair.name: null``) replaced by the name ``tnf pair`` gives the
+    dataset of this config."""
+    from tnf.data.store import dataset_name
+
+    listed = cfg.data.datasets
+    if listed is None:  # the dataset `tnf pair` builds with this config
+        listed = [None]
+    names = [str(x) if x not in (None, "None", "null", "") else dataset_name(cfg) for x in listed]
+    if not names:
+        raise TnfError("data.datasets is empty: name the paired dataset(s) under pairs/ to train on")
+    return names
 
 
 def trainer_args(cfg: Any) -> dict[str, Any]:

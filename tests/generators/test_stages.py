@@ -1,0 +1,103 @@
+"""`tnf train` and `tnf finetune` on a real paired dataset (written in the tnf.data format) with the tiny config."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tests.generators.synthetic import make_pairs
+from tnf.data import SPLITS, PairWriter, write_manifest
+from tnf.errors import TnfError
+from tnf.generators import load_generator
+from tnf.testing import compose
+
+
+def to_uint8(x):
+    """[-1, 1] float [N, C, H, W] -> uint8 [N, H, W, C]."""
+    return ((x.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
+def write_pairs(folder, n=12, seed=0, objects=("ball", "box")):
+    """A paired dataset of the synthetic blob task at 128 px: splits cycle train, train, val."""
+    p = make_pairs(n, 128, seed)
+    meta = {
+        "rgb": to_uint8(p["rgb"]),
+        "depth": ((p["depth"][:, 0] + 1) / 2).numpy().astype(np.float16),
+        "tactile": to_uint8(p["tactile"]),
+        "background_index": np.zeros(n, np.int32),
+        "object_id": (np.arange(n) % len(objects)).astype(np.int32),
+        "split": np.array([SPLITS.index(("train", "train", "val")[i % 3]) for i in range(n)], np.int8),
+        "touch_index": np.arange(n, dtype=np.int32),
+        "sensor_id": np.zeros(n, np.int16),
+    }
+    with PairWriter(folder, n, to_uint8(p["background"][:1])) as w:
+        w.write(0, **meta)
+    write_manifest(folder, {"objects": list(objects), "sensors": ["digit"], "count": n})
+
+
+TINY = ["debug=tiny", "progress=false", "data.batch_size=4"]
+
+
+def test_train_stage_writes_a_loadable_run(data_root):
+    from tnf.stages import train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    cfg = compose("train", TINY)
+    out = train.run(cfg)
+    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
+    assert out["run_dir"] == str(run_dir)
+    for f in ("last.ckpt", "best.ckpt", "metrics.csv", "manifest.json", "grids/epoch_001.png"):
+        assert (run_dir / f).is_file(), f
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["epochs"] == 2 and manifest["generator"] == "tn_cgan"
+    assert manifest["datasets"] == ["digit-hashgrid"]
+    system = load_generator(run_dir / "best.ckpt")
+    assert system.hparams["generator"]["ngf"] == 8
+    batch = {k: v for k, v in make_pairs(2, 128).items()}
+    assert system.generate(batch).shape == (2, 3, 128, 128)
+    # Same settings again: skipped; other settings into the same run folder: refused.
+    assert train.run(cfg)["skipped"]
+    with pytest.raises(TnfError, match="another config"):
+        train.run(compose("train", [*TINY, "generator.lambda_l1=10", "train.resume=true"]))
+
+
+@pytest.mark.parametrize("name", ["lee", "cyclegan"])
+def test_train_stage_baselines(data_root, name):
+    from tnf.stages import train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=6)
+    out = train.run(compose("train", [*TINY, f"generator={name}", "train.epochs=1", "train.decay_epochs=0"]))
+    assert load_generator(f"{out['run_dir']}/last.ckpt").generator_name == name
+
+
+def test_finetune_stage_from_checkpoint_and_from_scratch(data_root):
+    from tnf.stages import finetune, train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    write_pairs(data_root / "pairs" / "omnitact-hashgrid", n=6, seed=3)
+    train.run(compose("train", TINY))
+    src = data_root / "models" / "tn_cgan_digit-hashgrid" / "best.ckpt"
+    src_bytes = src.read_bytes()
+    ft = [*TINY, "data.datasets=[omnitact-hashgrid]"]
+    out = finetune.run(
+        compose("finetune", [*ft, "finetune.checkpoint=tn_cgan_digit-hashgrid", "finetune.freeze=[net_g.encoders.rgb]"])
+    )
+    assert out["run_dir"].endswith("tn_cgan_digit-hashgrid_ft_omnitact-hashgrid")
+    assert src.read_bytes() == src_bytes
+    a = torch.load(src, weights_only=True)["state_dict"]
+    b = torch.load(f"{out['run_dir']}/last.ckpt", weights_only=True)["state_dict"]
+    rgb = [k for k in a if k.startswith("generator.net_g.encoders.rgb.") and k.endswith("weight")]
+    bg = [k for k in a if k.startswith("generator.net_g.encoders.background.") and k.endswith("weight")]
+    assert rgb and all(torch.equal(a[k], b[k]) for k in rgb)
+    assert any(not torch.equal(a[k], b[k]) for k in bg)
+    manifest = json.loads((data_root / "models" / out["run_dir"].split("/")[-1] / "manifest.json").read_text())
+    assert manifest["source"]["checkpoint"] == str(src.resolve()) and manifest["frozen"]
+
+    scratch = finetune.run(compose("finetune", ft))
+    assert scratch["run_dir"].endswith("scratch_tn_cgan_omnitact-hashgrid")
+    c = torch.load(f"{scratch['run_dir']}/last.ckpt", weights_only=True)["state_dict"]
+    assert not torch.equal(a[rgb[0]], c[rgb[0]])
+
+    with pytest.raises(TnfError, match="finetune.checkpoint"):
+        finetune.run(compose("finetune", [*ft, "finetune.checkpoint=nope"]))
