@@ -1,0 +1,96 @@
+"""`tnf generate`: novel poses -> rendered RGB-D -> generator -> a dataset in the format of `tnf touch`."""
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from tests.data.pair_inputs import SphereScene
+from tests.generators.test_stages import TINY, write_pairs
+from tnf.artifacts import write_json
+from tnf.data.render import TouchItem
+from tnf.errors import TnfError
+from tnf.scenes import save_scene
+from tnf.testing import compose
+
+
+@pytest.fixture
+def trained_model(data_root):
+    from tnf.stages import train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=6)
+    train.run(compose("train", [*TINY, "train.epochs=1", "train.decay_epochs=0"]))
+    # The object's fitted scene and the capture camera the crop is measured in.
+    save_scene(SphereScene(SphereScene.Config(radius=0.04)), data_root / "scenes" / "hashgrid" / "builtin" / "ball")
+    write_json(
+        data_root / "capture" / "builtin" / "ball" / "transforms.json",
+        {"fl_x": 200.0, "fl_y": 200.0, "w": 128, "h": 128},
+    )
+    return "tn_cgan_digit-hashgrid"
+
+
+GEN = [*TINY, "object=ball", "device=cpu", "generate.crop_px=48", "generate.radius=0.1"]
+
+
+def test_generate_writes_a_touch_dataset(data_root, trained_model):
+    from tnf.stages import generate
+
+    out = generate.run(
+        compose("generate", [*GEN, f"generate.model={trained_model}", "generate.n_poses=5", "generate.batch_size=2"])
+    )
+    folder = data_root / "generated" / trained_model / "builtin" / "ball"
+    assert out["written"] == {"ball": 5}
+    item = TouchItem.load(folder)  # what `tnf pair` and the evaluation read
+    assert len(item.touches) == 5
+    assert {t["split"] for t in item.touches} == {"train"}
+    poses = item.start_poses()
+    assert np.allclose(np.linalg.norm(poses[:, :3, 3], axis=1), 0.1)
+    # Each camera looks at the object centre, so its centre ray hits the sphere at 0.04 m from the centre.
+    pts = np.array([t["contact_point"] for t in item.touches])
+    assert np.allclose(np.linalg.norm(pts, axis=1), 0.04, atol=2e-3)
+    img = np.asarray(Image.open(folder / item.touches[0]["image"]))
+    assert img.shape == (128, 128, 3) and img.dtype == np.uint8 and img.std() > 0
+    assert (folder / "background.png").is_file()
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["sensor"]["name"] == "digit" and manifest["generator"]["name"] == "tn_cgan"
+    # Same settings again: nothing to do.
+    assert (
+        generate.run(compose("generate", [*GEN, f"generate.model={trained_model}", "generate.n_poses=5"]))["written"]
+        == {}
+    )
+
+
+def test_generate_from_a_poses_file(data_root, trained_model, tmp_path):
+    from tnf.sim.touch import look_at
+    from tnf.stages import generate
+
+    poses = np.stack([look_at(np.array(e, float), np.zeros(3)) for e in ([0.1, 0, 0], [0, 0.12, 0.0], [0, 0, -0.1])])
+    np.save(tmp_path / "poses.npy", poses)
+    out = generate.run(
+        compose(
+            "generate",
+            [
+                *GEN,
+                f"generate.model={trained_model}",
+                f"generate.poses_file={tmp_path / 'poses.npy'}",
+                "generate.run_name=fromfile",
+            ],
+        )
+    )
+    assert out["written"] == {"ball": 3}
+    item = TouchItem.load(data_root / "generated" / "fromfile" / "builtin" / "ball")
+    assert np.allclose(item.start_poses(), poses)
+
+
+def test_generate_errors(data_root, trained_model):
+    from tnf.stages import generate
+
+    with pytest.raises(TnfError, match="generate.model is not set"):
+        generate.run(compose("generate", GEN))
+    with pytest.raises(TnfError, match="checkpoint not found"):
+        generate.run(compose("generate", [*GEN, "generate.model=nope"]))
+    with pytest.raises(TnfError, match="no fitted hashgrid scene"):
+        generate.run(
+            compose("generate", [*TINY, "object=box", f"generate.model={trained_model}", "generate.crop_px=48"])
+        )

@@ -1,0 +1,248 @@
+"""``tnf generate``: tactile images from novel poses of objects with a fitted scene.
+
+For each selected object: sample ``generate.n_poses`` camera poses on a sphere around it (or read them from
+``generate.poses_file``), render RGB-D from its fitted scene, preprocess as ``tnf pair`` does (the crop and
+depth normalisation of the model's training dataset), run the trained generator with the sensor's background
+image as condition, and write ``<data_root>/generated/<run_name>/<source>/<object>/`` in the format of
+``tnf touch``: ``images/00000.png`` (128 x 128 generated tactile images), ``background.png`` and a manifest
+whose ``touches`` hold each pose (``start_c2w``) and the surface point on its centre ray (``contact_point``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tnf.errors import TnfError
+
+
+def read_poses(path: str | os.PathLike[str]) -> np.ndarray:
+    """Camera-to-world poses [N, 4, 4] (metres, OpenGL) from ``.npy`` or ``.json`` (list, or ``{"poses": ...}``)."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise TnfError(f"generate.poses_file not found: {p}")
+    try:
+        if p.suffix == ".npy":
+            poses = np.load(p)
+        else:
+            data = json.loads(p.read_text())
+            poses = np.asarray(data["poses"] if isinstance(data, dict) else data, dtype=np.float64)
+    except (ValueError, KeyError, TypeError) as e:
+        raise TnfError(f"generate.poses_file {p}: cannot read poses ({e})") from None
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
+        raise TnfError(f"generate.poses_file {p}: expected [N, 4, 4] camera-to-world poses, got {poses.shape}")
+    return poses
+
+
+def sample_poses(n: int, radius: float, up: Any, random_roll: bool, seed: int) -> np.ndarray:
+    """``n`` poses uniform on the sphere of ``radius`` metres, looking at the origin: [n, 4, 4] c2w."""
+    from tnf.sim.touch import sphere_directions, start_poses
+
+    rng = np.random.default_rng(seed)
+    dirs = sphere_directions(rng, n, (0.0, 0.0, 1.0), 0.0, inside=False)
+    return start_poses(rng, dirs, radius, up=list(up), random_roll=random_roll)
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    import zlib
+
+    import torch
+    from omegaconf import OmegaConf
+    from PIL import Image
+    from rich.console import Console
+
+    from tnf.artifacts import ArtifactStore, read_json
+    from tnf.data.preprocess import SIZE, crop_for_sensor, preprocess_rgbd, resize_uint8
+    from tnf.data.render import render_intrinsics
+    from tnf.data.splits import TOUCH_SPLITS
+    from tnf.generators import load_generator
+    from tnf.objects import select
+    from tnf.registry import SENSORS
+    from tnf.runtime import progress, resolve_device
+    from tnf.scenes import load_scene
+
+    g = cfg.generate
+    console = Console(highlight=False)
+    if not g.model:
+        raise TnfError("generate.model is not set: name a trained run under models/ (see `tnf train`)")
+    if g.split not in TOUCH_SPLITS:
+        raise TnfError(f"generate.split must be one of {', '.join(TOUCH_SPLITS)}, got {g.split!r}")
+    store = ArtifactStore(cfg.data_root)
+    model_dir = store.path("models", str(g.model))
+    ckpt = model_dir / str(g.checkpoint)
+    if not ckpt.is_file():
+        raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check generate.model/checkpoint")
+    device = resolve_device(str(cfg.device))
+    system = load_generator(ckpt, device)
+    size = int(system.hparams["generator"].get("image_size", SIZE))
+    if size != SIZE:
+        raise TnfError(f"model {g.model} generates {size} px images; tnf datasets use {SIZE} px")
+    run_name = str(g.run_name or g.model)
+    source, names = select(cfg)
+    src = source.name
+    sensor = SENSORS.build(cfg.sensor)
+    background_full = sensor.background()
+    background = resize_uint8(background_full, SIZE)
+    prep = _preprocessing(cfg, store, model_dir)
+    file_poses = read_poses(g.poses_file) if g.poses_file else None
+    scene_name = str(cfg.scene.name)
+    settings = OmegaConf.to_container(g, resolve=True)
+    assert isinstance(settings, dict)
+
+    # Check every input before any rendering.
+    jobs = []
+    for obj in names:
+        scene_dir = store.path("scenes", scene_name, src, obj)
+        if not (scene_dir / "scene.pt").is_file():
+            raise TnfError(
+                f"object {obj!r} has no fitted {scene_name} scene ({scene_dir}); run `tnf fit-scene object={obj}`"
+            )
+        transforms = store.path("capture", src, obj) / "transforms.json"
+        cam = read_json(transforms, "capture transforms")
+        try:
+            focal = (float(cam["fl_x"]), float(cam.get("fl_y", cam["fl_x"])))
+        except (KeyError, TypeError, ValueError):
+            raise TnfError(f"{transforms}: camera intrinsics missing; rerun `tnf capture object={obj}`") from None
+        crop = g.crop_px or prep["crop_px"].get(obj)
+        if crop is None:
+            if prep["footprint_distance"] is None:
+                raise TnfError(f"no crop size for {obj!r}: set generate.crop_px or generate.dataset")
+            crop = crop_for_sensor(sensor, (*focal, 0, 0), prep["footprint_distance"], prep["crop_margin"])
+        seed = (int(cfg.seed) * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
+        poses = (
+            file_poses
+            if file_poses is not None
+            else sample_poses(int(g.n_poses), float(g.radius), g.up, bool(g.random_roll), seed)
+        )
+        config = {
+            "model": str(g.model),
+            "checkpoint": str(g.checkpoint),
+            "model_hash": (store.manifest("models", str(g.model)) or {}).get("config_hash"),
+            "checkpoint_mtime": ckpt.stat().st_mtime_ns,
+            "scene": scene_name,
+            "scene_hash": (store.manifest("scenes", scene_name, src, obj) or {}).get("config_hash"),
+            "sensor": sensor.describe(),
+            "crop_px": int(crop),
+            "depth_norm": prep["depth_norm"],
+            "depth_window": prep["depth_window"],
+            "poses": poses.round(9).tolist() if file_poses is not None else None,
+            "settings": {
+                k: v for k, v in settings.items() if k not in ("force", "batch_size", "render_chunk", "run_name")
+            },
+            "seed": int(cfg.seed),
+        }
+        if not g.force and store.is_done("generated", run_name, src, obj, config=config):
+            console.print(f"generate: {run_name}/{src}/{obj} is up to date")
+            continue
+        jobs.append((obj, scene_dir, focal, int(crop), poses, config))
+
+    bg_t = torch.from_numpy(background).to(device).permute(2, 0, 1).float().div(127.5).sub(1)
+    batch_size = int(g.batch_size)
+    written = {}
+    with progress(bool(cfg.progress)) as bar:
+        task = bar.add_task("generate", total=sum(len(j[4]) for j in jobs))
+        for obj, scene_dir, focal, crop, poses, config in jobs:
+            scene = load_scene(scene_dir, device)
+            rsize, intr = render_intrinsics(focal[0], focal[1], crop)
+            intr_t = torch.tensor(intr, dtype=torch.float32, device=device)
+            touches = []
+            with store.writing("generated", run_name, src, obj, config=config, info={}) as tmp:
+                (tmp / "images").mkdir()
+                Image.fromarray(background_full).save(tmp / "background.png")
+                for s in range(0, len(poses), batch_size):
+                    c2w = torch.as_tensor(poses[s : s + batch_size], dtype=torch.float32, device=device)
+                    b = len(c2w)
+                    with torch.no_grad():
+                        r = scene.render_rgbd(c2w, intr_t.expand(b, 4), rsize, rsize, chunk=g.render_chunk)
+                    rgb8, depth01 = preprocess_rgbd(
+                        r["rgb"], r["depth"], r.get("opacity"), crop_px=rsize,
+                        depth_norm=prep["depth_norm"], depth_window=prep["depth_window"],
+                    )  # fmt: skip
+                    batch = {
+                        "rgb": torch.from_numpy(rgb8).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1),
+                        "depth": torch.from_numpy(depth01.astype(np.float32)).to(device)[:, None].mul(2).sub(1),
+                        "background": bg_t.expand(b, -1, -1, -1),
+                    }
+                    tactile = system.generate(batch)
+                    images = ((tactile.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
+                    images = images.permute(0, 2, 3, 1).cpu().numpy()
+                    centre = r["depth"][:, rsize // 2, rsize // 2].float().cpu().numpy()
+                    for i in range(b):
+                        index = s + i
+                        rel = f"images/{index:05d}.png"
+                        Image.fromarray(images[i]).save(tmp / rel)
+                        pose = poses[index]
+                        hit = centre[i] > 0
+                        touches.append(
+                            {
+                                "index": index,
+                                "split": str(g.split),
+                                "image": rel,
+                                "start_c2w": pose.tolist(),
+                                # The surface point on the centre ray (z-depth along the view axis -z).
+                                "contact_point": (pose[:3, 3] - centre[i] * pose[:3, 2]).tolist() if hit else None,
+                                "force": None,
+                                "penetration": None,
+                            }
+                        )
+                    bar.advance(task, b)
+                from tnf.artifacts import write_json
+
+                write_json(
+                    tmp / "manifest.json",
+                    {
+                        "touches": touches,
+                        "sensor": sensor.describe(),
+                        "object": obj,
+                        "source": src,
+                        "counts": {str(g.split): len(touches), "discarded": 0},
+                        "generator": {
+                            "name": system.generator_name,
+                            "model": str(g.model),
+                            "checkpoint": str(ckpt),
+                        },
+                        "image_size": SIZE,
+                    },
+                )
+            written[obj] = len(touches)
+            del scene
+    if written:
+        console.print(
+            f"generate: {sum(written.values())} tactile images for {len(written)} object(s) -> "
+            f"{store.path('generated', run_name, src)}"
+        )
+    return {"run_dir": str(store.path("generated", run_name)), "written": written}
+
+
+def _preprocessing(cfg: Any, store: Any, model_dir: Path) -> dict[str, Any]:
+    """Crop and depth settings of the dataset the model was trained on (``generate.dataset`` overrides);
+    falls back to the ``pair`` section when no dataset manifest is found."""
+    from tnf.artifacts import MANIFEST, read_json
+
+    name = cfg.generate.dataset
+    if name is None:
+        m = store.manifest("models", model_dir.name) or {}
+        datasets = m.get("datasets") or []
+        name = datasets[0] if datasets else None
+    pre: dict[str, Any] = {}
+    if name is not None:
+        folder = Path(str(name)).expanduser()
+        if not (folder / MANIFEST).is_file():
+            folder = store.path("pairs", str(name))
+        if (folder / MANIFEST).is_file():
+            pre = read_json(folder / MANIFEST, "dataset manifest").get("preprocess", {}) or {}
+        elif cfg.generate.dataset is not None:
+            raise TnfError(f"generate.dataset: no paired dataset {name!r} (looked in {folder})")
+    crop = pre.get("crop_px", {})
+    return {
+        "crop_px": crop if isinstance(crop, dict) else {},
+        "footprint_distance": pre.get("footprint_distance", cfg.pair.get("footprint_distance")),
+        "crop_margin": float(cfg.pair.get("crop_margin", 1.0)),
+        "depth_norm": pre.get("depth_norm", cfg.pair.depth_norm),
+        "depth_window": float(pre.get("depth_window", cfg.pair.depth_window)),
+    }
