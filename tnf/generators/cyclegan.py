@@ -77,11 +77,12 @@ class CycleGAN(Generator):
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         betas = (self.cfg.beta1, 0.999)
+        fused = next(self.parameters()).is_cuda
         gens = self.trainable(self.net_g, self.net_f)
         discs = self.trainable(self.net_d_tactile, self.net_d_rgb)
         return [
-            torch.optim.Adam(gens, lr=self.cfg.lr, betas=betas),
-            torch.optim.Adam(discs, lr=self.cfg.lr, betas=betas),
+            torch.optim.Adam(gens, lr=self.cfg.lr, betas=betas, fused=fused),
+            torch.optim.Adam(discs, lr=self.cfg.lr, betas=betas, fused=fused),
         ]
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:

@@ -248,9 +248,10 @@ class TNcGAN(Generator):
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         betas = (self.cfg.beta1, self.cfg.beta2)
+        fused = next(self.parameters()).is_cuda  # one kernel per step instead of several per tensor
         return [
-            torch.optim.Adam(self.trainable(self.net_g), lr=self.cfg.lr, betas=betas),
-            torch.optim.Adam(self.trainable(self.net_d), lr=self.cfg.lr, betas=betas),
+            torch.optim.Adam(self.trainable(self.net_g), lr=self.cfg.lr, betas=betas, fused=fused),
+            torch.optim.Adam(self.trainable(self.net_d), lr=self.cfg.lr, betas=betas, fused=fused),
         ]
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:

@@ -1,0 +1,117 @@
+"""Generator speed: training pairs per second and generated images per second at 128 x 128.
+
+    python bench/generators.py --device cuda [--generators tn_cgan,lee,cyclegan] [--steps 30] [--json out.json]
+
+Training runs each generator's own GAN step (generator and discriminator updates) on random batches already
+on the device, as ``tnf train`` does inside Lightning: fp32 at batch 64 (TF32 convolutions) and bf16 autocast
+at batch 256, channels-last memory. Generation runs ``generate`` in eval mode under ``inference_mode`` with
+bf16 autocast. On a CPU use small ``--steps`` and batches (``--train-batches 8 --gen-batch 32``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from contextlib import nullcontext
+
+import torch
+
+
+def batch_on(device: str, n: int, size: int = 128, channels_last: bool = True) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    out = {
+        "rgb": torch.rand(n, 3, size, size, generator=g) * 2 - 1,
+        "depth": torch.rand(n, 1, size, size, generator=g) * 2 - 1,
+        "background": torch.rand(n, 3, size, size, generator=g) * 2 - 1,
+        "tactile": torch.rand(n, 3, size, size, generator=g) * 2 - 1,
+    }
+    fmt = torch.channels_last if channels_last else torch.contiguous_format
+    return {k: v.to(device).contiguous(memory_format=fmt) for k, v in out.items()}
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def build(name: str, device: str, channels_last: bool):
+    from tnf.registry import GENERATORS
+
+    g = GENERATORS.build({"name": name}).to(device)
+    if channels_last:
+        g = g.to(memory_format=torch.channels_last)
+    return g
+
+
+def bench_train(name: str, device: str, batch: int, bf16: bool, steps: int, channels_last: bool) -> float:
+    from tnf.generators import PlainOptimisation
+
+    g = build(name, device, channels_last).train()
+    opt = PlainOptimisation(g)
+    data = batch_on(device, batch, channels_last=channels_last)
+    amp = torch.autocast(device.split(":")[0], dtype=torch.bfloat16) if bf16 else nullcontext()
+    for _ in range(3):  # warm-up: cuDNN autotuning, allocator
+        with amp:
+            g.training_step(data, opt)
+    sync(device)
+    t = time.perf_counter()
+    for _ in range(steps):
+        with amp:
+            g.training_step(data, opt)
+    sync(device)
+    return steps * batch / (time.perf_counter() - t)
+
+
+def bench_generate(name: str, device: str, batch: int, steps: int, channels_last: bool) -> float:
+    g = build(name, device, channels_last).eval()
+    data = batch_on(device, batch, channels_last=channels_last)
+    amp = torch.autocast(device.split(":")[0], dtype=torch.bfloat16)
+    with torch.inference_mode(), amp:
+        for _ in range(3):
+            g.generate(data)
+        sync(device)
+        t = time.perf_counter()
+        for _ in range(steps):
+            g.generate(data)
+        sync(device)
+    return steps * batch / (time.perf_counter() - t)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--generators", default="tn_cgan,lee,cyclegan")
+    ap.add_argument("--steps", type=int, default=30, help="timed steps per measurement")
+    ap.add_argument("--train-batches", default="64:fp32,256:bf16", help="batch:precision pairs for training")
+    ap.add_argument("--gen-batch", type=int, default=1024, help="images per generate call")
+    ap.add_argument("--no-channels-last", action="store_true")
+    ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    args = ap.parse_args()
+
+    if args.device.startswith("cuda"):
+        torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    cl = not args.no_channels_last
+    name_dev = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else "cpu"
+    print(f"device: {name_dev}; torch {torch.__version__}; channels_last={cl}")
+    results = {"device": name_dev, "torch": torch.__version__, "channels_last": cl, "train": {}, "generate": {}}
+    for name in args.generators.split(","):
+        for spec in args.train_batches.split(","):
+            b, prec = spec.split(":")
+            rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl)
+            results["train"][f"{name}/{prec}/b{b}"] = rate
+            print(f"train    {name:9s} {prec:5s} batch {int(b):4d}: {rate:9.0f} pairs/s")
+            if args.device.startswith("cuda"):
+                torch.cuda.empty_cache()
+        rate = bench_generate(name, args.device, args.gen_batch, args.steps, cl)
+        results["generate"][f"{name}/bf16/b{args.gen_batch}"] = rate
+        print(f"generate {name:9s} bf16  batch {args.gen_batch:4d}: {rate:9.0f} images/s")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
