@@ -99,6 +99,12 @@ class GeneratorSystem(L.LightningModule):
     def generator_name(self) -> str:
         return self.hparams["generator"]["name"]
 
+    def on_fit_start(self) -> None:
+        # Channels-last convolutions are markedly faster with cuDNN (tensor cores); the datasets' float
+        # batches are channels-last already. The state dict is the same in either layout.
+        if self.device.type == "cuda":
+            self.to(memory_format=torch.channels_last)
+
     # -- generation -------------------------------------------------------------------------------------
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Tactile images [B, 3, H, W] in [-1, 1] for a batch of conditions."""

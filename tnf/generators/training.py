@@ -128,6 +128,11 @@ def fit(
         callbacks.append(RichProgressBar(leave=True))
     targs = dict(trainer_cfg)
     targs.setdefault("num_sanity_val_steps", 0)
+    if str(targs.get("accelerator", "auto")) != "cpu":
+        import torch
+
+        targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
+        torch.set_float32_matmul_precision("high")  # TF32 for fp32 runs
     trainer = L.Trainer(
         default_root_dir=str(run_dir),
         max_epochs=system.hparams["epochs"],
