@@ -23,7 +23,7 @@ from tnf.scenes.render import FieldScene, camera_rays
 
 # Defaults per scene kind where one value does not suit both (fit settings of null pick these).
 KIND_DEFAULTS: dict[str, dict[str, Any]] = {
-    "hashgrid": {"steps": 3000, "batch_rays": 8192, "lr": 1e-2},
+    "hashgrid": {"steps": 3000, "batch_rays": 4096, "lr": 1e-2},
     "nerf": {"steps": 30000, "batch_rays": 2048, "lr": 5e-4},
 }
 
@@ -35,7 +35,7 @@ class FitSettings:
     steps: int | None = None
     """Training steps (ray batches); null: the scene kind's default (hashgrid 3000, nerf 30000)."""
     batch_rays: int | None = None
-    """Rays per training batch; null: the scene kind's default (hashgrid 8192, nerf 2048)."""
+    """Rays per training batch; null: the scene kind's default (hashgrid 4096, nerf 2048)."""
     lr: float | None = None
     """Adam learning rate at the start; null: the scene kind's default (hashgrid 1e-2, nerf 5e-4)."""
     lr_final_factor: float = 0.05
@@ -48,8 +48,8 @@ class FitSettings:
     """Held-out views to evaluate (null: all of transforms_test.json)."""
     preview_views: int = 4
     """Held-out views shown in preview.png."""
-    chunk: int = 1 << 15
-    """Rays per rendering chunk during evaluation (bounds memory)."""
+    chunk: int | None = None
+    """Rays per rendering chunk during evaluation (bounds memory); null: the scene kind's default."""
     log_every: int = 100
     """Steps between loss records in the training log."""
 
@@ -250,7 +250,7 @@ def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def evaluate_scene(scene: FieldScene, views: Views, chunk: int, size: float | None = None) -> dict[str, Any]:
+def evaluate_scene(scene: FieldScene, views: Views, chunk: int | None, size: float | None = None) -> dict[str, Any]:
     """Render ``views`` and compare: PSNR (dB), SSIM, depth error (metres and relative to ``size``).
 
     Ground truth is composited over the scene's background. The depth error is the median over pixels
@@ -321,10 +321,12 @@ def fit_object(
     resume_path: str | os.PathLike[str] | None = None,
     on_step: Callable[[int, float], None] | None = None,
     seed: int = 0,
+    size_m: float | None = None,
 ) -> dict[str, Any]:
     """Fit one object from ``capture_dir`` (``transforms.json``, ``transforms_test.json``) into ``out_dir``.
 
-    Writes ``scene.pt``, ``metrics.json`` and ``preview.png``; returns the metrics.
+    Writes ``scene.pt``, ``metrics.json`` and ``preview.png``; returns the metrics. ``size_m``: the object's
+    size for the relative depth error (default: the extent of the ground-truth depth points).
     """
     from PIL import Image
 
@@ -343,7 +345,7 @@ def fit_object(
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     info = fit_scene(scene, train, settings, kind, device, resume_path, on_step, seed)
-    size = object_size(train)
+    size = size_m or object_size(train)
     metrics: dict[str, Any] = {
         "scene": kind,
         "steps": info["steps"],

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from tnf.registry import SCENES
-from tnf.scenes.render import FieldScene, RayOutput, ray_box, volume_render
+from tnf.scenes.render import EMPTY_OPACITY, FieldScene, RayOutput, ray_box, volume_render
 
 # Instant-NGP's spatial hash primes (the first is 1 so that x varies fastest, for cache coherence).
 PRIMES = (1, 2654435761, 805459861)
@@ -268,12 +268,21 @@ class HashGridScene(FieldScene):
         background: torch.Tensor | None = None,
         perturb: bool = False,
     ) -> RayOutput:
-        """Render R rays: origins [R, 3] (metres), unit dirs [R, 3]. ``perturb`` jitters the samples."""
+        """Render R rays: origins [R, 3] (metres), unit dirs [R, 3]. ``perturb`` jitters the samples.
+
+        Without gradients (rendering) the march stops on each ray once its transmittance falls below
+        ``min_transmittance`` (early ray termination); with gradients (training) every sample in the cube that
+        the occupancy grid keeps is rendered, in one differentiable pass.
+        """
         R, N = origins.shape[0], self.cfg.samples_per_ray
-        dt = self.step_size
+        dev = origins.device
+        bg = self.background if background is None else background
         near, far = ray_box(origins, dirs, self.bound)
-        offset = torch.rand(R, 1, device=origins.device) if perturb else torch.full((R, 1), 0.5, device=origins.device)
-        t = near.unsqueeze(1) + (torch.arange(N, device=origins.device) + offset) * dt  # [R, N]
+        offset = torch.rand(R, 1, device=dev) if perturb else torch.full((R, 1), 0.5, device=dev)
+        if not torch.is_grad_enabled():
+            return self._march(origins, dirs, near, far, offset, bg)
+        dt = self.step_size
+        t = near.unsqueeze(1) + (torch.arange(N, device=dev) + offset) * dt  # [R, N]
         valid = t < far.unsqueeze(1)
         # Cheap pre-selection by the cube, then the occupancy grid, before any network evaluation.
         ri, si = valid.nonzero(as_tuple=True)
@@ -286,10 +295,66 @@ class HashGridScene(FieldScene):
             s, c = self.field(pos, dirs[ri])
             sigma = sigma.index_put((ri, si), s)
             rgb = rgb.index_put((ri, si), c)
-        delta = valid.float() * dt
-        bg = self.background if background is None else background
-        out = volume_render(sigma, rgb, t, delta, bg)
+        out = volume_render(sigma, rgb, t, valid.float() * dt, bg)
         return {"rgb": out["rgb"], "depth": out["depth"], "opacity": out["opacity"]}
+
+    #: Samples per ray marched at once without gradients; rays that are opaque by then stop.
+    march_segment: int = 64
+    default_chunk = 1 << 16
+    #: Transmittance below which a ray stops.
+    min_transmittance: float = 1e-4
+
+    @torch.no_grad()
+    def _march(self, origins, dirs, near, far, offset, bg) -> dict[str, torch.Tensor]:
+        """The same quadrature as ``volume_render``, segment by segment, dropping rays once opaque.
+
+        Returns rgb [R, 3], depth [R] (distance), opacity [R] and t_stop [R], the distance after which the
+        remaining samples carry less than ``min_transmittance`` of the light (inf for rays that never stop).
+        """
+        R, N, S, dt = origins.shape[0], self.cfg.samples_per_ray, self.march_segment, self.step_size
+        dev = origins.device
+        trans = torch.ones(R, device=dev)
+        acc_rgb = torch.zeros(R, 3, device=dev)
+        acc_t = torch.zeros(R, device=dev)
+        t_stop = torch.full((R,), float("inf"), device=dev)
+        active = (far > near).nonzero(as_tuple=True)[0]
+        for start in range(0, N, S):
+            if active.numel() == 0:
+                break
+            n = min(S, N - start)
+            t = near[active, None] + (torch.arange(start, start + n, device=dev) + offset[active]) * dt  # [A, n]
+            valid = t < far[active, None]
+            ai, si = valid.nonzero(as_tuple=True)
+            pos = origins[active[ai]] + t[ai, si].unsqueeze(-1) * dirs[active[ai]]
+            keep = self.occupied[self._cell_index(pos)]
+            ai, si, pos = ai[keep], si[keep], pos[keep]
+            A = active.numel()
+            tau = torch.zeros(A, n, device=dev)
+            rgb = torch.zeros(A, n, 3, device=dev)
+            if ai.numel() > 0:
+                sg, c = self.field(pos, dirs[active[ai]])
+                tau[ai, si] = sg * dt
+                rgb[ai, si] = c
+            t_before = trans[active]
+            local = torch.exp(-(torch.cumsum(tau, dim=1) - tau)) * t_before.unsqueeze(1)  # transmittance
+            w = (1.0 - torch.exp(-tau)) * local
+            acc_rgb[active] += (w.unsqueeze(-1) * rgb).sum(1)
+            acc_t[active] += (w * t).sum(1)
+            t_after = t_before * torch.exp(-tau.sum(1))
+            trans[active] = t_after
+            done = t_after < self.min_transmittance
+            if done.any():
+                # The first sample after which the transmittance is below the threshold.
+                below = (local * torch.exp(-tau)) < self.min_transmittance
+                first = below.float().argmax(dim=1)
+                t_stop[active[done]] = t[done].gather(1, first[done].unsqueeze(1))[:, 0]
+            # Rays leave when opaque or when they have left the cube.
+            active = active[~done & valid[:, -1]]
+        opacity = 1.0 - trans
+        depth = acc_t / opacity.clamp_min(1e-10)
+        depth = torch.where(opacity > EMPTY_OPACITY, depth, torch.zeros_like(depth))
+        rgb_out = acc_rgb + trans.unsqueeze(-1) * bg
+        return {"rgb": rgb_out, "depth": depth, "opacity": opacity, "t_stop": t_stop}
 
     def param_groups(self, lr: float) -> list[dict]:
         """Optimizer groups: the hash table without weight decay, the MLPs with a little (Instant-NGP)."""

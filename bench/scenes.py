@@ -1,0 +1,172 @@
+"""Benchmark of scene fitting: quality (PSNR, SSIM, depth error), training time, render speed, peak memory.
+
+Fits one object and prints its figures. The object is the analytic test sphere (rendered exactly in NumPy,
+no renderer needed) or, with ``--object NAME``, a built-in object captured with ``tnf capture``'s renderer.
+
+    python bench/scenes.py --device cuda --scene hashgrid --steps 3000 --out bench-out
+    python bench/scenes.py --device cpu --scene hashgrid --steps 200 --size 32 --views 12 --tiny
+
+Writes ``<out>/<object>/`` (the dataset), ``<out>/<scene>-<object>/`` (scene.pt, metrics.json, preview.png)
+and ``<out>/<scene>-<object>.json`` (the figures printed). No network access is needed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+TINY_HASHGRID = {
+    "levels": 4,
+    "log2_table_size": 14,
+    "base_resolution": 8,
+    "max_resolution": 64,
+    "hidden": 32,
+    "samples_per_ray": 64,
+    "occupancy_resolution": 16,
+    "occupancy_update_every": 8,
+    "occupancy_warmup": 16,
+}
+TINY_NERF = {"depth": 4, "width": 64, "skip": 2, "samples_coarse": 32, "samples_fine": 32}
+
+
+def make_dataset(args: argparse.Namespace, folder: Path) -> tuple[Path, float | None]:
+    """The capture folder of the object (made if missing) and the object's size in metres."""
+    if args.object == "sphere":
+        from tnf.scenes.synthetic import write_sphere_dataset
+
+        if not (folder / "transforms.json").is_file():
+            write_sphere_dataset(folder, args.views, args.test_views, args.size, radius=0.05, distance=0.2)
+        return folder, 0.1
+    # A built-in object through the capture stage's own renderer (needs pyrender with EGL).
+    from tnf.env import headless_rendering
+
+    headless_rendering()
+    import numpy as np
+
+    from tnf.capture import camera_poses, capture_config, intrinsics, write_views
+    from tnf.capture.render import MeshRenderer
+    from tnf.registry import OBJECTS
+
+    mesh = OBJECTS.build({"name": "builtin"}).load(args.object)
+    ccfg = capture_config({"resolution": args.size, "num_views": args.views, "num_test_views": args.test_views})
+    if not (folder / "transforms.json").is_file():
+        radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
+        train, test = camera_poses(radius, ccfg, seed=0)
+        renderer = MeshRenderer(mesh, args.size, args.size, ccfg.background, ccfg.ambient, ccfg.light_intensity)
+        k = intrinsics(ccfg)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            write_views(folder, "train", train, *renderer.render(train, k), ccfg)
+            write_views(folder, "test", test, *renderer.render(test, k), ccfg)
+        finally:
+            renderer.close()
+    return folder, float(max(mesh.extents))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda")
+    ap.add_argument("--scene", default="hashgrid", choices=["hashgrid", "nerf"])
+    ap.add_argument("--steps", type=int, default=None, help="training steps (default: the kind's default)")
+    ap.add_argument("--batch-rays", type=int, default=None, help="rays per step (default: the kind's default)")
+    ap.add_argument("--lr", type=float, default=None)
+    ap.add_argument("--object", default="sphere", help="'sphere' (analytic) or a built-in object name")
+    ap.add_argument("--size", type=int, default=128, help="image size in pixels")
+    ap.add_argument("--views", type=int, default=48, help="training views")
+    ap.add_argument("--test-views", type=int, default=8)
+    ap.add_argument("--tiny", action="store_true", help="the small CPU configuration of debug/tiny")
+    ap.add_argument("--set", nargs="*", default=[], help="scene config overrides key=value (JSON values)")
+    ap.add_argument("--render-views", type=int, default=64, help="views per render batch for frames/s")
+    ap.add_argument("--render-size", type=int, default=128, help="rendered frame size for frames/s")
+    ap.add_argument("--chunk", type=int, default=None, help="rays per render chunk (default: the kind's)")
+    ap.add_argument("--objects-in-paper", type=int, default=27)
+    ap.add_argument("--out", default="bench-scenes", help="output folder")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+
+    import torch
+
+    from tnf.scenes.fit import FitSettings, fit_object
+
+    if args.device.startswith("cuda"):
+        torch.backends.cuda.matmul.allow_tf32 = True
+    out = Path(args.out)
+    data, size = make_dataset(args, out / args.object)
+    params = dict(TINY_HASHGRID if args.scene == "hashgrid" else TINY_NERF) if args.tiny else {}
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        params[k] = json.loads(v)
+    settings = FitSettings(steps=args.steps, batch_rays=args.batch_rays, lr=args.lr, chunk=args.chunk)
+    run_dir = out / f"{args.scene}-{args.object}"
+    if args.device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    metrics = fit_object(
+        {"name": args.scene, **params}, data, run_dir, settings, device=args.device, seed=args.seed, size_m=size
+    )
+    fit_peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
+
+    # Render speed: batches of views at render_size x render_size around the object.
+    from tnf.scenes import load_scene
+    from tnf.scenes.synthetic import sphere_poses
+
+    scene = load_scene(run_dir, args.device)
+    n, s = args.render_views, args.render_size
+    c2w = torch.tensor(sphere_poses(n, 2.2 * scene.bound, offset=0.123), dtype=torch.float32)
+    f = 0.5 * s / torch.tan(torch.tensor(0.5 * 0.7))
+    k = torch.tensor([f, f, s / 2, s / 2])
+    if args.device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    scene.render_rgbd(c2w[:2], k, s, s, args.chunk)  # warm-up
+    _sync(args.device)
+    t0 = time.perf_counter()
+    reps = 0
+    while True:
+        scene.render_rgbd(c2w, k, s, s, args.chunk)
+        reps += 1
+        _sync(args.device)
+        if time.perf_counter() - t0 > 3.0 or reps >= 20:
+            break
+    fps = reps * n / (time.perf_counter() - t0)
+    render_peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
+
+    import resource
+
+    figures = {
+        "scene": args.scene,
+        "object": args.object,
+        "device": torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu",
+        "size_px": args.size,
+        "train_views": args.views,
+        "steps": metrics["steps"],
+        "train_seconds": round(metrics["train_seconds"], 2),
+        "psnr_db": round(metrics.get("psnr", float("nan")), 2),
+        "ssim": round(metrics.get("ssim", float("nan")), 4),
+        "depth_error_median_m": metrics.get("depth_error_median_m"),
+        "depth_error_rel_object_size": metrics.get("depth_error_median_rel"),
+        "render_frames_per_s": round(fps, 1),
+        "render_size_px": s,
+        "peak_gpu_memory_fit_gib": fit_peak,
+        "peak_gpu_memory_render_gib": render_peak,
+        "peak_cpu_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        f"train_seconds_for_{args.objects_in_paper}_objects": round(metrics["train_seconds"] * args.objects_in_paper),
+        "scene_config": params,
+    }
+    (out / f"{args.scene}-{args.object}.json").write_text(json.dumps(figures, indent=2) + "\n")
+    for key, value in figures.items():
+        print(f"{key:>36}: {value}")
+
+
+def _sync(device: str) -> None:
+    import torch
+
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+if __name__ == "__main__":
+    main()

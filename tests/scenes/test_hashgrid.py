@@ -1,0 +1,103 @@
+"""The hash encoding's indexing and interpolation, and the hash-grid scene's early-terminating march."""
+
+import pytest
+import torch
+
+from tnf.registry import from_dict
+from tnf.scenes.hashgrid import PRIMES, HashEncoding, HashGridScene
+
+
+def _encoding(**kw):
+    torch.manual_seed(0)
+    enc = HashEncoding(
+        **{"levels": 3, "features": 2, "log2_table_size": 10, "base_resolution": 4, "max_resolution": 32, **kw}
+    )
+    with torch.no_grad():
+        enc.table.normal_()
+    return enc
+
+
+def test_levels_grow_geometrically_and_coarse_levels_are_direct():
+    enc = _encoding()
+    assert enc.resolutions == [4, 11, 32]
+    # (4+1)^3 = 125 and 12^3 = 1728 vs a 1024-entry table: only the first level fits.
+    assert enc.n_dense == 1
+
+
+def test_exact_at_grid_vertices():
+    enc = _encoding()
+    T = enc.table_size
+    for level, res in enumerate(enc.resolutions):
+        v = torch.tensor([[1, 2, 3], [res, 0, res - 1], [0, 0, 0]])
+        x = v.float() / res
+        out = enc(x).view(-1, enc.levels, enc.features)[:, level]
+        if level < enc.n_dense:
+            rows = v[:, 0] + v[:, 1] * (res + 1) + v[:, 2] * (res + 1) ** 2
+        else:
+            rows = (v[:, 0] * PRIMES[0]) ^ (v[:, 1] * PRIMES[1]) ^ (v[:, 2] * PRIMES[2])
+            rows = rows % T
+        expected = enc.table.detach()[level * T + rows]
+        assert torch.allclose(out, expected, atol=1e-5), level
+
+
+def test_direct_level_has_no_collisions():
+    enc = _encoding()
+    r = enc.resolutions[0]
+    ar = torch.arange(r)
+    cells = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), -1).reshape(-1, 1, 3).int()
+    idx = enc.corner_index(cells.expand(-1, enc.levels, 3).contiguous())[:, 0].reshape(-1)
+    assert idx.unique().numel() == (r + 1) ** 3
+
+
+def test_trilinear_between_vertices_and_continuous():
+    enc = _encoding(levels=1, max_resolution=4)
+    # Halfway along an edge: the mean of its two end vertices.
+    a, b = torch.tensor([[1 / 4, 2 / 4, 1 / 4]]), torch.tensor([[2 / 4, 2 / 4, 1 / 4]])
+    mid = enc((a + b) / 2)
+    assert torch.allclose(mid, (enc(a) + enc(b)) / 2, atol=1e-5)
+    # Continuity across cell faces on every level.
+    enc = _encoding()
+    x = torch.rand(200, 3)
+    eps = 1e-5
+    assert (enc(x + eps) - enc(x)).abs().max() < 1e-2
+
+
+def test_gradients_reach_only_the_looked_up_rows():
+    enc = _encoding(levels=1, max_resolution=4)
+    enc(torch.tensor([[0.1, 0.1, 0.1]])).sum().backward()
+    assert (enc.table.grad.abs().sum(1) > 0).sum() == 8  # the 8 corners of one cell
+
+
+@pytest.fixture
+def scene():
+    cfg = from_dict(
+        HashGridScene.Config,
+        {"bound": 0.1, "levels": 4, "log2_table_size": 12, "max_resolution": 64, "samples_per_ray": 96},
+    )
+    torch.manual_seed(0)
+    s = HashGridScene(cfg)
+    with torch.no_grad():
+        s.encoding.table.normal_(0, 2)
+        s.density_net[-1].bias[0] += 6.0  # dense enough that rays stop early
+    return s
+
+
+def test_march_matches_the_differentiable_pass(scene):
+    o = torch.tensor([[0.0, 0.0, 0.3]]).repeat(300, 1)
+    d = torch.nn.functional.normalize(torch.randn(300, 3) * 0.15 + torch.tensor([0, 0, -1.0]), dim=-1)
+    dense = scene.render_rays(o, d)  # gradients enabled: every sample
+    with torch.no_grad():
+        marched = scene.render_rays(o, d)
+    assert torch.isfinite(marched["t_stop"]).any()  # some rays did stop early
+    for k in ("rgb", "depth", "opacity"):
+        assert torch.allclose(dense[k], marched[k], atol=1e-3), k
+
+
+def test_occupancy_grid_skips_empty_space(scene):
+    with torch.no_grad():
+        scene.density_net[-1].bias[0] -= 30.0  # (nearly) empty everywhere
+    scene.update_occupancy(step=10_000)
+    assert scene.occupied.float().mean() < 1.0
+    with torch.no_grad():
+        out = scene.render_rays(torch.tensor([[0.0, 0.0, 0.3]]), torch.tensor([[0.0, 0.0, -1.0]]))
+    assert float(out["opacity"][0]) < 1e-3 and torch.allclose(out["rgb"][0], scene.background)

@@ -1,0 +1,67 @@
+"""The volume renderer against analytic cases, and the camera ray convention."""
+
+import math
+
+import torch
+
+from tnf.scenes.render import camera_rays, ray_box, volume_render
+
+
+def _uniform(R=4, N=100, length=1.0):
+    edges = torch.linspace(0.0, length, N + 1).expand(R, N + 1)
+    t = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    return t, edges[:, 1:] - edges[:, :-1]
+
+
+def test_empty_space_is_transparent_and_shows_the_background():
+    t, delta = _uniform()
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    out = volume_render(torch.zeros_like(t), torch.rand(*t.shape, 3), t, delta, bg)
+    assert torch.allclose(out["opacity"], torch.zeros(4))
+    assert torch.allclose(out["rgb"], bg.expand(4, 3))
+    assert torch.equal(out["depth"], torch.zeros(4))
+
+
+def test_opaque_slab_gives_its_depth_and_colour():
+    t, delta = _uniform(N=200, length=2.0)
+    sigma = torch.where((t > 1.25) & (t < 1.5), 1e4, 0.0)
+    colour = torch.tensor([0.9, 0.1, 0.3])
+    out = volume_render(sigma, colour.expand(*t.shape, 3), t, delta, torch.ones(3))
+    assert torch.allclose(out["opacity"], torch.ones(4), atol=1e-6)
+    assert torch.allclose(out["rgb"], colour.expand(4, 3), atol=1e-5)
+    # The first sample inside the slab absorbs everything: its centre is within half a step of 1.25.
+    assert torch.allclose(out["depth"], torch.full((4,), 1.25), atol=0.01)
+
+
+def test_constant_medium_has_exponential_transmittance():
+    length, sigma = 0.3, 4.0
+    t, delta = _uniform(N=64, length=length)
+    out = volume_render(torch.full_like(t, sigma), torch.ones(*t.shape, 3), t, delta, torch.zeros(3))
+    expected = 1.0 - math.exp(-sigma * length)
+    assert torch.allclose(out["opacity"], torch.full((4,), expected), atol=1e-5)
+    # Black background, white medium: the colour is the opacity.
+    assert torch.allclose(out["rgb"][:, 0], out["opacity"], atol=1e-6)
+    # Expected depth of an exponential distribution truncated at L, normalised by opacity.
+    mean_t = (1 / sigma - math.exp(-sigma * length) * (length + 1 / sigma)) / expected
+    assert abs(float(out["depth"][0]) - mean_t) < 1e-3
+
+
+def test_camera_rays_follow_the_opengl_convention():
+    c2w = torch.eye(4)[None].clone()
+    c2w[0, :3, 3] = torch.tensor([0.0, 0.0, 2.0])
+    o, d, z = camera_rays(c2w, torch.tensor([10.0, 10.0, 2.0, 2.0]), 4, 4)
+    assert o.shape == d.shape == (1, 4, 4, 3) and z.shape == (1, 4, 4)
+    assert torch.allclose(d.norm(dim=-1), torch.ones(1, 4, 4))
+    # Pixel (row 0, col 0) lies up-left of the centre: x < 0, y > 0 in the camera, looking along -z.
+    assert d[0, 0, 0, 0] < 0 and d[0, 0, 0, 1] > 0 and (d[..., 2] < 0).all()
+    # Symmetric pixels about the principal point (2, 2): rows 1 and 2 have opposite y.
+    assert torch.allclose(d[0, 1, 1, 1], -d[0, 2, 2, 1])
+    assert torch.allclose(z, -d[..., 2])
+
+
+def test_ray_box_entry_and_exit():
+    o = torch.tensor([[0.0, 0.0, 2.0], [5.0, 5.0, 2.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    near, far = ray_box(o, d, 0.5)
+    assert torch.allclose(near[0], torch.tensor(1.5)) and torch.allclose(far[0], torch.tensor(2.5))
+    assert far[1] <= near[1]  # a miss
