@@ -27,6 +27,10 @@ def test_every_group_option_composes(group, option):
         assert cfg[group].name if "name" in cfg[group] else cfg[group]
 
 
+# Options whose YAML leaves a value for the user to fill in (a path), and what a user would give.
+REQUIRED = {("objects", "mesh_dir"): {"path": "/some/meshes"}}
+
+
 def test_component_groups_name_registered_components():
     """Each YAML of a component group names a component that validates against its Config."""
     from tnf.registry import REGISTRIES
@@ -38,4 +42,5 @@ def test_component_groups_name_registered_components():
             cfg = compose("pipeline", [f"{group}={path.stem}"])
             node = dict(cfg[group])
             name = node.pop("name")
+            node.update(REQUIRED.get((group, path.stem), {}))
             REGISTRIES[kind].config(name, node)  # raises TnfError on unknown or mistyped keys
