@@ -167,3 +167,13 @@ def test_image_grid_layout():
     assert grid.shape == (32, 80, 3) and grid.dtype.name == "uint8"
     assert grid[:, 64:].max() == 0  # identical images: the difference column is black
     assert (grid[:, 32:48] == grid[:, 48:64]).all()  # generated == real
+
+
+def test_loggers(tmp_path):
+    from tnf.generators.training import make_loggers
+
+    assert [type(x).__name__ for x in make_loggers({"name": "csv"}, tmp_path)] == ["CSVLogger"]
+    with pytest.raises(TnfError, match="unknown logger 'mlflow'"):
+        make_loggers({"name": "mlflow"}, tmp_path)
+    wandb = make_loggers({"name": "wandb", "project": "tnf", "mode": "offline"}, tmp_path)
+    assert [type(x).__name__ for x in wandb] == ["CSVLogger", "WandbLogger"]

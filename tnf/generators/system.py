@@ -147,7 +147,11 @@ class GeneratorSystem(L.LightningModule):
                 self.log(k, losses[k], prog_bar=True, on_step=True, on_epoch=False, logger=False, batch_size=bs)
 
     def _check_finite(self) -> None:
-        if self._bad is not None and bool(self._bad):
+        bad = self._bad is not None and bool(self._bad)
+        if self._trainer is not None and self.trainer.world_size > 1:
+            # Every rank stops together (a rank that stopped alone would leave the others waiting).
+            bad = self.trainer.strategy.reduce_boolean_decision(bad, all=False)
+        if bad:
             names = [k for k, v in self._last_losses.items() if not torch.isfinite(v.float()).all()]
             raise NonFiniteLoss(
                 f"non-finite training loss ({', '.join(names) or 'earlier in the epoch'}) at epoch "

@@ -128,6 +128,9 @@ def fit(
         callbacks.append(RichProgressBar(leave=True))
     targs = dict(trainer_cfg)
     targs.setdefault("num_sanity_val_steps", 0)
+    if targs.get("strategy") == "ddp":
+        # A GAN step back-propagates through one network at a time, so each backward leaves parameters unused.
+        targs["strategy"] = "ddp_find_unused_parameters_true"
     if str(targs.get("accelerator", "auto")) != "cpu":
         import torch
 
