@@ -1,0 +1,128 @@
+"""Fitting a small hash grid on the CPU to an analytic sphere: it learns, saves, loads, resumes."""
+
+import json
+import resource
+
+import pytest
+import torch
+
+from tnf.errors import TnfError
+from tnf.scenes import load_scene, save_scene
+from tnf.scenes.fit import FitSettings, build_scene, evaluate_scene, fit_object, fit_scene, read_views
+from tnf.scenes.synthetic import look_at, render_sphere, write_sphere_dataset
+
+TINY = {
+    "name": "hashgrid",
+    "levels": 4,
+    "log2_table_size": 12,
+    "base_resolution": 8,
+    "max_resolution": 48,
+    "hidden": 16,
+    "samples_per_ray": 48,
+    "occupancy_resolution": 16,
+    "occupancy_update_every": 8,
+    "occupancy_warmup": 16,
+}
+SETTINGS = FitSettings(steps=120, batch_rays=256, lr=2e-2, log_every=20, checkpoint_every=40)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return write_sphere_dataset(tmp_path_factory.mktemp("sphere"), n_train=10, n_test=2, size=24)
+
+
+@pytest.fixture(scope="module")
+def fitted(dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit")
+    torch.manual_seed(0)
+    before = evaluate_scene(
+        build_scene(TINY, read_views(dataset / "transforms.json")),
+        read_views(dataset / "transforms_test.json"),
+        None,
+        0.1,
+    )
+    metrics = fit_object(TINY, dataset, out, SETTINGS, seed=0)
+    return out, before["metrics"], metrics
+
+
+def test_fit_improves_psnr_and_depth(fitted):
+    out, before, after = fitted
+    assert after["psnr"] > before["psnr"] + 3.0, (before["psnr"], after["psnr"])
+    assert after["depth_error_median_m"] < 0.5 * before["depth_error_median_m"]
+    assert after["train_log"][-1]["loss"] < after["train_log"][0]["loss"]
+    on_disk = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr", "ssim", "depth_error_median_m", "depth_error_median_rel", "train_seconds", "steps"):
+        assert key in on_disk, key
+    assert on_disk["steps"] == SETTINGS.steps
+    assert (out / "preview.png").is_file()
+
+
+def test_checkpoint_round_trip(fitted, tmp_path):
+    out, _, _ = fitted
+    scene = load_scene(out)
+    c2w = torch.tensor(look_at(torch.tensor([0.15, -0.1, 0.1]).numpy()), dtype=torch.float32)[None]
+    k = torch.tensor([20.0, 20.0, 8.0, 8.0])
+    a = scene.render_rgbd(c2w, k, 16, 16)
+    again = load_scene(save_scene(scene, tmp_path / "copy.pt"))
+    b = again.render_rgbd(c2w, k, 16, 16)
+    for key in ("rgb", "depth", "opacity"):
+        assert torch.equal(a[key], b[key]), key
+    assert torch.equal(scene.occupied, again.occupied)
+
+
+def test_renders_a_pose_outside_the_training_set(fitted):
+    out, _, _ = fitted
+    scene = load_scene(out)
+    # Closer than any training camera, from an oblique direction, with another image size.
+    eye = torch.tensor([0.09, 0.08, -0.06]).numpy()
+    c2w = look_at(eye)
+    gt, gt_depth = render_sphere(c2w, 30.0, 30.0, 10.0, 8.0, 20, 16, 0.05)
+    r = scene.render_rgbd(torch.tensor(c2w, dtype=torch.float32), torch.tensor([30.0, 30.0, 10.0, 8.0]), 20, 16)
+    assert r["rgb"].shape == (1, 16, 20, 3)
+    hit = torch.from_numpy(gt_depth) > 0
+    # The sphere covers the middle of the image: the scene sees it there at about the right depth.
+    assert r["opacity"][0][hit].mean() > 0.7
+    err = (r["depth"][0][hit] - torch.from_numpy(gt_depth)[hit]).abs().median()
+    assert err < 0.025, err  # 2.5 cm: a quarter of the sphere's size, after 120 steps on 24 px images
+
+
+def test_resume_continues_from_the_checkpoint(dataset, tmp_path):
+    views = read_views(dataset / "transforms.json")
+    resume = tmp_path / "resume.pt"
+    settings = FitSettings(steps=12, batch_rays=64, checkpoint_every=5, log_every=1)
+    torch.manual_seed(0)
+    scene = build_scene(TINY, views)
+
+    class Stop(Exception):
+        pass
+
+    def interrupt(step, loss):
+        if step == 7:
+            raise Stop
+
+    with pytest.raises(Stop):
+        fit_scene(scene, views, settings, "hashgrid", resume_path=resume, on_step=interrupt)
+    assert resume.is_file()
+    steps = []
+    torch.manual_seed(0)
+    fresh = build_scene(TINY, views)
+    info = fit_scene(fresh, views, settings, "hashgrid", resume_path=resume, on_step=lambda s, loss: steps.append(s))
+    assert steps[0] == 5 and steps[-1] == 11 and info["steps"] == 12
+    assert not resume.exists()
+
+
+def test_cpu_memory_of_a_tiny_fit_is_small(fitted):
+    # Peak resident memory of this whole test process (torch included), in GiB.
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 < 2.0
+
+
+def test_load_scene_rejects_other_files(tmp_path):
+    bad = tmp_path / "scene.pt"
+    torch.save({"format": "tnf-scene", "version": 1, "name": "no_such_kind", "config": {}, "state": {}}, bad)
+    with pytest.raises(TnfError, match="unknown scene kind"):
+        load_scene(tmp_path)
+    torch.save({"weights": torch.zeros(2)}, bad)
+    with pytest.raises(TnfError, match="not a tnf scene"):
+        load_scene(bad)
+    with pytest.raises(TnfError, match="not found"):
+        load_scene(tmp_path / "missing")
