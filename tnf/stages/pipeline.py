@@ -1,0 +1,83 @@
+"""``tnf pipeline``: every stage in order for one experiment, from objects to the report.
+
+capture -> fit-scene -> touch -> pair -> train -> generate -> evaluate, each with the same composed config.
+Each stage skips the items the artifact store already holds with a matching config, so re-running a finished
+or interrupted pipeline only does what is missing. The generator's run is named after the generator, the
+dataset and the seed, so a sweep (``tnf pipeline -m generator=tn_cgan,lee,cyclegan seed=0,1,2``) trains one
+model per job and all jobs fill one report.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from typing import Any
+
+from tnf.errors import TnfError
+
+ORDER = ("capture", "fit-scene", "touch", "pair", "train", "generate", "evaluate")
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    from omegaconf import OmegaConf, open_dict
+    from rich.console import Console
+
+    console = Console(highlight=False)
+    stages = [str(s) for s in cfg.pipeline.stages]
+    unknown = [s for s in stages if s not in ORDER]
+    if unknown:
+        raise TnfError(f"pipeline.stages: unknown stage {unknown[0]!r}; stages: {', '.join(ORDER)}")
+    stages = [s for s in ORDER if s in stages]  # always in pipeline order
+
+    from tnf.data.store import dataset_name
+
+    run_name = model_run_name(cfg)
+    with open_dict(cfg):
+        cfg.evaluate.dataset = cfg.evaluate.dataset or dataset_name(cfg)
+        cfg.train.run_name = cfg.train.run_name or run_name
+        cfg.generate.model = cfg.generate.model or cfg.train.run_name
+        cfg.evaluate.model = cfg.evaluate.model or cfg.train.run_name
+        cfg.evaluate.generated = cfg.evaluate.generated or cfg.generate.run_name or cfg.generate.model
+    OmegaConf.resolve(cfg)
+
+    times: dict[str, float] = {}
+    results: dict[str, Any] = {}
+    t_all = time.perf_counter()
+    for i, stage in enumerate(stages, 1):
+        console.rule(f"[bold]pipeline {i}/{len(stages)}: {stage}")
+        module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
+        t0 = time.perf_counter()
+        results[stage] = module.run(cfg)
+        times[stage] = time.perf_counter() - t0
+    total = time.perf_counter() - t_all
+    _summary(console, cfg, stages, times, total, results.get("evaluate"))
+    return {"times": times, "total": total, "model": str(cfg.train.run_name)}
+
+
+def model_run_name(cfg: Any) -> str:
+    """``<generator>-<dataset>-seed<k>``: one trained model per generator, dataset and seed."""
+    from tnf.data.store import dataset_name
+
+    return f"{cfg.generator.name}-{dataset_name(cfg)}-seed{cfg.seed}"
+
+
+def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float], total: float, ev: Any) -> None:
+    from rich.table import Table
+
+    from tnf.artifacts import ArtifactStore, write_json
+
+    table = Table(title="pipeline stages", header_style="bold")
+    table.add_column("stage")
+    table.add_column("wall time", justify="right")
+    for s in stages:
+        table.add_row(s, f"{times[s]:.1f} s")
+    table.add_row("[bold]total", f"[bold]{total:.1f} s")
+    console.print(table)
+    store = ArtifactStore(cfg.data_root)
+    report = store.path("reports", str(cfg.evaluate.name))
+    write_json(
+        report / "timings" / f"{cfg.train.run_name}.json",
+        {"stages": times, "total_s": total, "device": str(cfg.device), "model": str(cfg.train.run_name)},
+    )
+    if (report / "report.md").is_file():
+        console.print(f"report: [bold]{report / 'report.md'}[/]")
