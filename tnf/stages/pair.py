@@ -99,7 +99,6 @@ def run(cfg: Any) -> None:
 
     # -- step 1: per-object render caches -----------------------------------------------------------------
     cache_keys: dict[str, dict[str, Any]] = {}
-    todo: list[str] = []
     for obj, i in inputs.items():
         key = {
             "scene_source": p["scene_source"],
@@ -114,8 +113,13 @@ def run(cfg: Any) -> None:
             "size": SIZE,
         }
         cache_keys[obj] = key
-        if not store.is_done("pairs", ".cache", name, src, obj, config=key):
-            todo.append(obj)
+    # A finished dataset made from the same inputs needs nothing, not even its (deleted) render caches.
+    novel = choose_novel_objects(names, p["novel_objects"], int(p["num_novel_objects"]), int(cfg.seed))
+    dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
+    if store.is_done("pairs", name, config=dataset_key):
+        console.print(f"pair: dataset {store.path('pairs', name)} is up to date")
+        return
+    todo = [o for o in names if not store.is_done("pairs", ".cache", name, src, o, config=cache_keys[o])]
     n_render = sum(len(inputs[o]["item"].touches) for o in todo)
     if todo:
         console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p['scene_source']})")
@@ -145,11 +149,6 @@ def run(cfg: Any) -> None:
             del arrays
 
     # -- step 2: assemble ---------------------------------------------------------------------------------
-    novel = choose_novel_objects(names, p["novel_objects"], int(p["num_novel_objects"]), int(cfg.seed))
-    dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
-    if store.is_done("pairs", name, config=dataset_key):
-        console.print(f"pair: dataset {store.path('pairs', name)} is up to date")
-        return
     caches = {o: store.path("pairs", ".cache", name, src, o) for o in names}
     counts = {o: len(inputs[o]["item"].touches) for o in names}
     n = sum(counts.values())
