@@ -1,6 +1,7 @@
 """``tnf pipeline``: every stage in order for one experiment, from objects to the report.
 
-capture -> fit-scene -> touch -> pair -> train -> generate -> evaluate, each with the same composed config.
+capture -> fit-scene -> touch -> pair -> train (or finetune, for sensor transfer) -> generate -> evaluate, each
+with the same composed config.
 Each stage skips the items the artifact store already holds with a matching config, so re-running a finished
 or interrupted pipeline only does what is missing. The generator's run is named after the generator, the
 dataset and the seed, so a sweep (``tnf pipeline -m generator=tn_cgan,lee,cyclegan seed=0,1,2``) trains one
@@ -15,7 +16,7 @@ from typing import Any
 
 from tnf.errors import TnfError
 
-ORDER = ("capture", "fit-scene", "touch", "pair", "train", "generate", "evaluate")
+ORDER = ("capture", "fit-scene", "touch", "pair", "train", "finetune", "generate", "evaluate")
 
 
 def run(cfg: Any) -> dict[str, Any]:
@@ -31,12 +32,18 @@ def run(cfg: Any) -> dict[str, Any]:
 
     from tnf.data.store import dataset_name
 
-    run_name = model_run_name(cfg)
+    if "train" in stages and "finetune" in stages:
+        raise TnfError("pipeline.stages: give train (a new model) or finetune (sensor transfer), not both")
     with open_dict(cfg):
         cfg.evaluate.dataset = cfg.evaluate.dataset or dataset_name(cfg)
-        cfg.train.run_name = cfg.train.run_name or run_name
-        cfg.generate.model = cfg.generate.model or cfg.train.run_name
-        cfg.evaluate.model = cfg.evaluate.model or cfg.train.run_name
+        if "finetune" in stages:
+            cfg.finetune.run_name = cfg.finetune.run_name or finetune_run_name(cfg)
+            model = cfg.finetune.run_name
+        else:
+            cfg.train.run_name = cfg.train.run_name or model_run_name(cfg)
+            model = cfg.train.run_name
+        cfg.generate.model = cfg.generate.model or model
+        cfg.evaluate.model = cfg.evaluate.model or model
         cfg.evaluate.generated = cfg.evaluate.generated or cfg.generate.run_name or cfg.generate.model
     OmegaConf.resolve(cfg)
 
@@ -51,7 +58,7 @@ def run(cfg: Any) -> dict[str, Any]:
         times[stage] = time.perf_counter() - t0
     total = time.perf_counter() - t_all
     _summary(console, cfg, stages, times, total, results.get("evaluate"))
-    return {"times": times, "total": total, "model": str(cfg.train.run_name)}
+    return {"times": times, "total": total, "model": str(cfg.generate.model)}
 
 
 def model_run_name(cfg: Any) -> str:
@@ -59,6 +66,16 @@ def model_run_name(cfg: Any) -> str:
     from tnf.data.store import dataset_name
 
     return f"{cfg.generator.name}-{dataset_name(cfg)}-seed{cfg.seed}"
+
+
+def finetune_run_name(cfg: Any) -> str:
+    """``<generator>-<dataset>-<from-RUN|scratch>-<n>pt-seed<k>`` for a sensor-transfer model."""
+    from tnf.data.store import dataset_name
+
+    ckpt = cfg.finetune.checkpoint
+    origin = f"from-{str(ckpt).split('/')[0]}" if ckpt else "scratch"
+    per_object = cfg.data.per_object if cfg.data.per_object is not None else "all"
+    return f"{cfg.generator.name}-{dataset_name(cfg)}-{origin}-{per_object}pt-seed{cfg.seed}"
 
 
 def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float], total: float, ev: Any) -> None:
@@ -76,8 +93,8 @@ def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float],
     store = ArtifactStore(cfg.data_root)
     report = store.path("reports", str(cfg.evaluate.name))
     write_json(
-        report / "timings" / f"{cfg.train.run_name}.json",
-        {"stages": times, "total_s": total, "device": str(cfg.device), "model": str(cfg.train.run_name)},
+        report / "timings" / f"{cfg.generate.model}.json",
+        {"stages": times, "total_s": total, "device": str(cfg.device), "model": str(cfg.generate.model)},
     )
     if (report / "report.md").is_file():
         console.print(f"report: [bold]{report / 'report.md'}[/]")
