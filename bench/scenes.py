@@ -87,11 +87,14 @@ def main() -> None:
     ap.add_argument("--objects-in-paper", type=int, default=27)
     ap.add_argument("--out", default="bench-scenes", help="output folder")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--eval-every", type=int, default=250, help="steps between test-PSNR checks (0: none)")
     args = ap.parse_args()
 
     import torch
+    from PIL import Image
 
-    from tnf.scenes.fit import FitSettings, fit_object
+    from tnf.scenes import save_scene
+    from tnf.scenes.fit import FitSettings, build_scene, evaluate_scene, fit_scene, preview_strip, read_views
 
     if args.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = True
@@ -103,12 +106,36 @@ def main() -> None:
         params[k] = json.loads(v)
     settings = FitSettings(steps=args.steps, batch_rays=args.batch_rays, lr=args.lr, chunk=args.chunk)
     run_dir = out / f"{args.scene}-{args.object}"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    train, test = read_views(data / "transforms.json"), read_views(data / "transforms_test.json")
+    torch.manual_seed(args.seed)
+    scene = build_scene({"name": args.scene, **params}, train)
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    metrics = fit_object(
-        {"name": args.scene, **params}, data, run_dir, settings, device=args.device, seed=args.seed, size_m=size
-    )
+    # PSNR on the test views every eval_every steps; the evaluation time is not training time.
+    curve: list[dict] = []
+    excluded = [0.0]
+    t_start = time.perf_counter()
+
+    def on_step(step: int, loss: float) -> None:
+        if not args.eval_every or (step + 1) % args.eval_every:
+            return
+        _sync(args.device)
+        t = time.perf_counter()
+        ev = evaluate_scene(scene, test, settings.chunk, size)["metrics"]
+        scene.train()
+        curve.append({"step": step + 1, "seconds": round(t - t_start - excluded[0], 2), "psnr": round(ev["psnr"], 2)})
+        print(f"step {step + 1}: {curve[-1]['seconds']} s, test PSNR {curve[-1]['psnr']} dB", flush=True)
+        excluded[0] += time.perf_counter() - t
+
+    info = fit_scene(scene, train, settings, args.scene, args.device, on_step=on_step, seed=args.seed)
+    train_seconds = info["train_seconds"] - excluded[0]
     fit_peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
+    ev = evaluate_scene(scene, test, settings.chunk, size)
+    metrics = {**ev["metrics"], "steps": info["steps"], "train_seconds": train_seconds}
+    Image.fromarray(preview_strip(ev["gt"], ev["rgb"], ev["depth"], 4)).save(run_dir / "preview.png")
+    save_scene(scene, run_dir)
+    hit = [c for c in curve if c["psnr"] >= 30.0]
 
     # Render speed: batches of views at render_size x render_size around the object.
     from tnf.scenes import load_scene
@@ -144,6 +171,8 @@ def main() -> None:
         "train_views": args.views,
         "steps": metrics["steps"],
         "train_seconds": round(metrics["train_seconds"], 2),
+        "seconds_to_30db": hit[0]["seconds"] if hit else None,
+        "psnr_curve": curve,
         "psnr_db": round(metrics.get("psnr", float("nan")), 2),
         "ssim": round(metrics.get("ssim", float("nan")), 4),
         "depth_error_median_m": metrics.get("depth_error_median_m"),
