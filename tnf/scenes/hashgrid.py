@@ -299,7 +299,7 @@ class HashGridScene(FieldScene):
         return {"rgb": out["rgb"], "depth": out["depth"], "opacity": out["opacity"]}
 
     #: Samples per ray marched at once without gradients; rays that are opaque by then stop.
-    march_segment: int = 64
+    march_segment: int = 32
     default_chunk = 1 << 16
     #: Transmittance below which a ray stops.
     min_transmittance: float = 1e-4
