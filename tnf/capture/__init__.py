@@ -226,8 +226,6 @@ def load_transforms(
         w, h: image size in pixels.
         depth: [N, H, W] float32 z-depth metres (0 = empty) when every frame has ``depth_file_path``, else None.
     """
-    from PIL import Image
-
     path = Path(path)
     if path.is_dir():
         path = path / "transforms.json"
@@ -235,52 +233,105 @@ def load_transforms(
         raise TnfError(f"transforms file not found: {path}")
     try:
         meta = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise TnfError(f"{path} is not valid JSON: {e}") from None
+    if not isinstance(meta, dict):
+        raise TnfError(f"{path}: expected a JSON object with w, h and frames, got {type(meta).__name__}")
     for key in ("w", "h", "frames"):
         if key not in meta:
             raise TnfError(f"{path}: missing key {key!r}")
-    w, h = int(meta["w"]), int(meta["h"])
+    w, h = _field(meta, "w", path, int), _field(meta, "h", path, int)
     if "fl_x" in meta:
-        fx = float(meta["fl_x"])
-        fy = float(meta.get("fl_y", fx))
+        fx = _field(meta, "fl_x", path)
+        fy = _field(meta, "fl_y", path) if "fl_y" in meta else fx
     elif "camera_angle_x" in meta:
-        fx = w / 2 / math.tan(float(meta["camera_angle_x"]) / 2)
-        fy = h / 2 / math.tan(float(meta["camera_angle_y"]) / 2) if "camera_angle_y" in meta else fx
+        ax = _field(meta, "camera_angle_x", path, limit=math.pi)
+        fx = w / 2 / math.tan(ax / 2)
+        fy = (
+            h / 2 / math.tan(_field(meta, "camera_angle_y", path, limit=math.pi) / 2)
+            if "camera_angle_y" in meta
+            else fx
+        )
     else:
         raise TnfError(f"{path}: missing key 'fl_x' or 'camera_angle_x' (the focal length)")
-    cx, cy = float(meta.get("cx", w / 2)), float(meta.get("cy", h / 2))
+    cx = _field(meta, "cx", path, positive=False) if "cx" in meta else w / 2
+    cy = _field(meta, "cy", path, positive=False) if "cy" in meta else h / 2
     frames = meta["frames"]
+    if not isinstance(frames, list):
+        raise TnfError(f"{path}: 'frames' must be a list of frames, got {type(frames).__name__}")
     if not frames:
         raise TnfError(f"{path}: 'frames' is empty")
     images, poses, depths = [], [], []
     for i, fr in enumerate(frames):
+        if not isinstance(fr, dict):
+            raise TnfError(f"{path}: frame {i} must be an object with file_path and transform_matrix")
         for key in ("file_path", "transform_matrix"):
             if key not in fr:
                 raise TnfError(f"{path}: frame {i} is missing key {key!r}")
-        m = np.asarray(fr["transform_matrix"], dtype=np.float32)
+        try:
+            m = np.asarray(fr["transform_matrix"], dtype=np.float32)
+        except (ValueError, TypeError):
+            raise TnfError(f"{path}: frame {i} transform_matrix is not a 4x4 matrix of numbers") from None
         if m.shape != (4, 4):
             raise TnfError(f"{path}: frame {i} transform_matrix has shape {list(m.shape)}, expected [4, 4]")
-        img_path = path.parent / fr["file_path"]
+        if not np.isfinite(m).all():
+            raise TnfError(f"{path}: frame {i} transform_matrix holds NaN or infinite values")
+        img_path = path.parent / _rel_path(fr, "file_path", path, i)
         if not img_path.suffix and not img_path.is_file():
             img_path = img_path.with_suffix(".png")  # instant-ngp files may omit the extension
         if not img_path.is_file():
             raise TnfError(f"{path}: frame {i} image not found: {img_path}")
-        with Image.open(img_path) as im:
-            if im.mode not in ("RGB", "RGBA"):
-                raise TnfError(f"{img_path}: expected an RGB or RGBA image, got mode {im.mode}")
-            arr = np.asarray(im.convert("RGBA"))
+        arr = _read_image(img_path)
         if arr.shape[:2] != (h, w):
             raise TnfError(f"{img_path}: image is {arr.shape[1]}x{arr.shape[0]}, transforms file says {w}x{h}")
         images.append(arr)
         poses.append(m)
         if "depth_file_path" in fr:
-            dp = path.parent / fr["depth_file_path"]
+            dp = path.parent / _rel_path(fr, "depth_file_path", path, i)
             if not dp.is_file():
                 raise TnfError(f"{path}: frame {i} depth file not found: {dp}")
-            d = np.load(dp).astype(np.float32)
+            try:
+                d = np.load(dp).astype(np.float32)
+            except (OSError, ValueError, TypeError, EOFError) as e:  # not .npy, pickled objects, truncated
+                raise TnfError(f"{dp}: not a readable depth array (.npy float): {e}") from None
             if d.shape != (h, w):
                 raise TnfError(f"{dp}: depth is {list(d.shape)}, expected [{h}, {w}]")
             depths.append(d)
     depth = np.stack(depths) if len(depths) == len(frames) else None
     return np.stack(images), np.stack(poses), (fx, fy, cx, cy), w, h, depth
+
+
+def _field(meta: dict[str, Any], key: str, path: Path, kind: type = float, positive: bool = True, limit=None) -> Any:
+    """``meta[key]`` as a finite number (``kind``: int or float), > 0 when ``positive``, < ``limit`` if given."""
+    value = meta[key]
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and kind is int:
+        ok = float(value).is_integer()
+    if ok and positive:
+        ok = value > 0
+    if ok and limit is not None:
+        ok = value < limit
+    if not ok:
+        what = "a positive integer" if kind is int else ("a positive number" if positive else "a finite number")
+        raise TnfError(f"{path}: {key!r} must be {what}{f' below {limit:g}' if limit else ''}, got {value!r}")
+    return kind(value)
+
+
+def _rel_path(frame: dict[str, Any], key: str, path: Path, i: int) -> str:
+    value = frame[key]
+    if not isinstance(value, str) or not value or "\x00" in value:
+        raise TnfError(f"{path}: frame {i} {key} must be a file path, got {value!r}")
+    return value
+
+
+def _read_image(img_path: Path) -> np.ndarray:
+    """An RGB or RGBA image file as uint8 [H, W, 4] (RGB gets alpha 255)."""
+    from PIL import Image
+
+    try:
+        with Image.open(img_path) as im:
+            if im.mode not in ("RGB", "RGBA"):
+                raise TnfError(f"{img_path}: expected an RGB or RGBA image, got mode {im.mode}")
+            return np.asarray(im.convert("RGBA"))
+    except (OSError, ValueError, Image.DecompressionBombError) as e:  # not an image, truncated, huge
+        raise TnfError(f"{img_path}: not a readable image ({e})") from None

@@ -32,13 +32,31 @@ class TouchItem:
     def load(cls, folder: str | os.PathLike[str]) -> TouchItem:
         folder = Path(folder)
         manifest = read_json(folder / MANIFEST, "touch manifest")
-        touches = manifest.get("touches")
+        touches = manifest.get("touches") if isinstance(manifest, dict) else None
         if not isinstance(touches, list):
             raise TnfError(f"touch manifest {folder / MANIFEST} has no 'touches' list; rerun `tnf touch`")
-        for key in ("index", "split", "image", "start_c2w"):
-            for t in touches:
+        where = folder / MANIFEST
+        for i, t in enumerate(touches):
+            if not isinstance(t, dict):
+                raise TnfError(f"touch manifest {where}: touch {i} is not an object; rerun `tnf touch`")
+            for key in ("index", "split", "image", "start_c2w"):
                 if key not in t:
-                    raise TnfError(f"touch manifest {folder / MANIFEST}: a touch lacks {key!r}; rerun `tnf touch`")
+                    raise TnfError(f"touch manifest {where}: a touch lacks {key!r}; rerun `tnf touch`")
+            if not isinstance(t["image"], str) or not isinstance(t["split"], str):
+                raise TnfError(f"touch manifest {where}: touch {i} 'image' and 'split' must be strings")
+            try:
+                pose = np.asarray(t["start_c2w"], dtype=np.float64)
+            except (ValueError, TypeError):
+                pose = np.zeros(0)
+            if pose.shape != (4, 4) or not np.isfinite(pose).all():
+                raise TnfError(f"touch manifest {where}: touch {i} start_c2w must be a finite 4x4 matrix")
+            if t.get("contact_point") is not None:
+                try:
+                    point = np.asarray(t["contact_point"], dtype=np.float64)
+                except (ValueError, TypeError):
+                    point = np.zeros(0)
+                if point.shape != (3,):
+                    raise TnfError(f"touch manifest {where}: touch {i} contact_point must be 3 numbers (metres)")
         return cls(folder, manifest)
 
     @property

@@ -139,13 +139,19 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
     if not (folder / MANIFEST).is_file():
         raise TnfError(f"not a paired dataset (no {MANIFEST}): {folder}; build one with `tnf pair`")
     manifest = read_json(folder / MANIFEST, "dataset manifest")
+    if not isinstance(manifest, dict):
+        raise TnfError(f"dataset manifest {folder / MANIFEST} is not a JSON object; rebuild it with `tnf pair`")
     if manifest.get("format_version") != FORMAT_VERSION:
         raise TnfError(
             f"dataset {folder} has format version {manifest.get('format_version')!r}, this tnf reads "
             f"{FORMAT_VERSION}; rebuild it with `tnf pair`"
         )
+    objects = manifest.get("objects")
+    if not isinstance(objects, list) or not objects or not all(isinstance(o, str) for o in objects):
+        raise TnfError(f"dataset {folder}: the manifest's 'objects' must be a non-empty list of object names")
     arrays: dict[str, np.ndarray] = {}
-    for name in (*PAIR_ARRAYS, "backgrounds"):
+    expected = {**PAIR_ARRAYS, "backgrounds": ("uint8", (SIZE, SIZE, 3))}
+    for name, (dtype, shape) in expected.items():
         path = folder / f"{name}.npy"
         try:
             arrays[name] = np.load(path, mmap_mode="r")
@@ -153,8 +159,33 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
             raise TnfError(
                 f"dataset {folder} is incomplete: {path.name} is missing; rebuild it with `tnf pair`"
             ) from None
+        except (OSError, ValueError, EOFError) as e:  # not a .npy file, truncated, pickled objects
+            raise TnfError(f"dataset {folder}: {path.name} is not a readable array ({e}); rebuild it") from None
+        a = arrays[name]
+        if a.dtype != np.dtype(dtype) or a.ndim != 1 + len(shape) or a.shape[1:] != shape:
+            raise TnfError(
+                f"dataset {folder}: {path.name} is {a.dtype} {list(a.shape)}, expected {dtype} [N, "
+                f"{', '.join(map(str, shape))}]".replace(", ]", "]")
+                + "; rebuild it with `tnf pair`"
+            )
     n = len(arrays["rgb"])
     for name in PAIR_ARRAYS:
         if len(arrays[name]) != n:
             raise TnfError(f"dataset {folder} is inconsistent: {name}.npy has {len(arrays[name])} rows, rgb.npy {n}")
+    count = manifest.get("count")
+    if count is not None and count != n:
+        raise TnfError(f"dataset {folder}: the manifest says {count} pairs but the arrays hold {n}; rebuild it")
+    # Index arrays must point into what they index (a bad index would fail deep inside a data loader).
+    limits = {
+        "object_id": (len(objects), "the manifest's objects"),
+        "split": (len(SPLITS), "the splits"),
+        "background_index": (len(arrays["backgrounds"]), "backgrounds.npy"),
+    }
+    for name, (k, what) in limits.items():
+        a = np.asarray(arrays[name])
+        if n and (a.min() < 0 or a.max() >= k):
+            raise TnfError(
+                f"dataset {folder}: {name}.npy holds values in [{a.min()}, {a.max()}] but {what} has {k} "
+                "entries; the manifest does not match the arrays, rebuild it with `tnf pair`"
+            )
     return PairArrays(folder=folder, manifest=manifest, **arrays)

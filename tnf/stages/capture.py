@@ -10,6 +10,8 @@ import logging
 import time
 from typing import Any
 
+from tnf.errors import TnfError
+
 log = logging.getLogger(__name__)
 
 
@@ -32,6 +34,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     store.clean_partials("capture")
     _, source_params = split_spec(cfg.objects, "objects")
     rows = []
+    invalid: list[str] = []  # why each skipped mesh was rejected
     with progress(cfg.progress) as p:
         task = p.add_task(f"capture {source.name}", total=len(names))
         for name in names:
@@ -43,7 +46,14 @@ def run(cfg: Any) -> list[dict[str, Any]]:
                 p.advance(task)
                 continue
             t0 = time.perf_counter()
-            mesh = source.load_or_skip(name)
+            try:
+                mesh = source.load(name)
+            except TnfError as e:
+                if not source.skip_invalid:
+                    raise
+                log.warning("skipping invalid object %s: %s", name, e)
+                invalid.append(str(e))
+                mesh = None
             if mesh is None:
                 rows.append({"object": name, "status": "skipped (invalid mesh)", "views": 0, "seconds": 0.0})
                 p.advance(task)
@@ -79,6 +89,10 @@ def run(cfg: Any) -> list[dict[str, Any]]:
                 {"object": name, "status": "captured", "views": len(train) + len(test), "seconds": dt, "coverage": fill}
             )
             p.advance(task)
+    if invalid and len(invalid) == len(names):
+        # Skipping broken meshes keeps a long run over many objects going; a run that captured nothing is a failure.
+        more = f" (and {len(invalid) - 1} more invalid objects)" if len(invalid) > 1 else ""
+        raise TnfError(f"no object captured: {invalid[0]}{more}")
     table = Table(title=f"capture -> {store.path('capture', source.name)}", header_style="bold")
     for col in ("object", "status", "views", "coverage", "seconds"):
         table.add_column(col)

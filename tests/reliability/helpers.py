@@ -1,0 +1,132 @@
+"""Shared helpers of the reliability tests: run the real `tnf` command, make bad inputs, inspect the store."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[2]
+QUIET = ["debug=tiny", "progress=false"]
+
+
+def run_tnf(capsys, *args: str) -> tuple[int, str]:
+    """``tnf ARGS`` in this process: (exit code, the one ``error:`` line, or all of stderr when there is none)."""
+    from tnf.cli import main
+
+    capsys.readouterr()
+    rc = main([*args])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    return rc, lines[0] if len(lines) == 1 else err
+
+
+def finished_items(root: Path, stage: str) -> list[Path]:
+    """Item folders of ``stage`` that carry a manifest (finished items)."""
+    base = root / stage
+    return sorted(m.parent for m in base.rglob("manifest.json")) if base.is_dir() else []
+
+
+def partials(root: Path) -> list[Path]:
+    """Temporary folders of unfinished items anywhere in the store."""
+    return sorted(root.rglob("*.partial")) if root.is_dir() else []
+
+
+def assert_nothing_written(root: Path, stage: str) -> None:
+    """No finished item and no temporary folder of ``stage`` is left in the store."""
+    assert finished_items(root, stage) == [], finished_items(root, stage)
+    assert partials(root) == [], partials(root)
+
+
+# -- meshes as bytes --------------------------------------------------------------------------------------
+def cube_obj(size: float = 0.05) -> str:
+    """A closed cube of edge ``size`` metres as OBJ text."""
+    h = size / 2
+    v = [(x, y, z) for x in (-h, h) for y in (-h, h) for z in (-h, h)]
+    f = [(1, 2, 4), (1, 4, 3), (5, 7, 8), (5, 8, 6), (1, 5, 6), (1, 6, 2), (3, 4, 8), (3, 8, 7), (1, 3, 7), (1, 7, 5),
+         (2, 6, 8), (2, 8, 4)]  # fmt: skip
+    return "".join(f"v {a} {b} {c}\n" for a, b, c in v) + "".join(f"f {a} {b} {c}\n" for a, b, c in f)
+
+
+def tetra_obj(flip: bool = False, offset: float = 0.0) -> tuple[list[str], list[str]]:
+    """A tetrahedron's OBJ vertex and face lines (faces inward when ``flip``), vertex indices from 1."""
+    v = [(0, 0, 0), (0.05, 0, 0), (0, 0.05, 0), (0, 0, 0.05)]
+    f = [(1, 3, 2), (1, 2, 4), (1, 4, 3), (2, 3, 4)]
+    if flip:
+        f = [(a, c, b) for a, b, c in f]
+    return [f"v {x + offset} {y} {z}\n" for x, y, z in v], [f"f {a} {b} {c}\n" for a, b, c in f]
+
+
+def zero_volume_obj() -> str:
+    """Two closed tetrahedra, one turned inside out: watertight, not flat, but of zero total volume."""
+    v1, f1 = tetra_obj()
+    v2, f2 = tetra_obj(flip=True, offset=0.1)
+    f2 = ["f " + " ".join(str(int(i) + 4) for i in ln.split()[1:]) + "\n" for ln in f2]
+    return "".join(v1 + v2 + f1 + f2)
+
+
+# -- subprocesses that get killed -------------------------------------------------------------------------
+def tnf_env(root: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(
+        TNF_DATA=str(root),
+        PYOPENGL_PLATFORM="egl",
+        WARP_CACHE_PATH=str(REPO / ".warp-cache"),
+        OMP_NUM_THREADS="1",
+        WANDB_MODE="offline",
+    )
+    return env
+
+
+def tnf_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "tnf.cli", *args]
+
+
+def run_to_end(root: Path, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    out = subprocess.run(tnf_cmd(*args), env=tnf_env(root), capture_output=True, text=True, timeout=timeout)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out
+
+
+def kill_when(root: Path, args: tuple[str, ...], ready, timeout: float = 300, poll: float = 0.02) -> bool:
+    """Start ``tnf ARGS``, SIGKILL it as soon as ``ready()`` is true; False when it finished first."""
+    p = subprocess.Popen(
+        tnf_cmd(*args), env=tnf_env(root), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    t0 = time.monotonic()
+    try:
+        while p.poll() is None:
+            if ready():
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+                return True
+            if time.monotonic() - t0 > timeout:
+                raise TimeoutError(f"tnf {' '.join(args)} did not reach the kill point in {timeout} s")
+            time.sleep(poll)
+        return False
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def tree_bytes(folder: Path, skip=("manifest.json",)) -> dict[str, bytes]:
+    """Relative path -> content of every file under ``folder`` (but ``skip``), for exact comparisons."""
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name not in skip
+    }
+
+
+def same_arrays(a: Path, b: Path) -> None:
+    """The ``.npy`` files under two folders are equal."""
+    names = sorted(str(p.relative_to(a)) for p in a.rglob("*.npy"))
+    assert names == sorted(str(p.relative_to(b)) for p in b.rglob("*.npy"))
+    for n in names:
+        np.testing.assert_array_equal(np.load(a / n), np.load(b / n), err_msg=n)
