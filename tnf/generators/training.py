@@ -155,9 +155,20 @@ def fit(
         try:
             trainer.fit(system, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None)
         except NonFiniteLoss as e:
-            last = run_dir / "last.ckpt"
-            keep = f"the last good checkpoint is {last}" if last.is_file() else "no checkpoint was saved yet"
-            raise NonFiniteLoss(f"{e}; {keep}") from None
+            raise NonFiniteLoss(f"{e}; {_last_good(run_dir)}") from None
+        except OSError as e:  # a full disk or a lost file system, most often while writing a checkpoint
+            where = f" ({e.filename})" if e.filename else ""
+            raise TnfError(
+                f"training stopped by an I/O error: {e.strerror or e}{where}; {_last_good(run_dir)}; free space "
+                "or fix the path, then rerun the same command to resume"
+            ) from e
+        except RuntimeError as e:
+            if "DataLoader worker" not in str(e):
+                raise
+            raise TnfError(
+                f"a data loader worker died ({str(e).splitlines()[0]}); {_last_good(run_dir)}; rerun the same "
+                "command to resume (data.num_workers=0 loads in the main process, which shows the cause)"
+            ) from e
     if trainer.interrupted:
         raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val_")}
@@ -183,6 +194,12 @@ def fit(
         }
         write_json(run_dir / MANIFEST, manifest)
     return summary
+
+
+def _last_good(run_dir: Path) -> str:
+    """Where training can resume from, for error messages."""
+    last = run_dir / "last.ckpt"
+    return f"the last good checkpoint is {last}" if last.is_file() else "no checkpoint was saved yet"
 
 
 def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
