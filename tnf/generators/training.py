@@ -119,11 +119,20 @@ def fit(
         monitor="val_ssim",
         mode="max",
         save_top_k=1,
-        save_last=True,
         enable_version_counter=False,
         auto_insert_metric_name=False,
     )
-    callbacks: list[Any] = [checkpoint]
+    # last.ckpt after every epoch (Lightning's save_last writes it only when best.ckpt improves, so a resumed
+    # run would lose the epochs since the best one).
+    latest = ModelCheckpoint(
+        dirpath=str(run_dir),
+        filename="last",
+        monitor=None,
+        save_top_k=1,
+        every_n_epochs=1,
+        enable_version_counter=False,
+    )
+    callbacks: list[Any] = [checkpoint, latest]
     if progress:
         callbacks.append(RichProgressBar(leave=True))
     targs = dict(trainer_cfg)
