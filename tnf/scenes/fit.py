@@ -52,6 +52,8 @@ class FitSettings:
     """Rays per rendering chunk during evaluation (bounds memory); null: the scene kind's default."""
     log_every: int = 100
     """Steps between loss records in the training log."""
+    carve: bool = True
+    """Start the occupancy grid from the visual hull of the training views' alpha masks (skips empty space)."""
 
     def validate(self) -> None:
         for k in ("steps", "batch_rays"):
@@ -342,6 +344,9 @@ def fit_object(
     test = read_views(test_file, settings.eval_views) if test_file.is_file() else None
     torch.manual_seed(seed)
     scene = build_scene(scene_spec, train)
+    if settings.carve and hasattr(scene, "carve"):
+        # Empty space seen by the cameras is skipped from the first step (visual hull of the RGBA masks).
+        scene.carve(train.c2w, train.intrinsics, train.rgba[..., 3])
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     info = fit_scene(scene, train, settings, kind, device, resume_path, on_step, seed)

@@ -9,6 +9,7 @@ samples near the surface cost a hash-grid lookup.
 from __future__ import annotations
 
 import math
+from typing import Any
 from dataclasses import dataclass
 
 import torch
@@ -97,9 +98,35 @@ class HashEncoding(nn.Module):
         # Trilinear weights, broadcast the same way as the corners.
         w = [torch.stack([1.0 - frac[..., a], frac[..., a]], dim=-1) for a in range(3)]
         weights = w[0][..., :, None, None] * w[1][..., None, :, None] * w[2][..., None, None, :]
-        feats = self.table.index_select(0, idx.reshape(-1)).view(P, self.levels, 8, self.features)
+        feats = gather_rows(self.table, idx.reshape(-1)).view(P, self.levels, 8, self.features)
         out = (feats * weights.reshape(P, self.levels, 8, 1)).sum(2)
         return out.reshape(P, -1)
+
+
+class _GatherRows(torch.autograd.Function):
+    """``table[idx]`` whose backward accumulates with ``bincount`` on the CPU (several times faster there
+    than ``index_add_``, which the hash grid's millions of repeated rows make the slowest op of a step)."""
+
+    @staticmethod
+    def forward(ctx: Any, table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(idx)
+        ctx.rows = table.shape[0]
+        return table.index_select(0, idx)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        (idx,) = ctx.saved_tensors
+        if grad.is_cuda:
+            out = grad.new_zeros(ctx.rows, grad.shape[1]).index_add_(0, idx, grad)
+        else:
+            cols = [torch.bincount(idx, weights=grad[:, f], minlength=ctx.rows) for f in range(grad.shape[1])]
+            out = torch.stack(cols, dim=1).to(grad.dtype)
+        return out, None
+
+
+def gather_rows(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Rows ``table[idx]`` ([len(idx), F]), differentiable with respect to ``table``."""
+    return _GatherRows.apply(table, idx)
 
 
 def spherical_harmonics(d: torch.Tensor) -> torch.Tensor:
@@ -211,6 +238,8 @@ class HashGridScene(FieldScene):
         self.step_size = 2.0 * math.sqrt(3.0) * self.bound / cfg.samples_per_ray
         self.register_buffer("occ_density", torch.zeros(G**3))
         self.register_buffer("occupied", torch.ones(G**3, dtype=torch.bool))
+        # Cells inside the visual hull of the training masks (all, until ``carve`` is called).
+        self.register_buffer("hull", torch.ones(G**3, dtype=torch.bool))
 
     # -- field --------------------------------------------------------------------------------------
     def _normalise(self, pos: torch.Tensor) -> torch.Tensor:
@@ -245,20 +274,67 @@ class HashGridScene(FieldScene):
         dev = self.occ_density.device
         ar = torch.arange(G, device=dev)
         cells = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3).float()
-        sigma = torch.empty(G**3, device=dev)
+        # Only cells inside the visual hull can ever be occupied; the rest keep zero density.
+        inside = self.hull.nonzero(as_tuple=True)[0]
+        sigma = torch.zeros(G**3, device=dev)
         chunk = 1 << 18
-        for i in range(0, G**3, chunk):
-            c = cells[i : i + chunk]
+        for i in range(0, inside.numel(), chunk):
+            sel = inside[i : i + chunk]
+            c = cells[sel]
             # A random point in each cell, so thin structures between cell centres are found over time.
             pos = ((c + torch.rand_like(c)) / G) * (2 * self.bound) - self.bound
-            sigma[i : i + chunk] = self.density(pos)[0]
+            sigma[sel] = self.density(pos)[0]
         self.occ_density.copy_(torch.maximum(self.occ_density * cfg.occupancy_decay, sigma))
         if step < cfg.occupancy_warmup:
-            self.occupied.fill_(True)
+            self.occupied.copy_(self.hull)
             return
         threshold = -math.log(1.0 - cfg.occupancy_threshold) / self.step_size
-        threshold = min(threshold, float(self.occ_density.mean()))
-        self.occupied.copy_(self.occ_density > threshold)
+        threshold = min(threshold, float(self.occ_density[self.hull].mean()) if self.hull.any() else 0.0)
+        self.occupied.copy_((self.occ_density > threshold) & self.hull)
+
+    @torch.no_grad()
+    def carve(self, c2w: torch.Tensor, intrinsics: torch.Tensor, alpha: torch.Tensor) -> float:
+        """Restrict the occupancy grid to the visual hull of the training views' masks (space carving).
+
+        A cell stays when, in every view that sees it, its projection touches the (dilated) object mask, so
+        the field never spends samples where all cameras saw background. ``c2w`` [N, 4, 4] (OpenGL),
+        ``intrinsics`` [N, 4] (fx, fy, cx, cy) pixels, ``alpha`` [N, H, W] in [0, 1]. Returns the fraction
+        of cells kept. Views whose alpha is everywhere opaque (no mask) carve nothing.
+        """
+        G = self.cfg.occupancy_resolution
+        dev = self.hull.device
+        ar = torch.arange(G, device=dev, dtype=torch.float32)
+        cells = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3)
+        centres = (cells + 0.5) / G * (2 * self.bound) - self.bound  # [G^3, 3] metres
+        radius = math.sqrt(3.0) * self.bound / G  # half-diagonal of a cell, metres
+        keep = torch.ones(G**3, dtype=torch.bool, device=dev)
+        N, H, W = alpha.shape
+        for k in range(N):
+            mask = alpha[k].to(dev) > 0.5
+            if bool(mask.all()):
+                continue
+            w2c = torch.linalg.inv(c2w[k].to(dev).float())
+            p = centres @ w2c[:3, :3].T + w2c[:3, 3]
+            z = -p[:, 2]  # distance along the view axis (OpenGL cameras look along -z)
+            fx, fy, cx, cy = (float(v) for v in intrinsics[k])
+            front = z > 1e-6
+            zs = z.clamp_min(1e-6)
+            u = fx * p[:, 0] / zs + cx
+            v = cy - fy * p[:, 1] / zs
+            # Dilate by the largest projected cell radius in this view, plus a pixel, to stay conservative.
+            near = max(float(zs[front].min()) if front.any() else 1.0, 1e-6)
+            r = int(math.ceil(max(fx, fy) * radius / max(near - radius, 1e-6))) + 1
+            r = min(r, max(H, W))
+            dil = torch.nn.functional.max_pool2d(mask[None, None].float(), 2 * r + 1, stride=1, padding=r)[0, 0] > 0
+            ui, vi = u.floor().long(), v.floor().long()
+            inside = front & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
+            hit = torch.zeros_like(keep)
+            hit[inside] = dil[vi[inside], ui[inside]]
+            # Cells the view does not see (outside its image or behind it) are not carved by it.
+            keep &= hit | ~inside
+        self.hull.copy_(keep)
+        self.occupied.copy_(keep)
+        return float(keep.float().mean())
 
     # -- rendering ----------------------------------------------------------------------------------
     def render_rays(
