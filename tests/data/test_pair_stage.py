@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pair_inputs import ASSETS, make_inputs, touch_colour
+from tests.data.pair_inputs import ASSETS, make_inputs, touch_colour
 from PIL import Image
 
 from tnf.data import SPLITS, PairDataset, open_pairs, resize_uint8

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from eval_fixtures import write_touch_folder
+from tests.eval.eval_fixtures import write_touch_folder
 from PIL import Image
 
 from tnf.eval.figures import example_grid

@@ -96,15 +96,16 @@ def _read_png(path: Path) -> np.ndarray:
 
 
 def render_intrinsics(
-    fx: float, fy: float, crop_px: int, out: int = SIZE
+    fx: float, fy: float, crop_px: int, out: int = SIZE, render_px: int | None = None
 ) -> tuple[int, tuple[float, float, float, float]]:
     """Render size and intrinsics that show exactly the ``crop_px`` centre crop of a camera with focal
-    lengths ``fx, fy`` (pixels), rendered directly at ``max(out, crop_px)`` pixels.
+    lengths ``fx, fy`` (pixels), rendered directly at ``render_px`` pixels (default ``max(out, crop_px)``).
+    A smaller ``render_px`` trades sharpness for speed (preprocessing resizes to ``out``), for CPU runs.
 
     Rendering only the crop (rather than the full image, then cropping) costs ``crop^2`` rays instead of
     ``W * H``; rendering a small crop at the output size keeps it sharp instead of upsampling it.
     """
-    size = max(out, crop_px)
+    size = int(render_px) if render_px else max(out, crop_px)
     s = size / crop_px
     return size, (fx * s, fy * s, size / 2, size / 2)
 
@@ -147,7 +148,7 @@ def render_pairs_for_touches(
     if crop_px is None:
         dist = float(np.median(item.contact_distances()[rows])) if rows else 0.05
         crop_px = crop_for_sensor(sensor, (*focal, 0, 0), distance=dist, margin=float(cfg.get("crop_margin", 1.0)))
-    size, intr = render_intrinsics(focal[0], focal[1], int(crop_px))
+    size, intr = render_intrinsics(focal[0], focal[1], int(crop_px), render_px=cfg.get("render_px"))
     poses = item.start_poses()
     batch = int(cfg.get("render_batch", 64))
     rgb_out = np.empty((len(rows), SIZE, SIZE, 3), np.uint8)

@@ -130,6 +130,7 @@ def run(cfg: Any) -> dict[str, Any]:
             "crop_px": int(crop),
             "depth_norm": prep["depth_norm"],
             "depth_window": prep["depth_window"],
+            "render_px": prep["render_px"],
             "poses": poses.round(9).tolist() if file_poses is not None else None,
             "settings": {
                 k: v for k, v in settings.items() if k not in ("force", "batch_size", "render_chunk", "run_name")
@@ -148,7 +149,7 @@ def run(cfg: Any) -> dict[str, Any]:
         task = bar.add_task("generate", total=sum(len(j[4]) for j in jobs))
         for obj, scene_dir, focal, crop, poses, config in jobs:
             scene = load_scene(scene_dir, device)
-            rsize, intr = render_intrinsics(focal[0], focal[1], crop)
+            rsize, intr = render_intrinsics(focal[0], focal[1], crop, render_px=prep["render_px"])
             intr_t = torch.tensor(intr, dtype=torch.float32, device=device)
             touches = []
             with store.writing("generated", run_name, src, obj, config=config, info={}) as tmp:
@@ -245,4 +246,5 @@ def _preprocessing(cfg: Any, store: Any, model_dir: Path) -> dict[str, Any]:
         "crop_margin": float(cfg.pair.get("crop_margin", 1.0)),
         "depth_norm": pre.get("depth_norm", cfg.pair.depth_norm),
         "depth_window": float(pre.get("depth_window", cfg.pair.depth_window)),
+        "render_px": pre.get("render_px", cfg.pair.get("render_px")),
     }

@@ -110,6 +110,7 @@ def run(cfg: Any) -> None:
             "focal": list(i["focal"]),
             "depth_norm": p["depth_norm"],
             "depth_window": p["depth_window"],
+            "render_px": p.get("render_px"),
             "size": SIZE,
         }
         cache_keys[obj] = key
@@ -217,6 +218,7 @@ def run(cfg: Any) -> None:
                     "footprint_distance": distance,
                     "depth_norm": p["depth_norm"],
                     "depth_window": p["depth_window"],
+                    "render_px": p.get("render_px"),
                     "size": SIZE,
                 },
             },
