@@ -104,9 +104,7 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
 def report_error(e: BaseException) -> None:
     from rich.console import Console
 
-    Console(stderr=True, highlight=False, soft_wrap=True).print(
-        f"[bold red]error:[/] {e}", markup=True, emoji=False
-    )
+    Console(stderr=True, highlight=False, soft_wrap=True).print(f"[bold red]error:[/] {e}", markup=True, emoji=False)
 
 
 def _print_help() -> None:

@@ -285,9 +285,7 @@ def _name(tp: Any) -> str:
 
 # -- the registries ---------------------------------------------------------------------------------
 # Each lists the in-tree modules that register into it; plugins add entry points to the group.
-OBJECTS = Registry(
-    "objects", "tnf.objects", ["tnf.objects.builtin", "tnf.objects.mesh_dir", "tnf.objects.pybullet"]
-)
+OBJECTS = Registry("objects", "tnf.objects", ["tnf.objects.builtin", "tnf.objects.mesh_dir", "tnf.objects.pybullet"])
 SCENES = Registry("scene", "tnf.scenes", ["tnf.scenes.nerf", "tnf.scenes.hashgrid", "tnf.scenes.mesh"])
 SENSORS = Registry("sensor", "tnf.sensors", ["tnf.sensors.digit", "tnf.sensors.omnitact"])
 SIMULATORS = Registry("simulator", "tnf.simulators", ["tnf.sim.warp_gel"])
@@ -295,6 +293,4 @@ GENERATORS = Registry(
     "generator", "tnf.generators", ["tnf.generators.tn_cgan", "tnf.generators.lee", "tnf.generators.cyclegan"]
 )
 
-REGISTRIES: dict[str, Registry] = {
-    r.kind: r for r in (OBJECTS, SCENES, SENSORS, SIMULATORS, GENERATORS)
-}
+REGISTRIES: dict[str, Registry] = {r.kind: r for r in (OBJECTS, SCENES, SENSORS, SIMULATORS, GENERATORS)}

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tests.data.pair_inputs import ASSETS, make_inputs, touch_colour
 from PIL import Image
 
+from tests.data.pair_inputs import ASSETS, make_inputs, touch_colour
 from tnf.data import SPLITS, PairDataset, open_pairs, resize_uint8
 from tnf.errors import TnfError
 from tnf.stages.pair import run

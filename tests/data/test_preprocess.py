@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from tests.data.pair_inputs import SphereScene, look_at
 
+from tests.data.pair_inputs import SphereScene, look_at
 from tnf.data import SPLITS, assign_splits, choose_novel_objects, crop_for_sensor, preprocess_rgbd
 from tnf.errors import TnfError
 from tnf.registry import SENSORS

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 import torch
-from tests.eval.eval_fixtures import tactile_image, write_touch_folder
 
+from tests.eval.eval_fixtures import tactile_image, write_touch_folder
 from tnf.errors import TnfError
 from tnf.eval.classify import (
     ClassifierConfig,

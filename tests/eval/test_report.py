@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 import torch
-from tests.eval.eval_fixtures import write_touch_folder
 from PIL import Image
 
+from tests.eval.eval_fixtures import write_touch_folder
 from tnf.eval.figures import example_grid
 from tnf.eval.report import write_report
 from tnf.eval.scoring import score_batches

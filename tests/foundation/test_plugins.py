@@ -38,9 +38,7 @@ def fake_entry_points(mapping):
 
 
 def test_entry_point_from_fake_distribution(monkeypatch):
-    monkeypatch.setattr(
-        md, "entry_points", fake_entry_points({"tnf.sensors": {"fake": f"{__name__}:FakeSensor"}})
-    )
+    monkeypatch.setattr(md, "entry_points", fake_entry_points({"tnf.sensors": {"fake": f"{__name__}:FakeSensor"}}))
     reg = Registry("sensor", "tnf.sensors")
     assert reg.names() == ["fake"]
     assert reg.entry("fake").origin == "tnf-fake"
@@ -63,9 +61,7 @@ def test_discovery_is_lazy(monkeypatch):
 
 
 def test_plugin_duplicate_of_in_tree_name_names_both(monkeypatch):
-    monkeypatch.setattr(
-        md, "entry_points", fake_entry_points({"tnf.sensors": {"digit": f"{__name__}:FakeSensor"}})
-    )
+    monkeypatch.setattr(md, "entry_points", fake_entry_points({"tnf.sensors": {"digit": f"{__name__}:FakeSensor"}}))
     reg = Registry("sensor", "tnf.sensors")
 
     @reg.register("digit")

@@ -9,8 +9,8 @@ samples near the surface cost a hash-grid lookup.
 from __future__ import annotations
 
 import math
-from typing import Any
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
