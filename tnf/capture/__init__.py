@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -215,7 +216,7 @@ def write_views(
 
 
 def load_transforms(
-    path: str | Path,
+    path: str | os.PathLike[str],
 ) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float], int, int, np.ndarray | None]:
     """Read a ``transforms.json`` (a file, or a capture folder meaning its ``transforms.json``).
 

@@ -74,7 +74,7 @@ def load_scene(path: str | os.PathLike[str], device: str = "cpu") -> Scene:
     if blob.get("version") != VERSION:
         raise TnfError(f"{file}: scene checkpoint version {blob.get('version')!r}, this tnf reads {VERSION}")
     name = blob.get("name")
-    if name not in SCENES:
+    if not isinstance(name, str) or name not in SCENES:
         raise TnfError(f"{file}: unknown scene kind {name!r}; available: {', '.join(SCENES.names())}")
     cfg = SCENES.config(name, blob.get("config", {}))
     scene = SCENES.get(name)(cfg)

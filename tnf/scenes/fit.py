@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -178,7 +178,11 @@ def fit_scene(
     o, d = o.reshape(-1, 3).to(device), d.reshape(-1, 3).to(device)
     target = views.rgba.reshape(-1, 4).to(device)
     M = o.shape[0]
-    groups = scene.param_groups(s.lr) if hasattr(scene, "param_groups") else [{"params": list(scene.parameters())}]
+    groups = (
+        cast(Any, scene).param_groups(s.lr)
+        if hasattr(scene, "param_groups")
+        else [{"params": list(scene.parameters())}]
+    )
     opt = torch.optim.Adam(groups, lr=s.lr, betas=(0.9, 0.99), eps=1e-15)
     gamma = s.lr_final_factor ** (1.0 / max(s.steps, 1))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
@@ -346,7 +350,7 @@ def fit_object(
     scene = build_scene(scene_spec, train)
     if settings.carve and hasattr(scene, "carve"):
         # Empty space seen by the cameras is skipped from the first step (visual hull of the RGBA masks).
-        scene.carve(train.c2w, train.intrinsics, train.rgba[..., 3])
+        cast(Any, scene).carve(train.c2w, train.intrinsics, train.rgba[..., 3])
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     info = fit_scene(scene, train, settings, kind, device, resume_path, on_step, seed)

@@ -32,6 +32,12 @@ class HashEncoding(nn.Module):
     Input: [P, 3] positions in [0, 1]^3. Output: [P, L * F].
     """
 
+    # Buffers registered in ``__init__`` (declared here for type checkers).
+    res: torch.Tensor
+    stride: torch.Tensor
+    primes: torch.Tensor
+    level_offset: torch.Tensor
+
     def __init__(
         self,
         levels: int = 16,
@@ -171,6 +177,11 @@ def mlp(inp: int, hidden: int, out: int, layers: int) -> nn.Sequential:
 @SCENES.register("hashgrid")
 class HashGridScene(FieldScene):
     """Instant-NGP style hash-grid radiance field with an occupancy grid (pure PyTorch, CPU or CUDA)."""
+
+    # Buffers registered in ``__init__`` (declared here for type checkers).
+    occ_density: torch.Tensor
+    occupied: torch.Tensor
+    hull: torch.Tensor
 
     @dataclass
     class Config:
@@ -381,7 +392,7 @@ class HashGridScene(FieldScene):
     min_transmittance: float = 1e-4
 
     @torch.no_grad()
-    def _march(self, origins, dirs, near, far, offset, bg) -> dict[str, torch.Tensor]:
+    def _march(self, origins, dirs, near, far, offset, bg) -> RayOutput:
         """The same quadrature as ``volume_render``, segment by segment, dropping rays once opaque.
 
         Returns rgb [R, 3], depth [R] (distance), opacity [R] and t_stop [R], the distance after which the

@@ -28,6 +28,7 @@ class RayOutput(TypedDict, total=False):
     depth: torch.Tensor  # [R] expected termination distance along the ray (metres), normalised by opacity
     opacity: torch.Tensor  # [R] accumulated opacity in [0, 1]
     rgb_coarse: torch.Tensor  # [R, 3] the coarse network's colour (NeRF only; trained too)
+    t_stop: torch.Tensor  # [R] distance after which a marched ray stopped, inf if never (hashgrid, no grad)
 
 
 def camera_rays(
