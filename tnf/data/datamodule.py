@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import lightning as L
 import torch
@@ -13,6 +14,9 @@ from torch.utils.data import DataLoader
 from tnf.artifacts import MANIFEST, data_root, read_json
 from tnf.data.dataset import Batch, MixedPairDataset, PairDataset, augment_batch, collate_pairs, to_float_batch
 from tnf.errors import TnfError
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 TEST_SPLITS = ("novel_view", "novel_object")
 
@@ -144,15 +148,15 @@ class PairDataModule(L.LightningDataModule):
         return self._loader((split,), train=False)
 
 
-def datamodule_from_config(cfg: object) -> PairDataModule:
+def datamodule_from_config(cfg: DictConfig) -> PairDataModule:
     """A ``PairDataModule`` from a composed tnf config (its ``data`` section, ``seed`` and ``data_root``)."""
     from omegaconf import OmegaConf
 
-    d = OmegaConf.to_container(cfg.data, resolve=True)  # type: ignore[attr-defined]
+    d = cast(dict[str, Any], OmegaConf.to_container(cfg.data, resolve=True))
     assert isinstance(d, dict)
     return PairDataModule(
         d.pop("datasets"),
         seed=int(cfg.seed),
         data_root=cfg.data_root,
-        **d,  # type: ignore[attr-defined]
+        **d,
     )

@@ -130,8 +130,8 @@ def resize_uint8(images: np.ndarray | torch.Tensor, out: int = SIZE) -> np.ndarr
     if t.shape[-1] == 4:  # RGBA -> RGB
         t = t[..., :3]
     y = resize(t.permute(0, 3, 1, 2).float(), out).round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1)
-    y = y.numpy()
-    return y[0] if single else y
+    arr = y.numpy()
+    return arr[0] if single else arr
 
 
 def gel_size_m(sensor: Any) -> tuple[float, float]:

@@ -50,7 +50,7 @@ def choose_novel_objects(
     if num_novel > len(names):
         raise TnfError(f"pair.num_novel_objects={num_novel} but only {len(names)} objects are selected")
     rng = np.random.default_rng(seed)
-    picked = rng.choice(len(names), size=num_novel, replace=False) if num_novel else []
+    picked: np.ndarray | list[int] = rng.choice(len(names), size=num_novel, replace=False) if num_novel else []
     return sorted(names[i] for i in picked)
 
 

@@ -7,6 +7,8 @@ pixels with sigma 1.5 and data range 255, averaged over the RGB channels; MSE is
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 import torch.nn.functional as F
 
@@ -38,7 +40,7 @@ def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     out = structural_similarity_index_measure(
         p, t, gaussian_kernel=True, kernel_size=11, sigma=1.5, data_range=255.0, reduction="none"
     )
-    return out
+    return cast(torch.Tensor, out)  # a tuple only with return_full_image=True
 
 
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

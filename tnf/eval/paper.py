@@ -7,7 +7,17 @@ in percent. ``BG`` (the sensor's background image used as the prediction) has te
 
 from __future__ import annotations
 
+from typing import TypedDict
+
 Pair = tuple[float, float]
+
+
+class PaperTable(TypedDict, total=False):
+    """One table's figures: ``image[(test_set, method)][metric]`` and ``accuracy[row]``."""
+
+    image: dict[tuple[str, str], dict[str, Pair]]
+    accuracy: dict[str, Pair]
+
 
 TABLE1_IMAGE: dict[tuple[str, str], dict[str, Pair]] = {
     ("novel_view", "T-N"): {"ssim": (0.980, 0.001), "mse": (14.5, 0.8)},
@@ -38,7 +48,7 @@ TABLE2_ACCURACY: dict[str, Pair] = {
     "Sim + FS": (82.0, 1.0),
 }
 
-PAPER = {
+PAPER: dict[str, PaperTable] = {
     "main": {"image": TABLE1_IMAGE, "accuracy": TABLE1_ACCURACY},
     "transfer": {"image": TABLE2_IMAGE, "accuracy": TABLE2_ACCURACY},
 }

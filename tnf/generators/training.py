@@ -13,7 +13,7 @@ import os
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_json
 from tnf.errors import TnfError
@@ -264,6 +264,6 @@ def run_section(section: Any, keys: tuple[str, ...] = ("resume", "force")) -> di
     """A stage section as plain data without the keys that do not change the result."""
     from omegaconf import OmegaConf
 
-    data = OmegaConf.to_container(section, resolve=True)
+    data = cast(dict[str, Any], OmegaConf.to_container(section, resolve=True))
     assert isinstance(data, dict)
     return {k: v for k, v in data.items() if k not in keys}

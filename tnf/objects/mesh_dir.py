@@ -12,13 +12,16 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, cast
 
 import numpy as np
 
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
 from tnf.registry import OBJECTS
+
+if TYPE_CHECKING:
+    from trimesh.resolvers import Resolver
 
 log = logging.getLogger(__name__)
 
@@ -57,14 +60,14 @@ def load_mesh_file(path: str | os.PathLike[str], scale: float = 1.0, up_axis: st
         raise TnfError(f"mesh file not found: {path}")
     try:
         # Not processed while loading: processing silently drops NaN vertices, which validation must see.
-        loaded = trimesh.load(path, process=False, resolver=_Resolver(path.parent))
+        loaded = trimesh.load(path, process=False, resolver=cast("Resolver", _Resolver(path.parent)))
     except Exception as e:  # trimesh raises many kinds of errors for malformed files
         raise TnfError(f"cannot read mesh {path}: {type(e).__name__}: {e}") from None
     if isinstance(loaded, trimesh.Scene):
         geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
         if not geoms:
             raise TnfError(f"{path}: empty mesh (no triangles in the file)")
-        mesh = geoms[0] if len(geoms) == 1 else trimesh.util.concatenate(geoms)
+        mesh = geoms[0] if len(geoms) == 1 else cast("trimesh.Trimesh", trimesh.util.concatenate(geoms))
     elif isinstance(loaded, trimesh.Trimesh):
         mesh = loaded
     else:

@@ -90,7 +90,7 @@ def load_urdf_visual(urdf: Path):
         if origin is not None:
             xyz = _floats(origin.get("xyz"), 3, 0.0)
             rpy = _floats(origin.get("rpy"), 3, 0.0)
-            tf = trimesh.transformations.euler_matrix(*rpy, axes="sxyz")
+            tf = trimesh.transformations.euler_matrix(rpy[0], rpy[1], rpy[2], axes="sxyz")
             tf[:3, 3] = xyz
             part.apply_transform(tf)
         mat = visual.find("material")
