@@ -33,7 +33,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     store = ArtifactStore(cfg.data_root)
     store.clean_partials("capture")
     _, source_params = split_spec(cfg.objects, "objects")
-    rows = []
+    rows: list[dict[str, Any]] = []
     invalid: list[str] = []  # why each skipped mesh was rejected
     with progress(cfg.progress) as p:
         task = p.add_task(f"capture {source.name}", total=len(names))
@@ -83,6 +83,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             with store.writing("capture", *item, config=config, info=info) as tmp:
                 write_views(tmp, "train", train, rgb_tr, d_tr, ccfg)
                 if rgb_te is not None:
+                    assert d_te is not None  # rendered together with rgb_te
                     write_views(tmp, "test", test, rgb_te, d_te, ccfg)
             dt = time.perf_counter() - t0
             rows.append(

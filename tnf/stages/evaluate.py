@@ -9,11 +9,12 @@ there. ``evaluate.sweep_dir=DIR`` instead collects the results.json files of a H
 
 from __future__ import annotations
 
+import functools
 import re
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from tnf.errors import TnfError
 
@@ -50,7 +51,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     if ecfg.model:
         method = ecfg.method or _method_label(cfg)
-        settings = OmegaConf.to_container(cfg, resolve=True)
+        settings = cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))
         # Everything that changes the numbers; not the report name, progress or the sweep folder.
         hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate")}
         hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in ("name", "sweep_dir", "force")}
@@ -182,7 +183,9 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
         )
         task = bar.add_task(f"score {split}", total=len(loader))
         keep = int(ecfg.examples) if split == example_split else 0
-        accs, kept = score_batches(loader, generate, names, keep_examples=keep, on_batch=lambda t=task: bar.advance(t))
+        accs, kept = score_batches(
+            loader, generate, names, keep_examples=keep, on_batch=functools.partial(bar.advance, task)
+        )
         out[split] = {"G": accs["G"].summary(), BG: accs[BG].summary()}
         bg_all = accs[BG] if bg_all is None else bg_all.merge(accs[BG])
         if keep and kept:
@@ -214,7 +217,7 @@ def classification(cfg: Any, store: Any, method: str, device: str, bar: Any) -> 
 
     ecfg = cfg.evaluate
     ccfg = ecfg.classify
-    clf = ClassifierConfig.from_dict(OmegaConf.to_container(ecfg.classifier, resolve=True))
+    clf = ClassifierConfig.from_dict(cast(dict[str, Any], OmegaConf.to_container(ecfg.classifier, resolve=True)))
     sensor = str(ccfg.sensor or cfg.sensor.name)
     source = str(cfg.objects.name)
     generated_run = str(ecfg.generated or ecfg.model)

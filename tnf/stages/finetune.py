@@ -11,7 +11,7 @@ sensor's background image as a condition. Without ``finetune.checkpoint`` the sa
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from tnf.errors import TnfError
 
@@ -53,7 +53,7 @@ def run(cfg: Any) -> dict[str, Any]:
     store = ArtifactStore(cfg.data_root)
     datasets = dataset_names(cfg)
     data_label = dataset_label(datasets[0] if datasets else "data")
-    hp = {
+    hp: dict[str, Any] = {
         "epochs": int(f.epochs),
         "decay_epochs": int(f.decay_epochs),
         "grid_rows": int(f.grid_rows),
@@ -67,7 +67,9 @@ def run(cfg: Any) -> dict[str, Any]:
         source = {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": _file_hash(ckpt)}
         default_name = f"{ckpt.parent.name}_ft_{data_label}"
     else:
-        spec = generator_spec({**OmegaConf.to_container(cfg.generator, resolve=True), **overrides})
+        spec = generator_spec(
+            {**cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)), **overrides}
+        )
         system = GeneratorSystem(spec, **hp)
         default_name = f"scratch_{spec['name']}_{data_label}"
     spec = dict(system.hparams["generator"])
@@ -99,7 +101,7 @@ def run(cfg: Any) -> dict[str, Any]:
         run_dir,
         config=config,
         trainer_cfg=trainer_args(cfg),
-        logger_cfg=OmegaConf.to_container(cfg.logger, resolve=True),
+        logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
         resume=bool(f.resume) and not bool(f.force),
         progress=bool(cfg.progress),
         limit_train_batches=f.limit_train_batches,

@@ -58,7 +58,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
         captures[name] = store.require(
             "capture", source, name, hint=f"run `tnf capture object={name}` first (objects={source})"
         )
-    rows = []
+    rows: list[dict[str, Any]] = []
     with progress(cfg.progress) as p:
         for name in names:
             item = (kind, source, name)
@@ -81,6 +81,10 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             task = p.add_task(f"fit {kind} {name}", total=steps)
             resume = store.path("scenes", ".resume", kind, source, f"{name}.pt")
             t0 = time.perf_counter()
+
+            def on_step(step: int, loss: float, task: Any = task) -> None:
+                p.update(task, completed=step + 1)
+
             with store.writing("scenes", *item, config=config, info={"object": name, "source": source}) as tmp:
                 metrics = fit_object(
                     spec,
@@ -89,7 +93,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
                     settings,
                     device=device,
                     resume_path=resume,
-                    on_step=lambda step, loss, task=task: p.update(task, completed=step + 1),
+                    on_step=on_step,
                     seed=cfg.seed,
                     size_m=_object_size(capture_manifest),
                 )

@@ -14,13 +14,14 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     from tnf.runtime import progress
 
     source, names = select(cfg)
-    rows = []
+    rows: list[dict[str, Any]] = []
     with progress(cfg.progress, transient=True) as p:
         task = p.add_task(f"loading {source.name}", total=len(names))
         for name in names:
             mesh = source.load_or_skip(name)
             if mesh is not None:
                 size = [float(x) * 100 for x in mesh.extents]
+                assert mesh.visual is not None  # a Trimesh always has visuals
                 rows.append({"name": name, "size_cm": size, "triangles": len(mesh.faces), "colour": mesh.visual.kind})
             p.advance(task)
     table = Table(title=f"objects of source {source.name!r} ({len(rows)} of {len(names)} valid)", header_style="bold")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from tnf.errors import TnfError
 
@@ -36,7 +36,7 @@ def run(cfg: Any) -> None:
     from tnf.registry import SENSORS, config_to_dict, split_spec
     from tnf.runtime import progress, resolve_device, seed_everything
 
-    p = OmegaConf.to_container(cfg.pair, resolve=True)
+    p = cast(dict[str, Any], OmegaConf.to_container(cfg.pair, resolve=True))
     assert isinstance(p, dict)
     if p["scene_source"] not in ("fitted", "mesh"):
         raise TnfError(f"pair.scene_source must be 'fitted' or 'mesh', got {p['scene_source']!r}")
@@ -91,9 +91,11 @@ def run(cfg: Any) -> None:
         if p["crop_px"] is not None:
             i["crop_px"] = int(p["crop_px"])
         else:
+            assert distance is not None  # set above whenever crop_px is None
             i["crop_px"] = crop_for_sensor(sensor, (*i["focal"], 0, 0), distance=distance, margin=p["crop_margin"])
         try:
-            crop_origin(*i["size"], i["crop_px"])
+            width, height = i["size"]
+            crop_origin(width, height, i["crop_px"])
         except TnfError as e:
             raise TnfError(f"object {obj!r}: {e} (the capture camera's image)") from None
 
@@ -177,18 +179,18 @@ def run(cfg: Any) -> None:
                     for k in ("rgb", "depth", "tactile", "touch_index")
                 }
                 for s in range(0, counts[o], ASSEMBLE_CHUNK):
-                    e = min(s + ASSEMBLE_CHUNK, counts[o])
-                    k = e - s
+                    end = min(s + ASSEMBLE_CHUNK, counts[o])
+                    n_chunk = end - s
                     writer.write(
                         start + s,
-                        rgb=arr["rgb"][s:e],
-                        depth=arr["depth"][s:e],
-                        tactile=arr["tactile"][s:e],
-                        touch_index=arr["touch_index"][s:e],
-                        background_index=np.full(k, bg_of[o], np.int32),
-                        object_id=np.full(k, oid, np.int32),
-                        split=codes[s:e],
-                        sensor_id=np.zeros(k, np.int16),
+                        rgb=arr["rgb"][s:end],
+                        depth=arr["depth"][s:end],
+                        tactile=arr["tactile"][s:end],
+                        touch_index=arr["touch_index"][s:end],
+                        background_index=np.full(n_chunk, bg_of[o], np.int32),
+                        object_id=np.full(n_chunk, oid, np.int32),
+                        split=codes[s:end],
+                        sensor_id=np.zeros(n_chunk, np.int16),
                     )
                 start += counts[o]
         first = inputs[names[0]]["item"].manifest

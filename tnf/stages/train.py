@@ -9,7 +9,7 @@ same settings is skipped.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 
 def run(cfg: Any) -> dict[str, Any]:
@@ -30,7 +30,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     console = Console(highlight=False)
     t = cfg.train
-    spec = generator_spec(OmegaConf.to_container(cfg.generator, resolve=True))
+    spec = generator_spec(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
     datasets = dataset_names(cfg)
     run_name = str(t.run_name or f"{spec['name']}_{dataset_label(datasets[0] if datasets else 'data')}")
     store = ArtifactStore(cfg.data_root)
@@ -62,7 +62,7 @@ def run(cfg: Any) -> dict[str, Any]:
         run_dir,
         config=config,
         trainer_cfg=trainer_args(cfg),
-        logger_cfg=OmegaConf.to_container(cfg.logger, resolve=True),
+        logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
         resume=bool(t.resume) and not bool(t.force),
         progress=bool(cfg.progress),
         limit_train_batches=t.limit_train_batches,
