@@ -116,8 +116,10 @@ def fit(
     checkpoint = ModelCheckpoint(
         dirpath=str(run_dir),
         filename="best",
-        monitor="val_ssim",
-        mode="max",
+        # L1, the loss the generators are trained on: SSIM favours an early, nearly uniform output on
+        # smooth tactile images, and picked such checkpoints as "best".
+        monitor="val_l1",
+        mode="min",
         save_top_k=1,
         enable_version_counter=False,
         auto_insert_metric_name=False,
@@ -186,7 +188,7 @@ def fit(
         **dict(info or {}),
         "epochs": trainer.current_epoch,
         "global_step": trainer.global_step,
-        "best_val_ssim": float(best) if best is not None else None,
+        "best_val_l1": float(best) if best is not None else None,
         "last": metrics,
         "checkpoints": {"last": "last.ckpt", "best": "best.ckpt"},
     }

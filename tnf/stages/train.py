@@ -2,7 +2,7 @@
 
 Reads the datasets of ``data.datasets`` (default: the one ``tnf pair`` builds), trains with the Lightning
 trainer of ``trainer=`` (cpu, gpu, ddp) and logs with ``logger=`` (csv, tensorboard, wandb). Writes
-``<data_root>/models/<run_name>/``: ``last.ckpt``, ``best.ckpt`` (best validation SSIM), ``grids/``,
+``<data_root>/models/<run_name>/``: ``last.ckpt``, ``best.ckpt`` (lowest validation L1), ``grids/``,
 ``metrics.csv`` and ``manifest.json``. An unfinished run resumes from ``last.ckpt``; a finished run with the
 same settings is skipped.
 """
@@ -76,8 +76,9 @@ def run(cfg: Any) -> dict[str, Any]:
 
 def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None:
     last = summary.get("last", {})
-    best = summary.get("best_val_ssim")
+    best = summary.get("best_val_l1")
     console.print(
-        f"[bold]{run_name}[/]: {summary['epochs']} epochs; val SSIM {last.get('val_ssim', float('nan')):.4f} "
-        f"(best {best if best is not None else float('nan'):.4f}), val MSE {last.get('val_mse', float('nan')):.1f}"
+        f"[bold]{run_name}[/]: {summary['epochs']} epochs; val SSIM {last.get('val_ssim', float('nan')):.4f}, "
+        f"val MSE {last.get('val_mse', float('nan')):.1f}, val L1 {last.get('val_l1', float('nan')):.4f} "
+        f"(best {best if best is not None else float('nan'):.4f}, in best.ckpt)"
     )
