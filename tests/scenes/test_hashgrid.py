@@ -101,3 +101,20 @@ def test_occupancy_grid_skips_empty_space(scene):
     with torch.no_grad():
         out = scene.render_rays(torch.tensor([[0.0, 0.0, 0.3]]), torch.tensor([[0.0, 0.0, -1.0]]))
     assert float(out["opacity"][0]) < 1e-3 and torch.allclose(out["rgb"][0], scene.background)
+
+
+def test_gather_rows_gradient_matches_index_select():
+    import torch
+
+    from tnf.scenes.hashgrid import gather_rows
+
+    g = torch.Generator().manual_seed(0)
+    table = torch.randn(50, 2, generator=g, requires_grad=True)
+    idx = torch.randint(0, 50, (400,), generator=g)  # many repeated rows, as in the hash grid
+    w = torch.randn(400, 2, generator=g)
+    (gather_rows(table, idx) * w).sum().backward()
+    ours = table.grad.clone()
+    table.grad = None
+    (table.index_select(0, idx) * w).sum().backward()
+    assert torch.allclose(ours, table.grad, atol=1e-6)
+    assert torch.equal(gather_rows(table, idx), table.index_select(0, idx))
