@@ -48,7 +48,9 @@ def fitted(dataset, tmp_path_factory):
 def test_fit_improves_psnr_and_depth(fitted):
     out, before, after = fitted
     assert after["psnr"] > before["psnr"] + 3.0, (before["psnr"], after["psnr"])
-    assert after["depth_error_median_m"] < 0.5 * before["depth_error_median_m"]
+    # At 24 px and 120 steps the median depth error falls from about 31 mm to 14-17 mm (17 with the
+    # visual-hull carving of the default settings, which halves the fitting time).
+    assert after["depth_error_median_m"] < 0.6 * before["depth_error_median_m"]
     assert after["train_log"][-1]["loss"] < after["train_log"][0]["loss"]
     on_disk = json.loads((out / "metrics.json").read_text())
     for key in ("psnr", "ssim", "depth_error_median_m", "depth_error_median_rel", "train_seconds", "steps"):
@@ -126,3 +128,17 @@ def test_load_scene_rejects_other_files(tmp_path):
         load_scene(bad)
     with pytest.raises(TnfError, match="not found"):
         load_scene(tmp_path / "missing")
+
+
+def test_carving_keeps_the_object_and_removes_seen_empty_space(dataset):
+    views = read_views(dataset / "transforms.json")
+    scene = build_scene({**TINY, "bound": 0.1}, views)
+    kept = scene.carve(views.c2w, views.intrinsics, views.rgba[..., 3])
+    G = TINY["occupancy_resolution"]
+    ar = (torch.arange(G) + 0.5) / G * 0.2 - 0.1
+    centres = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3)
+    r = centres.norm(dim=-1)
+    # every cell inside the sphere (radius 0.05 m) survives; most cells well outside it are carved away
+    assert scene.hull[r < 0.045].all()
+    assert scene.hull[r > 0.08].float().mean() < 0.2
+    assert 0.0 < kept < 0.5

@@ -312,6 +312,8 @@ class HashGridScene(FieldScene):
         ``intrinsics`` [N, 4] (fx, fy, cx, cy) pixels, ``alpha`` [N, H, W] in [0, 1]. Returns the fraction
         of cells kept. Views whose alpha is everywhere opaque (no mask) carve nothing.
         """
+        from scipy.ndimage import distance_transform_edt
+
         G = self.cfg.occupancy_resolution
         dev = self.hull.device
         ar = torch.arange(G, device=dev, dtype=torch.float32)
@@ -322,8 +324,8 @@ class HashGridScene(FieldScene):
         N, H, W = alpha.shape
         for k in range(N):
             mask = alpha[k].to(dev) > 0.5
-            if bool(mask.all()):
-                continue
+            if bool(mask.all()) or not bool(mask.any()):
+                continue  # no mask (opaque everywhere) or an empty view: nothing to carve with
             w2c = torch.linalg.inv(c2w[k].to(dev).float())
             p = centres @ w2c[:3, :3].T + w2c[:3, 3]
             z = -p[:, 2]  # distance along the view axis (OpenGL cameras look along -z)
@@ -332,15 +334,14 @@ class HashGridScene(FieldScene):
             zs = z.clamp_min(1e-6)
             u = fx * p[:, 0] / zs + cx
             v = cy - fy * p[:, 1] / zs
-            # Dilate by the largest projected cell radius in this view, plus a pixel, to stay conservative.
-            near = max(float(zs[front].min()) if front.any() else 1.0, 1e-6)
-            r = int(math.ceil(max(fx, fy) * radius / max(near - radius, 1e-6))) + 1
-            r = min(r, max(H, W))
-            dil = torch.nn.functional.max_pool2d(mask[None, None].float(), 2 * r + 1, stride=1, padding=r)[0, 0] > 0
+            # A cell stays when a mask pixel lies within its own projected radius (plus a pixel): the
+            # distance from each pixel to the nearest mask pixel, compared per cell.
+            dist = torch.from_numpy(distance_transform_edt(~mask.cpu().numpy())).to(dev, torch.float32)
+            r_px = max(fx, fy) * radius / zs + 1.0
             ui, vi = u.floor().long(), v.floor().long()
             inside = front & (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
             hit = torch.zeros_like(keep)
-            hit[inside] = dil[vi[inside], ui[inside]]
+            hit[inside] = dist[vi[inside], ui[inside]] <= r_px[inside]
             # Cells the view does not see (outside its image or behind it) are not carved by it.
             keep &= hit | ~inside
         self.hull.copy_(keep)
