@@ -1,34 +1,95 @@
 #!/usr/bin/env bash
-# The paper-scale runs of results/paper/, one phase per call so that each fits a 10-minute job on one GPU.
-# Usage: bash bench/paper_runs.sh PHASE   (PHASE: bench | digit-a | digit-b | transfer)
-# Artifacts go to $TNF_DATA (default /tmp/tnf-paper); timings and reports are copied to $OUT when it is set.
+# The paper-scale runs of results/paper/ on one GPU, one phase per call so that each fits a 10-minute job.
+# Usage: bash bench/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
+#   digit-data    capture, fit-scene (FIT_WORKERS processes share the GPU), touch, pair     (sim_digit)
+#   digit-models  train + generate + evaluate for tn_cgan, lee and cyclegan, one process each, for each of SEEDS
+#   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
+#   report        rebuild both reports from every run present and copy them to $OUT
+# Artifacts go to $TNF_DATA (default /tmp/tnf-paper); logs, stage times and reports go to $OUT when it is set.
+# The end-to-end time of sim_digit for one seed is the sum of the digit-data and digit-models stage times.
 set -euo pipefail
 export TNF_DATA=${TNF_DATA:-/tmp/tnf-paper} PYTHONUNBUFFERED=1
 out=${OUT:-$TNF_DATA/out}
+seeds=${SEEDS:-0}
+fit_workers=${FIT_WORKERS:-6}
+# More overrides for every command, and the objects dealt to the fit workers (default: sim_digit's). A dry run
+# on a CPU: DEVICE=cpu TRAINER=cpu FIT_WORKERS=2 OBJECTS="ball box can mug" EXTRA="debug=tiny object_names=[...] ..."
+extra=(${EXTRA:-})
 mkdir -p "$out"
 tnf() { python -m tnf.cli "$@"; }
-common=(experiment=sim_digit device=cuda trainer=gpu progress=false)
+dev=(device=${DEVICE:-cuda} trainer=${TRAINER:-gpu} progress=false "${extra[@]}")
+digit=(experiment=sim_digit "${dev[@]}")
+timed() {  # timed NAME CMD...: run, log to $out/NAME.log, append the wall time to $out/stage_times.txt
+  local name=$1 t0=$SECONDS; shift
+  "$@" >"$out/$name.log" 2>&1 || { tail -40 "$out/$name.log"; echo "FAILED: $name" | tee -a "$out/stage_times.txt"; return 1; }
+  echo "$name: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
+}
+parallel() {  # parallel NAME CMD-TEMPLATE... with {} replaced by each of the remaining words after --
+  local name=$1; shift
+  local cmd=() pids=() i=0
+  while [[ $1 != -- ]]; do cmd+=("$1"); shift; done; shift
+  for w in "$@"; do
+    ( timed "$name-$i" "${cmd[@]//\{\}/$w}" ) & pids+=($!); i=$((i + 1))
+  done
+  local rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
+  return $rc
+}
 case "$1" in
   bench)
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/hardware.txt"
     python -c "import torch, warp, lightning; print('torch', torch.__version__, 'warp', warp.__version__, 'lightning', lightning.__version__)" | tee -a "$out/hardware.txt"
     python bench/sim.py --device cuda --batch 512 2>&1 | tee "$out/bench_sim_cuda.txt"
     python bench/capture.py --device cuda 2>&1 | tee "$out/bench_capture_gpu.txt"
+    python bench/scenes.py --device cuda --object box --steps 1500 --out /tmp/bench-scenes 2>&1 | tee "$out/bench_scenes_cuda.txt"
+    python bench/loading.py --device cuda --workers 4 2>&1 | tee "$out/bench_loading_cuda.txt"
     ;;
-  digit-a)   # objects -> views -> scenes -> touches
-    for s in capture fit-scene touch; do
-      t0=$SECONDS; tnf "$s" "${common[@]}"; echo "stage $s: $((SECONDS - t0)) s"
-    done 2>&1 | tee "$out/digit_a.log"
+  digit-data)
+    t0=$SECONDS
+    timed capture tnf capture "${digit[@]}"
+    # Each fit is small for an H100: several processes keep it busy. Objects are dealt round-robin.
+    names=${OBJECTS:-$(python -c "from omegaconf import OmegaConf; print(' '.join(OmegaConf.load('conf/experiment/sim_digit.yaml').object_names))")}
+    read -ra all <<<"$names"
+    groups=()
+    for ((w = 0; w < fit_workers; w++)); do
+      g=(); for ((i = w; i < ${#all[@]}; i += fit_workers)); do g+=("${all[i]}"); done
+      [[ ${#g[@]} -gt 0 ]] && groups+=("[$(IFS=,; echo "${g[*]}")]")
+    done
+    parallel fit tnf fit-scene "${digit[@]}" "object_names={}" -- "${groups[@]}"
+    echo "fit-scene (all workers): $((SECONDS - t0)) s since start" | tee -a "$out/stage_times.txt"
+    timed touch tnf touch "${digit[@]}"
+    timed pair tnf pair "${digit[@]}"
+    echo "digit-data: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     ;;
-  digit-b)   # pairs -> generator -> generated touches -> report (one seed)
-    tnf pipeline "${common[@]}" 2>&1 | tee "$out/digit_b.log"
-    tar czf "$out/sim_digit_report.tgz" -C "$TNF_DATA/reports" sim_digit
+  digit-models)
+    t0=$SECONDS
+    jobs=()
+    for s in $seeds; do for g in tn_cgan lee cyclegan; do jobs+=("generator=$g seed=$s"); done; done
+    run_one() { tnf pipeline "${digit[@]}" "pipeline.stages=[train,generate,evaluate]" $1; }
+    pids=(); i=0
+    for j in "${jobs[@]}"; do ( timed "model-${j// /-}" run_one "$j" ) & pids+=($!); done
+    rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
+    echo "digit-models: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
+    exit $rc
     ;;
-  transfer)  # OmniTact: T-N, T-N+, FS
-    for v in tn tn_plus fs; do
-      tnf pipeline experiment=sim_omnitact_transfer transfer=$v device=cuda trainer=gpu progress=false
-    done 2>&1 | tee "$out/transfer.log"
-    tar czf "$out/sim_omnitact_transfer_report.tgz" -C "$TNF_DATA/reports" sim_omnitact_transfer
+  transfer)
+    t0=$SECONDS
+    omni=(experiment=sim_omnitact_transfer "${dev[@]}")
+    timed omnitact-touch tnf touch "${omni[@]}"
+    timed omnitact-pair tnf pair "${omni[@]}"
+    run_one() { tnf pipeline "${omni[@]}" "pipeline.stages=[finetune,generate,evaluate]" $1; }
+    pids=()
+    for s in $seeds; do for v in tn tn_plus fs; do
+      ( timed "transfer-$v-seed$s" run_one "transfer=$v seed=$s" ) & pids+=($!)
+    done; done
+    rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
+    echo "transfer: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
+    exit $rc
+    ;;
+  report)
+    # Jobs that ran in parallel each rebuilt the report; rebuild it once more from every run present.
+    tnf evaluate experiment=sim_digit "${dev[@]}" 2>&1 | tee "$out/report_sim_digit.log"
+    tnf evaluate experiment=sim_omnitact_transfer "${dev[@]}" 2>&1 | tee "$out/report_transfer.log" || true
+    tar czf "$out/reports.tgz" -C "$TNF_DATA/reports" .
     ;;
   *) echo "unknown phase $1" >&2; exit 2 ;;
 esac
