@@ -10,10 +10,13 @@ finished, and parallel jobs writing different items never clobber each other.
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import json
 import os
+import re
 import shutil
+import socket
 import tempfile
 import time
 from collections.abc import Iterator, Mapping
@@ -67,7 +70,11 @@ def write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     """Write bytes atomically: readers see the old file or the whole new one, never a part."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    # A killed earlier write of this file left its temporary file: remove it, as this write replaces it.
+    for stale in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        if not _writer_alive(stale):
+            stale.unlink(missing_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{_writer_tag()}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
@@ -148,7 +155,11 @@ class ArtifactStore:
         """
         final = self.path(stage, *item)
         final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
+        # A killed earlier write of this item left its temporary folder: remove it, as this write replaces it.
+        for stale in final.parent.glob(f".{glob.escape(final.name)}.*.partial"):
+            if not _writer_alive(stale):
+                shutil.rmtree(stale, ignore_errors=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.{_writer_tag()}.", suffix=".partial", dir=final.parent))
         extra: dict[str, Any] = {}
         try:
             yield tmp
@@ -171,15 +182,50 @@ class ArtifactStore:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
 
-    def clean_partials(self, stage: str) -> int:
-        """Remove temporary folders that interrupted runs left behind; returns how many."""
-        base = self.path(stage)
+    def clean_partials(self, stage: str, *item: str) -> int:
+        """Remove temporary folders that interrupted runs left below ``stage[/item...]``; returns how many.
+
+        Folders that a running process is still writing (parallel jobs sharing the store) are kept.
+        """
+        base = self.path(stage, *item)
         n = 0
         if base.is_dir():
             for p in list(base.rglob(".*.partial")):
+                if _writer_alive(p):
+                    continue
                 shutil.rmtree(p, ignore_errors=True)
                 n += 1
         return n
+
+
+# Temporary item folders and files are named ``.<name>.<pid>@<host>.<random>.partial`` (``.tmp``) so that
+# cleaning can tell a killed writer's leftovers from what another job on this machine is writing right now.
+_TEMPORARY = re.compile(r"\.(\d+)@([A-Za-z0-9-]+)\.[^.]*\.(partial|tmp)$")
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname().split(".")[0]) or "host"
+
+
+def _writer_tag() -> str:
+    return f"{os.getpid()}@{_host()}"
+
+
+def _writer_alive(temporary: Path) -> bool:
+    """Whether the process that created the temporary folder or file ``temporary`` may still be writing it."""
+    m = _TEMPORARY.search(temporary.name)
+    if m is None:  # no writer recorded (made by an older tnf): left by a run that is over
+        return False
+    pid, host = int(m[1]), m[2]
+    if host != _host() or pid == os.getpid():
+        return True  # another machine's job (cannot tell) or this process's own write
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # a live process of another user
+        return True
+    return True
 
 
 def _replace_dir(src: Path, dst: Path) -> None:

@@ -130,3 +130,42 @@ def same_arrays(a: Path, b: Path) -> None:
     assert names == sorted(str(p.relative_to(b)) for p in b.rglob("*.npy"))
     for n in names:
         np.testing.assert_array_equal(np.load(a / n), np.load(b / n), err_msg=n)
+
+
+# -- what a killed run leaves behind -----------------------------------------------------------------------
+def leftovers(root: Path) -> list[Path]:
+    """Temporary things of unfinished writes anywhere in the store: item folders (``*.partial``), atomic-write
+    files (``.*.tmp``) and replaced items not yet removed (``.*.old-<pid>``)."""
+    if not root.is_dir():
+        return []
+    return sorted({*root.rglob("*.partial"), *root.rglob(".*.tmp"), *root.rglob(".*.old-*")})
+
+
+def copy_stages(src: Path, dst: Path, *stages: str) -> None:
+    """Copy the folders of ``stages`` from store ``src`` to store ``dst``, keeping modification times (some
+    config hashes record a checkpoint's mtime)."""
+    import shutil
+
+    for stage in stages:
+        shutil.copytree(src / stage, dst / stage, dirs_exist_ok=True)
+
+
+def manifest_stamps(root: Path, *stages: str) -> dict[Path, tuple[int, str]]:
+    """Manifest path -> (mtime in ns, its ``created`` field) of every finished item of ``stages``."""
+    import json
+
+    out = {}
+    for stage in stages:
+        for folder in finished_items(root, stage):
+            m = folder / "manifest.json"
+            out[m] = (m.stat().st_mtime_ns, json.loads(m.read_text()).get("created"))
+    return out
+
+
+def assert_not_rewritten(stamps: dict[Path, tuple[int, str]]) -> None:
+    """The manifests of ``stamps`` (see ``manifest_stamps``) are the same files as then: not recomputed."""
+    import json
+
+    for path, (mtime, created) in stamps.items():
+        assert path.stat().st_mtime_ns == mtime, f"{path} was rewritten"
+        assert json.loads(path.read_text()).get("created") == created, f"{path} was rewritten"

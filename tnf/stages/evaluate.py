@@ -52,8 +52,9 @@ def run(cfg: Any) -> dict[str, Any]:
     if ecfg.model:
         method = ecfg.method or _method_label(cfg)
         settings = cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))
-        # Everything that changes the numbers; not the report name, progress or the sweep folder.
-        hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate")}
+        # Everything that changes the numbers; not the report name, progress or the sweep folder, nor where the
+        # store lives (a store that is moved or mounted elsewhere keeps its finished results).
+        hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate", "data_root")}
         hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in ("name", "sweep_dir", "force")}
         chash = config_hash(hashed)
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})

@@ -140,14 +140,18 @@ def run(cfg: Any) -> dict[str, Any]:
         if not g.force and store.is_done("generated", run_name, src, obj, config=config):
             console.print(f"generate: {run_name}/{src}/{obj} is up to date")
             continue
-        jobs.append((obj, scene_dir, focal, int(crop), poses, config))
+        jobs.append((obj, scene_dir, focal, int(crop), poses, config, seed))
 
     bg_t = torch.from_numpy(background).to(device).permute(2, 0, 1).float().div(127.5).sub(1)
     batch_size = int(g.batch_size)
     written = {}
     with progress(bool(cfg.progress)) as bar:
         task = bar.add_task("generate", total=sum(len(j[4]) for j in jobs))
-        for obj, scene_dir, focal, crop, poses, config in jobs:
+        for obj, scene_dir, focal, crop, poses, config, seed in jobs:
+            # The generator's noise (dropout kept on when generating, as in pix2pix) comes from torch's RNG: seed
+            # it per object, so that an object's images depend on the seed only and not on which objects this
+            # process generated before (a resumed run generates only the missing ones).
+            torch.manual_seed(seed)
             scene = load_scene(scene_dir, device)
             rsize, intr = render_intrinsics(focal[0], focal[1], crop, render_px=prep["render_px"])
             intr_t = torch.tensor(intr, dtype=torch.float32, device=device)
