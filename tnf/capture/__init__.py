@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -60,6 +61,9 @@ class CaptureConfig:
     """Ambient light level in [0, 1]."""
     light_intensity: float = 3.0
     """Strength of the key directional light (pyrender units); fill and rim lights are fractions of it."""
+    antialias: int = 0
+    """Multisample anti-aliasing samples of the colour images: 0 samples each pixel at its centre, so colour,
+    alpha and depth agree with one ray per pixel; 4 or 8 smooth the silhouettes at 3-4x the CPU cost."""
 
     def validate(self) -> None:
         if self.num_views < 1 or self.num_test_views < 0:
@@ -79,6 +83,8 @@ class CaptureConfig:
                 f"need -90 <= min_elevation_deg <= max_elevation_deg <= 90, got "
                 f"{self.min_elevation_deg}, {self.max_elevation_deg}"
             )
+        if not 0 <= self.antialias <= 16:
+            raise ValueError(f"antialias must be in 0..16 samples, got {self.antialias}")
         if any(not 0.0 <= c <= 1.0 for c in self.background):
             raise ValueError(f"background must be RGB in [0, 1], got {list(self.background)}")
 
@@ -146,7 +152,12 @@ def camera_distance(radius: float, cfg: CaptureConfig) -> float:
 
 
 def intrinsics(cfg: CaptureConfig) -> tuple[float, float, float, float]:
-    """Pinhole ``(fx, fy, cx, cy)`` in pixels for a square image of ``cfg.resolution``."""
+    """Pinhole ``(fx, fy, cx, cy)`` in pixels for a square image of ``cfg.resolution``.
+
+    ``(cx, cy)`` is measured from the top-left corner of the image, whose pixel ``(row i, column j)`` has its
+    centre at ``(j + 0.5, i + 0.5)`` (nerfstudio's convention), so the optical axis passes through the corner
+    shared by the four middle pixels.
+    """
     f = cfg.resolution / 2 / math.tan(math.radians(cfg.fov_deg) / 2)
     return f, f, cfg.resolution / 2, cfg.resolution / 2
 
@@ -198,21 +209,53 @@ def transforms_dict(c2w: np.ndarray, cfg: CaptureConfig, split: str) -> dict[str
     }
 
 
-def write_views(
-    folder: Path, split: str, c2w: np.ndarray, rgb: np.ndarray, depth: np.ndarray, cfg: CaptureConfig
-) -> None:
-    """Write RGBA PNGs (alpha from the depth mask), depth .npy files and ``transforms[_test].json``."""
-    from PIL import Image
-
-    (folder / "images").mkdir(parents=True, exist_ok=True)
-    (folder / "depth").mkdir(parents=True, exist_ok=True)
+def write_transforms(folder: Path, split: str, c2w: np.ndarray, cfg: CaptureConfig) -> dict[str, Any]:
+    """Write ``transforms.json`` (``split`` train) or ``transforms_<split>.json``; returns its content."""
     meta = transforms_dict(c2w, cfg, split)
-    for frame, colour, z in zip(meta["frames"], rgb, depth):
-        alpha = np.where(z > 0, 255, 0).astype(np.uint8)[..., None]
-        Image.fromarray(np.concatenate([colour, alpha], -1), "RGBA").save(folder / frame["file_path"])
-        np.save(folder / frame["depth_file_path"], z.astype(np.float32))
     name = "transforms.json" if split == "train" else f"transforms_{split}.json"
     (folder / name).write_text(json.dumps(meta, indent=2) + "\n")
+    return meta
+
+
+def write_frame(folder: Path, frame: dict[str, Any], rgb: np.ndarray, depth: np.ndarray) -> None:
+    """Write one view: the RGBA PNG (alpha 255 where ``depth`` > 0) and the float32 depth ``.npy``.
+
+    Args:
+        frame: a frame of :func:`transforms_dict` (its ``file_path`` and ``depth_file_path``).
+        rgb: [H, W, 3] uint8. depth: [H, W] z-depth in metres, 0 where empty.
+    """
+    from PIL import Image
+
+    alpha = np.where(depth > 0, 255, 0).astype(np.uint8)[..., None]
+    # zlib level 1: ~2.5x faster than PIL's default 6 for ~15 % larger files (a few KB at 128 px).
+    Image.fromarray(np.concatenate([rgb, alpha], -1), "RGBA").save(folder / frame["file_path"], compress_level=1)
+    np.save(folder / frame["depth_file_path"], depth.astype(np.float32, copy=False))
+
+
+def write_views(
+    folder: Path,
+    split: str,
+    c2w: np.ndarray,
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    cfg: CaptureConfig,
+    pool: Executor | None = None,
+) -> list[Future[None]]:
+    """Write RGBA PNGs (alpha from the depth mask), depth .npy files and ``transforms[_test].json``.
+
+    Args:
+        c2w: [N, 4, 4] camera-to-world poses; rgb: [N, H, W, 3] uint8; depth: [N, H, W] metres.
+        pool: when given, the image files are written by its threads (PNG encoding releases the GIL); wait
+            for the returned futures before using the folder. Without it, everything is written on return.
+    """
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    (folder / "depth").mkdir(parents=True, exist_ok=True)
+    meta = write_transforms(folder, split, c2w, cfg)
+    if pool is None:
+        for frame, colour, z in zip(meta["frames"], rgb, depth):
+            write_frame(folder, frame, colour, z)
+        return []
+    return [pool.submit(write_frame, folder, frame, colour, z) for frame, colour, z in zip(meta["frames"], rgb, depth)]
 
 
 def load_transforms(

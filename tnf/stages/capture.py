@@ -17,13 +17,15 @@ log = logging.getLogger(__name__)
 
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Capture the objects of ``cfg`` (cfg.object / cfg.object_names of cfg.objects); returns one row each."""
+    from concurrent.futures import ThreadPoolExecutor
+
     import numpy as np
     from rich.console import Console
     from rich.table import Table
 
     from tnf.artifacts import ArtifactStore
-    from tnf.capture import camera_distance, camera_poses, capture_config, intrinsics, write_views
-    from tnf.capture.render import MeshRenderer
+    from tnf.capture import camera_distance, camera_poses, capture_config
+    from tnf.capture.render import MeshRenderer, capture_object
     from tnf.objects import select
     from tnf.registry import split_spec
     from tnf.runtime import progress
@@ -35,7 +37,11 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     _, source_params = split_spec(cfg.objects, "objects")
     rows: list[dict[str, Any]] = []
     invalid: list[str] = []  # why each skipped mesh was rejected
-    with progress(cfg.progress) as p:
+    # One renderer for all objects (context and compiled shaders are reused); image files are written by
+    # two threads while the next views render.
+    renderer: MeshRenderer | None = None
+    pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="capture-write")
+    with progress(cfg.progress) as p, pool:
         task = p.add_task(f"capture {source.name}", total=len(names))
         for name in names:
             item = (source.name, name)
@@ -60,17 +66,18 @@ def run(cfg: Any) -> list[dict[str, Any]]:
                 continue
             radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
             train, test = camera_poses(radius, ccfg, seed=cfg.seed)
-            k = intrinsics(ccfg)
-            renderer = MeshRenderer(
-                mesh, ccfg.resolution, ccfg.resolution, ccfg.background, ccfg.ambient, ccfg.light_intensity
-            )
-            try:
-                rgb_tr, d_tr = renderer.render(train, k)
-                rgb_te, d_te = renderer.render(test, k) if len(test) else (None, None)
-            finally:
-                renderer.close()
-            fill = float((d_tr > 0).mean())
-            info = {
+            if renderer is None:
+                renderer = MeshRenderer(
+                    None,
+                    ccfg.resolution,
+                    ccfg.resolution,
+                    ccfg.background,
+                    ccfg.ambient,
+                    ccfg.light_intensity,
+                    ccfg.antialias,
+                )
+            renderer.set_mesh(mesh)
+            info: dict[str, Any] = {
                 "object": name,
                 "source": source.name,
                 "num_views": len(train),
@@ -78,18 +85,17 @@ def run(cfg: Any) -> list[dict[str, Any]]:
                 "radius_m": radius,
                 "distance_m": camera_distance(radius, ccfg),
                 "size_m": [float(x) for x in mesh.extents],
-                "mean_coverage": fill,
             }
             with store.writing("capture", *item, config=config, info=info) as tmp:
-                write_views(tmp, "train", train, rgb_tr, d_tr, ccfg)
-                if rgb_te is not None:
-                    assert d_te is not None  # rendered together with rgb_te
-                    write_views(tmp, "test", test, rgb_te, d_te, ccfg)
+                fill = capture_object(renderer, tmp, train, test, ccfg, pool)
+                info["mean_coverage"] = fill  # read when the block ends
             dt = time.perf_counter() - t0
             rows.append(
                 {"object": name, "status": "captured", "views": len(train) + len(test), "seconds": dt, "coverage": fill}
             )
             p.advance(task)
+    if renderer is not None:
+        renderer.close()
     if invalid and len(invalid) == len(names):
         # Skipping broken meshes keeps a long run over many objects going; a run that captured nothing is a failure.
         more = f" (and {len(invalid) - 1} more invalid objects)" if len(invalid) > 1 else ""
