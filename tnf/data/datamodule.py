@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, DistributedSampler
 
 from tnf.artifacts import MANIFEST, data_root, read_json
 from tnf.data.dataset import Batch, MixedPairDataset, PairDataset, augment_batch, collate_pairs, to_float_batch
@@ -114,10 +114,12 @@ class PairDataModule(L.LightningDataModule):
         if len(ds) == 0:
             raise TnfError(f"no pairs in split(s) {', '.join(splits)} of {', '.join(map(str, self.folders))}")
         g = torch.Generator().manual_seed(self.seed)
+        sampler = self._distributed_sampler(ds, shuffle=train)
         return DataLoader(
             ds,
             batch_size=self.batch_size,
-            shuffle=train,
+            shuffle=train if sampler is None else None,
+            sampler=sampler,
             drop_last=train and self.drop_last,
             num_workers=self.num_workers,
             pin_memory=self.pin_memory,
@@ -125,6 +127,19 @@ class PairDataModule(L.LightningDataModule):
             collate_fn=collate_pairs,
             generator=g if train else None,
         )
+
+    def _distributed_sampler(self, ds: Any, shuffle: bool) -> DistributedSampler | None:
+        """Under a distributed trainer (DDP), a sampler that gives this process its own 1/world-size shard of
+        ``ds``, reshuffled every epoch (Lightning calls ``set_epoch``) from ``seed``; None otherwise.
+
+        (Lightning would insert one itself, but seeded from ``PL_GLOBAL_SEED`` rather than this seed.)
+        """
+        trainer = self.trainer
+        kwargs = trainer.distributed_sampler_kwargs if trainer is not None else None
+        if not kwargs:
+            return None
+        # drop_last=False: the last shard is padded with repeated pairs so every process runs as many steps.
+        return DistributedSampler(ds, shuffle=shuffle, seed=self.seed, drop_last=False, **kwargs)
 
     def on_after_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Batch:
         if not self.convert_on_device:

@@ -92,6 +92,7 @@ class GeneratorSystem(L.LightningModule):
         self._finite = True
         self._last_losses: dict[str, torch.Tensor] = {}
         self._bad: torch.Tensor | None = None
+        self._epoch_samples = 0  # pairs this process trained on in the current epoch
         self._val: dict[str, list[torch.Tensor]] = {}
         self._grid_batch: dict[str, torch.Tensor] | None = None
 
@@ -142,6 +143,7 @@ class GeneratorSystem(L.LightningModule):
             self._check_finite()
         bs = next(iter(batch.values())).shape[0]
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, on_step=True, on_epoch=True, batch_size=bs)
+        self._epoch_samples += bs
         for k in ("loss_g", "loss_d"):
             if k in losses:
                 self.log(k, losses[k], prog_bar=True, on_step=True, on_epoch=False, logger=False, batch_size=bs)
@@ -159,9 +161,20 @@ class GeneratorSystem(L.LightningModule):
                 "use precision=32-true, or check the dataset for NaN)"
             )
 
+    def on_train_epoch_start(self) -> None:
+        self._epoch_samples = 0
+
     def on_train_epoch_end(self) -> None:
         # Runs before the checkpoint callback: a diverged model never overwrites last.ckpt.
         self._check_finite()
+        # Pairs trained on this epoch by all processes, and by this one (process 0's in the logs): with DDP each
+        # process trains on its own shard, so rank_samples is samples / world size. Summed here, in a hook every
+        # process runs in the same order (a sync_dist metric is summed lazily, when a callback of process 0
+        # alone reads it first, and the processes' collectives would then no longer match).
+        n = torch.tensor(float(self._epoch_samples), device=self.device)
+        total = self.trainer.strategy.reduce(n.clone(), reduce_op="sum") if self.trainer.world_size > 1 else n
+        self.log("train/samples", total, on_epoch=True, on_step=False)
+        self.log("train/rank_samples", n, on_epoch=True, on_step=False)
         opts = self._opt.optimizers()
         for name, o in zip(self.generator.optimizer_names, opts):  # the rate this epoch trained with
             self.log(f"lr/{name}", o.param_groups[0]["lr"], on_epoch=True, on_step=False)

@@ -1,7 +1,7 @@
 """Running a ``GeneratorSystem`` with Lightning: trainer, loggers, checkpoints, resume, run folder.
 
 Shared by ``tnf train`` and ``tnf finetune``. A run folder ``<root>/models/<run_name>/`` holds ``last.ckpt``,
-``best.ckpt`` (highest validation SSIM), ``grids/epoch_XXX.png``, ``metrics.csv`` (earlier parts of a
+``best.ckpt`` (lowest validation L1), ``grids/epoch_XXX.png``, ``metrics.csv`` (earlier parts of a
 resumed run in ``metrics.partN.csv``), ``run.json`` (the run's
 config, written when it starts, so a resumed run can be checked against it) and, once finished,
 ``manifest.json``.
@@ -14,6 +14,8 @@ import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, cast
+
+from lightning.pytorch.callbacks import Callback
 
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_json
 from tnf.errors import TnfError
@@ -57,9 +59,8 @@ def prepare_run_dir(run_dir: Path, config: Mapping[str, Any], resume: bool) -> P
     """Create the run folder; returns ``last.ckpt`` to resume from, or None to start afresh.
 
     A folder holding a run of another config is an error (rather than silently mixing two runs); with
-    ``resume=False`` an unfinished earlier run is started again.
+    ``resume=False`` an unfinished earlier run is started again. Only process 0 of a distributed run writes.
     """
-    run_dir.mkdir(parents=True, exist_ok=True)
     last = run_dir / "last.ckpt"
     run_file = run_dir / RUN_FILE
     if run_file.is_file():
@@ -69,6 +70,11 @@ def prepare_run_dir(run_dir: Path, config: Mapping[str, Any], resume: bool) -> P
                 f"{run_dir} holds a run with another config; choose another run name (train.run_name=...) "
                 "or delete the folder"
             )
+    if process_rank() != 0:
+        # Another process of a distributed run that a cluster launcher started (torchrun, srun): process 0
+        # prepares the folder; this one only needs to know where to resume from.
+        return last if resume and last.is_file() else None
+    run_dir.mkdir(parents=True, exist_ok=True)
     write_json(run_file, {"config": config, "config_hash": config_hash(config)})
     if resume and last.is_file():
         # The CSV logger starts metrics.csv afresh; keep the earlier part of the run's history.
@@ -107,6 +113,7 @@ def fit(
     """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar
+    from torch.multiprocessing import ProcessRaisedException
 
     from tnf.generators.system import NonFiniteLoss
 
@@ -134,14 +141,12 @@ def fit(
         every_n_epochs=1,
         enable_version_counter=False,
     )
-    callbacks: list[Any] = [checkpoint, latest]
+    callbacks: list[Any] = [checkpoint, latest, QuietAdvice()]
     if progress:
         callbacks.append(RichProgressBar(leave=True))
     targs = dict(trainer_cfg)
     targs.setdefault("num_sanity_val_steps", 0)
-    if targs.get("strategy") == "ddp":
-        # A GAN step back-propagates through one network at a time, so each backward leaves parameters unused.
-        targs["strategy"] = "ddp_find_unused_parameters_true"
+    targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"))
     if str(targs.get("accelerator", "auto")) != "cpu":
         import torch
 
@@ -160,13 +165,15 @@ def fit(
         **targs,
     )
     with warnings.catch_warnings():
-        # Small datasets and CPU runs trigger advice that does not apply to GAN training.
-        warnings.filterwarnings("ignore", ".*does not have many workers.*")
-        warnings.filterwarnings("ignore", ".*smaller than the logging interval.*")
+        quiet_advice()
         try:
             trainer.fit(system, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None)
         except NonFiniteLoss as e:
             raise NonFiniteLoss(f"{e}; {_last_good(run_dir)}") from None
+        except ProcessRaisedException as e:
+            # A spawned DDP process failed; its exception arrives as a traceback text. A tnf error (bad data,
+            # a diverged loss) is shown as the one line it is.
+            raise _worker_error(e, run_dir) from None
         except OSError as e:  # a full disk or a lost file system, most often while writing a checkpoint
             where = f" ({e.filename})" if e.filename else ""
             raise TnfError(
@@ -183,13 +190,16 @@ def fit(
     if trainer.interrupted:
         raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val_")}
-    best = checkpoint.best_model_score
+    # Read from last.ckpt rather than the trainer: with spawned DDP processes this process's trainer never
+    # trained, and only the callback metrics come back from them.
+    epochs, global_step, best = _progress(run_dir / "last.ckpt", monitor="val_l1")
     summary = {
         **dict(info or {}),
-        "epochs": trainer.current_epoch,
-        "global_step": trainer.global_step,
-        "best_val_l1": float(best) if best is not None else None,
+        "epochs": epochs,
+        "global_step": global_step,
+        "best_val_l1": best,
         "last": metrics,
+        "world_size": trainer.world_size,
         "checkpoints": {"last": "last.ckpt", "best": "best.ckpt"},
     }
     if trainer.is_global_zero:
@@ -205,6 +215,91 @@ def fit(
         }
         write_json(run_dir / MANIFEST, manifest)
     return summary
+
+
+def quiet_advice() -> None:
+    """Silence Lightning advice that does not apply to GAN training here: small datasets and CPU runs (few
+    loader workers, short epochs), and DDP's per-epoch training losses, which are process 0's (averaging them
+    over processes would synchronise every step)."""
+    warnings.filterwarnings("ignore", ".*does not have many workers.*")
+    warnings.filterwarnings("ignore", ".*smaller than the logging interval.*")
+    warnings.filterwarnings("ignore", ".*when logging on epoch level in distributed setting.*")
+
+
+class QuietAdvice(Callback):
+    """Applies ``quiet_advice`` in the process that trains (spawned DDP processes start with the default
+    warning filters, not the caller's)."""
+
+    def setup(self, trainer: Any, pl_module: Any, stage: str) -> None:
+        quiet_advice()
+
+
+def ddp_strategy(strategy: Any) -> Any:
+    """The Lightning strategy for a ``trainer.strategy`` value: ``ddp`` and ``ddp_spawn`` become a
+    ``DDPStrategy`` that starts its processes with ``torch.multiprocessing`` (spawn) and finds unused
+    parameters; anything else is passed on as it is.
+
+    Lightning's ``ddp`` would start the other processes by running the command line again, which the ``tnf``
+    command cannot be (its stage name is not part of the Python command line, and under ``-m`` the sweep would
+    run again in every process). When a cluster launcher starts the processes itself (torchrun, srun with one
+    task per device), Lightning detects it and starts none: every process then runs the whole stage.
+    """
+    if strategy not in ("ddp", "ddp_spawn"):
+        return strategy
+    from lightning.pytorch.strategies import DDPStrategy
+
+    # A GAN step back-propagates through one network at a time, so each backward leaves parameters unused.
+    # "popen" starts no process where a cluster launcher has started them (spawn would start more).
+    if processes_started_externally():
+        return DDPStrategy(find_unused_parameters=True, start_method="popen")
+    return DDPStrategy(find_unused_parameters=True, start_method="spawn")
+
+
+def processes_started_externally() -> bool:
+    """True inside a job whose processes a cluster launcher started, one per device (torchrun, srun, LSF,
+    MPI), as Lightning's Trainer detects it."""
+    from lightning.fabric.plugins.environments import (
+        LSFEnvironment,
+        MPIEnvironment,
+        SLURMEnvironment,
+        TorchElasticEnvironment,
+    )
+
+    return any(env.detect() for env in (TorchElasticEnvironment, SLURMEnvironment, LSFEnvironment, MPIEnvironment))
+
+
+def process_rank() -> int:
+    """This process's global rank as a cluster launcher sets it (RANK, LOCAL_RANK, SLURM_PROCID); 0 outside
+    one, and in the process that spawns DDP processes itself."""
+    from lightning.fabric.utilities.rank_zero import rank_zero_only
+
+    return int(getattr(rank_zero_only, "rank", 0) or 0)
+
+
+def _progress(last: Path, monitor: str) -> tuple[int, int, float | None]:
+    """Epochs done, optimiser steps and the best ``monitor`` value recorded in checkpoint ``last``."""
+    import torch
+
+    if not last.is_file():
+        return 0, 0, None
+    ckpt = torch.load(last, map_location="cpu", weights_only=True, mmap=True)
+    best = None
+    for state in ckpt.get("callbacks", {}).values():
+        if isinstance(state, dict) and state.get("monitor") == monitor and state.get("best_model_score") is not None:
+            best = float(state["best_model_score"])
+    # "epoch" is the index of the epoch the checkpoint was written at the end of.
+    return int(ckpt.get("epoch", -1)) + 1, int(ckpt.get("global_step", 0)), best
+
+
+def _worker_error(e: Exception, run_dir: Path) -> Exception:
+    """A TnfError from the last line of a spawned process's traceback when it is a tnf error, else ``e``."""
+    import re
+
+    lines = [ln for ln in str(e).strip().splitlines() if ln.strip()]
+    m = re.match(r"^(tnf\.[\w.]+): (.+)$", lines[-1]) if lines else None
+    if m is None:
+        return e
+    return TnfError(f"{m.group(2)} (in DDP process {getattr(e, 'error_index', '?')}); {_last_good(run_dir)}")
 
 
 def _last_good(run_dir: Path) -> str:

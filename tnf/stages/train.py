@@ -23,12 +23,14 @@ def run(cfg: Any) -> dict[str, Any]:
         dataset_label,
         dataset_names,
         fit,
+        process_rank,
         run_section,
         trainer_args,
     )
     from tnf.runtime import seed_everything
 
-    console = Console(highlight=False)
+    # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
+    console = Console(highlight=False, quiet=process_rank() != 0)
     t = cfg.train
     spec = generator_spec(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
     datasets = dataset_names(cfg)

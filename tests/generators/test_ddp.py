@@ -1,0 +1,132 @@
+"""`tnf train trainer=ddp` on two CPU processes (gloo): the run folder is written once and complete, each
+process trains on its own half of the pairs, a DDP run resumes from its last checkpoint, and DDP works under
+a Hydra multirun sweep."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from tests.generators.synthetic import make_pairs
+from tests.generators.test_stages import write_pairs
+from tnf.generators import load_generator
+
+DDP = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]
+TINY = ["debug=tiny", "progress=false", "data.batch_size=4", *DDP]
+
+
+def tnf(*args, root):
+    env = {**os.environ, "TNF_DATA": str(root), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-m", "tnf.cli", *args], capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    return out
+
+
+def epoch_rows(run_dir, column):
+    with open(run_dir / "metrics.csv") as f:
+        return [r for r in csv.DictReader(f) if r.get(column)]
+
+
+def test_ddp_train_writes_one_complete_loadable_run_with_sharded_epochs(data_root):
+    # 12 pairs: 8 train, 4 val; two processes of batch 4 -> one step of 4 pairs each per epoch.
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
+    tnf("train", *TINY, root=data_root)
+    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
+    for f in ("last.ckpt", "best.ckpt", "metrics.csv", "manifest.json", "grids/epoch_000.png", "grids/epoch_001.png"):
+        assert (run_dir / f).is_file(), f
+    # Written by process 0 alone: no second metrics file, no temporary or partial files anywhere.
+    assert sorted(p.name for p in run_dir.iterdir()) == [
+        "best.ckpt",
+        "grids",
+        "hparams.yaml",
+        "last.ckpt",
+        "manifest.json",
+        "metrics.csv",
+        "run.json",
+    ]
+    assert sorted(p.name for p in (run_dir / "grids").iterdir()) == ["epoch_000.png", "epoch_001.png"]
+    assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".")]
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["world_size"] == 2 and manifest["epochs"] == 2
+    # Manual optimisation: two optimiser steps (D, G) per batch, one batch per process and epoch.
+    assert manifest["global_step"] == 4
+    assert 0 < manifest["best_val_l1"] <= 2 and 0 < manifest["last"]["val_ssim"] <= 1
+    # Each epoch the two processes together trained on all 8 training pairs, process 0 on half of them.
+    rows = epoch_rows(run_dir, "train/samples")
+    assert [int(r["epoch"]) for r in rows] == [0, 1]
+    assert all(float(r["train/samples"]) == 8 and float(r["train/rank_samples"]) == 4 for r in rows)
+    system = load_generator(run_dir / "best.ckpt")
+    assert system.generate(make_pairs(2, 128)).shape == (2, 3, 128, 128)
+    ckpt = torch.load(run_dir / "last.ckpt", weights_only=True)
+    assert ckpt["epoch"] == 1 and ckpt["global_step"] == 4 and ckpt["optimizer_states"]
+
+
+@pytest.mark.slow
+def test_killed_ddp_run_resumes_from_its_last_checkpoint(data_root):
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
+    args = ["-m", "tnf.cli", "train", *TINY, "train.epochs=3", "train.decay_epochs=0"]
+    env = {**os.environ, "TNF_DATA": str(data_root), "OMP_NUM_THREADS": "1"}
+    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
+    # Kill the whole process group (the command and its DDP processes) once the first epoch's checkpoint is
+    # there, as a lost node would.
+    proc = subprocess.Popen(
+        [sys.executable, *args], env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    deadline = time.monotonic() + 600
+    while not (run_dir / "last.ckpt").is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (run_dir / "manifest.json").exists(), "the run finished before it could be killed"
+    done = torch.load(run_dir / "last.ckpt", weights_only=True)["epoch"]  # the last epoch that was saved
+    assert done < 2
+    tnf("train", *TINY, "train.epochs=3", "train.decay_epochs=0", root=data_root)
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["epochs"] == 3 and manifest["global_step"] == 3 * 2 and manifest["world_size"] == 2
+    # The rerun trained only the epochs after the saved one, each on all 8 pairs split between the processes.
+    rows = epoch_rows(run_dir, "train/samples")
+    assert [int(r["epoch"]) for r in rows] == list(range(done + 1, 3))
+    assert all(float(r["train/samples"]) == 8 and float(r["train/rank_samples"]) == 4 for r in rows)
+    assert torch.load(run_dir / "last.ckpt", weights_only=True)["epoch"] == 2
+
+
+@pytest.mark.slow
+def test_ddp_under_a_multirun_sweep(data_root):
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
+    tnf(
+        "train",
+        "-m",
+        *TINY,
+        "train.epochs=1",
+        "train.decay_epochs=0",
+        "seed=0,1",
+        "train.run_name=s${seed}",
+        root=data_root,
+    )
+    for name in ("s0", "s1"):
+        manifest = json.loads((data_root / "models" / name / "manifest.json").read_text())
+        assert manifest["world_size"] == 2 and manifest["epochs"] == 1 and manifest["config"]["seed"] == int(name[1])
+        assert load_generator(data_root / "models" / name / "last.ckpt").generator_name == "tn_cgan"
+
+
+@pytest.mark.slow
+def test_ddp_with_processes_started_by_torchrun(data_root):
+    # torchrun starts both processes, each running the whole stage: Lightning starts none, process 0 writes.
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
+    env = {**os.environ, "TNF_DATA": str(data_root), "OMP_NUM_THREADS": "1"}
+    cmd = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "tnf.cli", "train", *TINY]
+    out = subprocess.run([sys.executable, *cmd], capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert out.stdout.count("tn_cgan_digit-hashgrid: 2 epochs") == 1  # the summary, from process 0 alone
+    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["world_size"] == 2 and manifest["epochs"] == 2 and manifest["global_step"] == 4
+    rows = epoch_rows(run_dir, "train/samples")
+    assert all(float(r["train/samples"]) == 8 and float(r["train/rank_samples"]) == 4 for r in rows)
+    assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".")]
