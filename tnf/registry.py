@@ -285,7 +285,11 @@ def _name(tp: Any) -> str:
 
 # -- the registries ---------------------------------------------------------------------------------
 # Each lists the in-tree modules that register into it; plugins add entry points to the group.
-OBJECTS = Registry("objects", "tnf.objects", ["tnf.objects.builtin", "tnf.objects.mesh_dir", "tnf.objects.pybullet"])
+OBJECTS = Registry(
+    "objects",
+    "tnf.objects",
+    ["tnf.objects.builtin", "tnf.objects.mesh_dir", "tnf.objects.pybullet", "tnf.objects.captured"],
+)
 SCENES = Registry("scene", "tnf.scenes", ["tnf.scenes.nerf", "tnf.scenes.hashgrid", "tnf.scenes.mesh"])
 SENSORS = Registry("sensor", "tnf.sensors", ["tnf.sensors.digit", "tnf.sensors.omnitact"])
 SIMULATORS = Registry("simulator", "tnf.simulators", ["tnf.sim.warp_gel"])

@@ -28,7 +28,7 @@ def test_every_group_option_composes(group, option):
 
 
 # Options whose YAML leaves a value for the user to fill in (a path), and what a user would give.
-REQUIRED = {("objects", "mesh_dir"): {"path": "/some/meshes"}}
+REQUIRED = {("objects", "mesh_dir"): {"path": "/some/meshes"}, ("objects", "captured"): {"root": "/some/objects"}}
 
 
 def test_component_groups_name_registered_components():

@@ -3,7 +3,9 @@
 An object source (registry ``OBJECTS``) lists object names and loads each as a ``trimesh.Trimesh`` in metres,
 centred at the origin (bounding-box centre), z up, with visual colours (vertex colours or a texture), and
 validated (:func:`validate_mesh`). In-tree sources: ``builtin`` (procedural household objects, the default),
-``mesh_dir`` (a folder of mesh files, YCB layout included) and ``pybullet`` (the objects of ``pybullet_data``).
+``mesh_dir`` (a folder of mesh files, YCB layout included), ``pybullet`` (the objects of ``pybullet_data``) and
+``captured`` (a user's own camera images and tactile frames, no meshes: :meth:`ObjectSource.views` and
+:meth:`ObjectSource.touches` give their files, which ``tnf capture`` and ``tnf touch`` import).
 
     src = OBJECTS.build(cfg.objects)          # or: src, names = select(cfg)
     mesh = src.load("mug")                   # trimesh.Trimesh, metres
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -74,6 +77,16 @@ class ObjectSource:
         names = self.names()
         if name not in names:
             raise TnfError(f"unknown object {name!r} in source {self.name!r}; available: {_short_list(names)}")
+
+    def views(self, name: str) -> Path | None:
+        """The object's own camera images: its ``transforms.json`` (instant-ngp / nerfstudio format), or None
+        when the source has meshes. ``tnf capture`` imports such views instead of rendering the mesh."""
+        return None
+
+    def touches(self, name: str) -> Path | None:
+        """The object's real tactile frames: its ``touches.json`` (layout in :mod:`tnf.objects.captured`), or
+        None when ``tnf touch`` simulates them from the mesh."""
+        return None
 
     def info(self, name: str) -> dict[str, Any]:
         """Size and complexity of object ``name``: ``{"size_m": [dx, dy, dz], "triangles": n, "vertices": n}``."""

@@ -1,7 +1,8 @@
 """``tnf capture``: render multi-view RGB-D images of every selected object into the artifact store.
 
 Output per object: ``<data_root>/capture/<source>/<object>/`` (see :mod:`tnf.capture`). Objects already
-captured with the same settings are skipped.
+captured with the same settings are skipped. A source with its own camera images (``objects=captured``) has
+them imported instead (:func:`tnf.objects.captured.import_views`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,12 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     with progress(cfg.progress) as p, pool:
         task = p.add_task(f"capture {source.name}", total=len(names))
         for name in names:
+            if source.views(name) is not None:  # the source's own camera images: imported, not rendered
+                from tnf.objects.captured import import_views
+
+                rows.append(import_views(store, source, name))
+                p.advance(task)
+                continue
             item = (source.name, name)
             # Everything that changes the images: the object source's settings, the capture settings, the seed.
             config = {"objects": {"name": source.name, **source_params}, "capture": cfg.capture, "seed": cfg.seed}
