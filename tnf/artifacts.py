@@ -10,6 +10,7 @@ finished, and parallel jobs writing different items never clobber each other.
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import hashlib
 import json
@@ -19,6 +20,7 @@ import shutil
 import socket
 import tempfile
 import time
+import uuid
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -229,14 +231,32 @@ def _writer_alive(temporary: Path) -> bool:
 
 
 def _replace_dir(src: Path, dst: Path) -> None:
-    """Move folder ``src`` to ``dst``, replacing an old ``dst`` with as short a gap as a rename allows."""
-    if dst.exists():
-        old = dst.with_name(f".{dst.name}.old-{os.getpid()}")
-        os.replace(dst, old)
-        os.replace(src, dst)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(src, dst)
+    """Move folder ``src`` to ``dst``, replacing an old ``dst`` with as short a gap as a rename allows.
+
+    Other processes may replace the same item at the same moment (two jobs of a sweep that make the same
+    item): each attempt either renames ``src`` into place whole or finds a ``dst`` in the way, moves that aside
+    and tries again. Every writer finishes, and the item ends as one writer's complete folder (the last one's).
+    """
+    aside: list[Path] = []
+    try:
+        for _ in range(100):
+            try:
+                os.rename(src, dst)  # fails while a (non-empty) dst exists
+                return
+            except OSError as e:
+                if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                    raise
+            # Named like a temporary folder, so that a writer killed right here leaves something cleaning removes.
+            old = dst.with_name(f".{dst.name}.{_writer_tag()}.{uuid.uuid4().hex[:8]}.partial")
+            try:
+                os.rename(dst, old)
+                aside.append(old)
+            except FileNotFoundError:
+                pass  # another writer moved it aside first
+        raise TnfError(f"cannot put {dst} in place: other processes keep replacing it")
+    finally:
+        for old in aside:
+            shutil.rmtree(old, ignore_errors=True)
 
 
 def _version() -> str:

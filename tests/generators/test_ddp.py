@@ -97,18 +97,16 @@ def test_killed_ddp_run_resumes_from_its_last_checkpoint(data_root):
 
 
 @pytest.mark.slow
-def test_ddp_under_a_multirun_sweep(data_root):
+@pytest.mark.parametrize("launcher", ["basic", "joblib"])
+def test_ddp_under_a_multirun_sweep(data_root, launcher):
+    # joblib: the sweep's jobs run in parallel worker processes, each of which spawns its DDP processes.
+    extra = []
+    if launcher == "joblib":
+        pytest.importorskip("hydra_plugins.hydra_joblib_launcher", reason="needs hydra-joblib-launcher")
+        extra = ["hydra.launcher.n_jobs=2"]
     write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
-    tnf(
-        "train",
-        "-m",
-        *TINY,
-        "train.epochs=1",
-        "train.decay_epochs=0",
-        "seed=0,1",
-        "train.run_name=s${seed}",
-        root=data_root,
-    )
+    sweep = ["train.epochs=1", "train.decay_epochs=0", "seed=0,1", "train.run_name=s${seed}"]
+    tnf("train", "-m", f"hydra/launcher={launcher}", *extra, *TINY, *sweep, root=data_root)
     for name in ("s0", "s1"):
         manifest = json.loads((data_root / "models" / name / "manifest.json").read_text())
         assert manifest["world_size"] == 2 and manifest["epochs"] == 1 and manifest["config"]["seed"] == int(name[1])

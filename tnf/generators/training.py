@@ -252,6 +252,12 @@ def ddp_strategy(strategy: Any) -> Any:
     # "popen" starts no process where a cluster launcher has started them (spawn would start more).
     if processes_started_externally():
         return DDPStrategy(find_unused_parameters=True, start_method="popen")
+    import multiprocessing
+
+    if multiprocessing.get_start_method(allow_none=True) not in (None, "spawn", "fork", "forkserver"):
+        # In a job of hydra/launcher=joblib (a loky worker) the default start method is "loky", which the
+        # spawned processes would be told to use and cannot find.
+        multiprocessing.set_start_method("spawn", force=True)
     return DDPStrategy(find_unused_parameters=True, start_method="spawn")
 
 
