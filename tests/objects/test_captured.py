@@ -185,7 +185,11 @@ def test_pipeline_on_imported_data(sim_and_user, tmp_path):
     root = tmp_path / "data"
     import_all(user, root)
     stages = "pipeline.stages=[capture,fit-scene,pair,train,generate,evaluate]"  # touches imported above
-    assert main(["pipeline", *captured(user, root, "experiment=real_capture", stages)]) == 0
+    assert main(["pipeline", *captured(user, root, "experiment=real_capture", stages, "pair.render_px=32")]) == 0
+    model = json.loads(next((root / "reports" / "real_capture" / "timings").glob("*.json")).read_text())["model"]
+    for obj in OBJECTS_:  # tactile images generated from novel poses of both objects
+        generated = json.loads((root / "generated" / model / "captured" / obj / "manifest.json").read_text())
+        assert len(generated["touches"]) == 4 and (root / "generated" / model / "captured" / obj / "images").is_dir()
     report = root / "reports" / "real_capture" / "report.md"
     assert report.is_file() and "T-N" in report.read_text()
 
@@ -228,6 +232,11 @@ def test_small_dataset_imports(tmp_path):
     assert main(["capture", *captured(user, root, "object=cube", "objects.test_every=3")]) == 0
     meta = json.loads((root / "capture" / "captured" / "cube" / "transforms.json").read_text())
     assert [f["source_frame"] for f in meta["frames"]] == [1, 2, 4, 5]
+    # fit-scene on views without depth: PSNR and SSIM on the held-out views, no depth error.
+    assert main(["fit-scene", *captured(user, root, "object=cube", "fit.steps=2", "fit.eval_views=1")]) == 0
+    metrics = json.loads((root / "scenes" / "hashgrid" / "captured" / "cube" / "metrics.json").read_text())
+    assert metrics["test_views"] == 1 and np.isfinite(metrics["psnr"]) and 0 < metrics["ssim"] <= 1
+    assert not any(k.startswith("depth_error") for k in metrics)
     source, sensor = touch_cfg(user, root)
     msg = import_touches(ArtifactStore(root), sensor, source, "cube", start_radius=0.15)
     assert "3 touches imported" in msg

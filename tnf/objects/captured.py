@@ -34,6 +34,7 @@ touch simulation) stops with an error.
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -48,6 +49,8 @@ from tnf.registry import OBJECTS, config_to_dict
 
 if TYPE_CHECKING:  # pragma: no cover
     from tnf.artifacts import ArtifactStore
+
+log = logging.getLogger(__name__)
 
 TOUCH_KEYS = ("image", "c2w", "split")
 """Keys of one entry of ``touches.json`` (``split`` is optional)."""
@@ -207,6 +210,16 @@ def _write_views(folder: Path, split: str, views: _Views, shift: np.ndarray) -> 
     write_json(folder / ("transforms.json" if split == "train" else f"transforms_{split}.json"), meta)
 
 
+def _warn_distortion(path: Path) -> None:
+    """Say so when the transforms file gives lens distortion: tnf's cameras are pinholes."""
+    import json
+
+    meta = json.loads(path.read_text())
+    coeffs = {k: meta[k] for k in ("k1", "k2", "k3", "k4", "p1", "p2") if isinstance(meta.get(k), (int, float))}
+    if any(v != 0 for v in coeffs.values()):
+        log.warning("%s: lens distortion %s is ignored (pinhole cameras); undistort the images first", path, coeffs)
+
+
 def import_views(store: ArtifactStore, source: ObjectSource, name: str) -> dict[str, Any]:
     """Import object ``name``'s camera views into ``capture/<source>/<name>/``, as ``tnf capture`` writes them.
 
@@ -224,6 +237,7 @@ def import_views(store: ArtifactStore, source: ObjectSource, name: str) -> dict[
     if store.is_done("capture", source.name, name, config=config):
         return {"object": name, "status": "skipped (done)", "views": None, "seconds": 0.0}
     views = _Views.load(file)
+    _warn_distortion(file)
     test_file = file.with_name("transforms_test.json")
     if test_file.is_file():
         train, test = views, _Views.load(test_file)
