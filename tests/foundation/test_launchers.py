@@ -1,0 +1,132 @@
+"""Sweeps beyond one process: jobs of `-m` sweeps run in parallel by the Hydra launcher plugins (joblib;
+submitit, locally here as there is no SLURM) share the artifact store without clobbering one another, and
+the SLURM launcher's config composes with tnf's documented defaults."""
+
+import multiprocessing
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tnf.artifacts import ArtifactStore, config_hash, read_json
+from tnf.env import conf_dir
+
+TINY = ["debug=tiny", "progress=false"]
+
+
+def tnf(*args, root):
+    env = {**os.environ, "TNF_DATA": str(root), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-m", "tnf.cli", *args], capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    return out.stdout + out.stderr
+
+
+def plugin(name):
+    return pytest.importorskip(
+        f"hydra_plugins.{name}", reason=f"needs {name.replace('_', '-')}: pip install 'tnf[launchers]'"
+    )
+
+
+def assert_complete_capture(root, objects):
+    """Every object's capture item is finished, self-consistent and whole; nothing temporary is left."""
+    store = ArtifactStore(root)
+    assert store.items("capture", 2) == [("builtin", name) for name in sorted(objects)]
+    for name in objects:
+        item = store.path("capture", "builtin", name)
+        manifest = read_json(item / "manifest.json")
+        assert manifest["config_hash"] == config_hash(manifest["config"]) and manifest["object"] == name
+        for split in ("transforms.json", "transforms_test.json"):
+            frames = read_json(item / split)["frames"]
+            assert frames
+            for frame in frames:
+                assert (item / frame["file_path"]).is_file() and (item / frame["depth_file_path"]).is_file()
+        n_images = manifest["num_views"] + manifest["num_test_views"]
+        assert len(list((item / "images").iterdir())) == n_images
+    assert not [p for p in (root / "capture").rglob("*") if p.name.startswith(".")]
+
+
+def _write_same_item(root, writer, barrier, errors):
+    store = ArtifactStore(root)
+    barrier.wait()
+    for _ in range(25):
+        try:
+            with store.writing("capture", "builtin", "ball", config={"v": 1}, info={"writer": writer}) as tmp:
+                for k in range(4):
+                    (tmp / f"part{k}.txt").write_text(str(writer))
+        except Exception as e:  # reported to the test, which expects none
+            errors.put(repr(e))
+
+
+def test_many_processes_writing_the_same_item_at_once_leave_one_whole_item(tmp_path):
+    ctx = multiprocessing.get_context("fork")
+    barrier, errors = ctx.Barrier(4), ctx.Queue()
+    procs = [ctx.Process(target=_write_same_item, args=(tmp_path, w, barrier, errors)) for w in range(4)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(120)
+    assert [p.exitcode for p in procs] == [0, 0, 0, 0]
+    assert errors.empty(), errors.get()
+    item = ArtifactStore(tmp_path).path("capture", "builtin", "ball")
+    # One writer's folder, all of it: its four parts and its manifest, nothing of another writer.
+    writer = read_json(item / "manifest.json")["writer"]
+    assert sorted(p.name for p in item.iterdir()) == ["manifest.json", *[f"part{k}.txt" for k in range(4)]]
+    assert {(item / f"part{k}.txt").read_text() for k in range(4)} == {str(writer)}
+    assert sorted(os.listdir(item.parent)) == ["ball"]
+
+
+def test_joblib_sweep_captures_objects_in_parallel_jobs_one_item_twice(data_root):
+    # Four jobs, two at a time; the first two both make capture/builtin/ball and may finish together.
+    plugin("hydra_joblib_launcher")
+    sweep = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "object=ball,ball,box,can"]
+    out = tnf("capture", *sweep, *TINY, root=data_root)
+    assert "Joblib.Parallel(n_jobs=2" in out and "launching 4 jobs" in out
+    assert_complete_capture(data_root, ["ball", "box", "can"])
+
+
+def test_submitit_local_sweep(data_root):
+    # The same plugin as hydra/launcher=submitit_slurm, with submitit's local executor: jobs are pickled and run
+    # as separate processes, as on a cluster.
+    plugin("hydra_submitit_launcher")
+    out = tnf("capture", "-m", "hydra/launcher=submitit_local", *TINY, "object=ball,box", root=data_root)
+    assert "Submitit 'local' sweep output dir" in out
+    assert_complete_capture(data_root, ["ball", "box"])
+    sweeps = list((data_root / "logs").rglob("multirun.yaml"))
+    assert len(sweeps) == 1 and len(list((sweeps[0].parent / ".submitit").iterdir())) >= 2
+
+
+def slurm_launcher(stage, overrides):
+    """The launcher Hydra would instantiate for ``-m hydra/launcher=...`` (SLURM itself is not needed)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.utils import instantiate
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=conf_dir(), version_base=None):
+        cfg = compose(config_name=f"stage/{stage}", overrides=overrides, return_hydra_config=True)
+    return cfg, instantiate(cfg.hydra.launcher)
+
+
+@pytest.mark.parametrize("preset", ["submitit_slurm", "slurm"])
+def test_slurm_launcher_config_composes(preset, data_root):
+    plugin("hydra_submitit_launcher")
+    cfg, launcher = slurm_launcher("train", [f"hydra/launcher={preset}", "trainer=ddp", "trainer.devices=4"])
+    assert type(launcher).__name__ == "SlurmLauncher" and cfg.trainer.strategy == "ddp_spawn"
+    assert launcher.params["submitit_folder"].startswith(str(data_root / "logs"))
+    if preset == "slurm":  # tnf's defaults: one process and GPU per trainer device, requeue on time-out
+        p = launcher.params
+        assert (p["tasks_per_node"], p["gpus_per_node"], p["timeout_min"], p["max_num_timeout"]) == (4, 4, 240, 3)
+        _, one = slurm_launcher("fit_scene", ["hydra/launcher=slurm", "hydra.launcher.partition=gpu"])
+        assert (one.params["tasks_per_node"], one.params["gpus_per_node"], one.params["partition"]) == (1, 1, "gpu")
+
+
+def test_slurm_preset_is_documented_and_shown_by_the_cli(data_root):
+    plugin("hydra_submitit_launcher")
+    lines = (Path(conf_dir()) / "hydra" / "launcher" / "slurm.yaml").read_text().splitlines()
+    for i, line in enumerate(lines):
+        if line and not line.startswith(("#", " ", "-", "defaults:")):
+            assert lines[i - 1].startswith("#"), f"undocumented key: {line}"
+    out = tnf("train", "hydra/launcher=slurm", "--cfg", "hydra", "-p", "hydra.launcher", root=data_root)
+    assert "SlurmLauncher" in out and "tasks_per_node: ${trainer.devices}" in out and "max_num_timeout: 3" in out
