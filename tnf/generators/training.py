@@ -141,17 +141,15 @@ def fit(
         every_n_epochs=1,
         enable_version_counter=False,
     )
-    callbacks: list[Any] = [checkpoint, latest, QuietAdvice()]
-    if progress:
-        callbacks.append(RichProgressBar(leave=True))
     targs = dict(trainer_cfg)
     targs.setdefault("num_sanity_val_steps", 0)
     targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"))
-    if str(targs.get("accelerator", "auto")) != "cpu":
-        import torch
-
+    on_gpu = str(targs.get("accelerator", "auto")) != "cpu"
+    if on_gpu:
         targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
-        torch.set_float32_matmul_precision("high")  # TF32 for fp32 runs
+    callbacks: list[Any] = [checkpoint, latest, ProcessSetup(tf32=on_gpu)]
+    if progress:
+        callbacks.append(RichProgressBar(leave=True))
     trainer = L.Trainer(
         default_root_dir=str(run_dir),
         max_epochs=system.hparams["epochs"],
@@ -226,12 +224,23 @@ def quiet_advice() -> None:
     warnings.filterwarnings("ignore", ".*when logging on epoch level in distributed setting.*")
 
 
-class QuietAdvice(Callback):
-    """Applies ``quiet_advice`` in the process that trains (spawned DDP processes start with the default
-    warning filters, not the caller's)."""
+class ProcessSetup(Callback):
+    """Settings of the process that trains, applied there: spawned DDP processes start with the default
+    warning filters and matmul precision, not the caller's.
+
+    Args:
+        tf32: fp32 matrix products in TF32 (``torch.set_float32_matmul_precision("high")``) on GPUs.
+    """
+
+    def __init__(self, tf32: bool = False):
+        self.tf32 = tf32
 
     def setup(self, trainer: Any, pl_module: Any, stage: str) -> None:
         quiet_advice()
+        if self.tf32:
+            import torch
+
+            torch.set_float32_matmul_precision("high")
 
 
 def ddp_strategy(strategy: Any) -> Any:
