@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -128,3 +129,20 @@ def test_ddp_with_processes_started_by_torchrun(data_root):
     rows = epoch_rows(run_dir, "train/samples")
     assert all(float(r["train/samples"]) == 8 and float(r["train/rank_samples"]) == 4 for r in rows)
     assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".")]
+
+
+@pytest.mark.slow
+def test_diverged_ddp_run_stops_every_process_with_a_one_line_error(data_root):
+    folder = data_root / "pairs" / "digit-hashgrid"
+    write_pairs(folder, n=12)
+    depth = np.load(folder / "depth.npy", mmap_mode="r+")
+    depth[0, 60:68, 60:68] = np.nan  # a corrupt pair of the training split, in one process's shard
+    depth.flush()
+    env = {**os.environ, "TNF_DATA": str(data_root), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [sys.executable, "-m", "tnf.cli", "train", *TINY], capture_output=True, text=True, env=env, timeout=600
+    )
+    assert out.returncode == 1
+    assert "error: non-finite training loss" in out.stderr and "in DDP process" in out.stderr
+    assert "Traceback" not in out.stderr
+    assert not (data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").exists()
