@@ -184,7 +184,7 @@ def test_pipeline_on_imported_data(sim_and_user, tmp_path):
     _, user = sim_and_user
     root = tmp_path / "data"
     import_all(user, root)
-    stages = "pipeline.stages=[capture,fit-scene,pair,train,generate,evaluate]"  # touches imported above
+    stages = "pipeline.stages=[capture,fit-scene,touch,pair,train,generate,evaluate]"  # touch: already imported
     assert main(["pipeline", *captured(user, root, "experiment=real_capture", stages, "pair.render_px=32")]) == 0
     model = json.loads(next((root / "reports" / "real_capture" / "timings").glob("*.json")).read_text())["model"]
     for obj in OBJECTS_:  # tactile images generated from novel poses of both objects

@@ -62,6 +62,12 @@ def run(cfg: Any) -> None:
     if tc.radius <= 0:
         raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
     source, names = select(cfg)
+    if any(source.touches(n) is not None for n in names):  # the source's own tactile frames: imported, not simulated
+        from tnf.objects.captured import import_touches
+
+        for n in names:
+            console.print(import_touches(store, sensor, source, n, start_radius=float(tc.radius)))
+        return
     config = item_config(cfg, sensor)
     todo = [n for n in names if not store.is_done("touch", sensor.name, source.name, n, config=config)]
     for n in names:
