@@ -8,6 +8,11 @@ no renderer needed) or, with ``--object NAME``, a built-in object captured with 
 
 Writes ``<out>/<object>/`` (the dataset), ``<out>/<scene>-<object>/`` (scene.pt, metrics.json, preview.png)
 and ``<out>/<scene>-<object>.json`` (the figures printed). No network access is needed.
+
+Rendering only, of a scene fitted before (frames/s at 128 x 128 for batches of 64 poses, peak memory,
+samples per ray, and the difference to the dense quadrature over every sample):
+
+    python bench/scenes.py --device cuda --load bench-out/hashgrid-sphere
 """
 
 from __future__ import annotations
@@ -88,7 +93,13 @@ def main() -> None:
     ap.add_argument("--out", default="bench-scenes", help="output folder")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--eval-every", type=int, default=250, help="steps between test-PSNR checks (0: none)")
+    ap.add_argument("--load", default=None, help="a fitted scene (folder or scene.pt): measure rendering only")
+    ap.add_argument("--half", choices=["auto", "on", "off"], default="auto", help="float16 rendering (auto: CUDA)")
+    ap.add_argument("--compile", action="store_true", help="torch.compile the hash grid's rendering field")
     args = ap.parse_args()
+    if args.load:
+        render_only(args)
+        return
 
     import torch
     from PIL import Image
@@ -137,30 +148,8 @@ def main() -> None:
     save_scene(scene, run_dir)
     hit = [c for c in curve if c["psnr"] >= 30.0]
 
-    # Render speed: batches of views at render_size x render_size around the object.
-    from tnf.scenes import load_scene
-    from tnf.scenes.synthetic import sphere_poses
-
-    scene = load_scene(run_dir, args.device)
-    n, s = args.render_views, args.render_size
-    c2w = torch.tensor(sphere_poses(n, 2.2 * scene.bound, offset=0.123), dtype=torch.float32)
-    f = 0.5 * s / torch.tan(torch.tensor(0.5 * 0.7))
-    k = torch.tensor([f, f, s / 2, s / 2])
-    if args.device.startswith("cuda"):
-        torch.cuda.reset_peak_memory_stats()
-    scene.render_rgbd(c2w[:2], k, s, s, args.chunk)  # warm-up
-    _sync(args.device)
-    t0 = time.perf_counter()
-    reps = 0
-    while True:
-        scene.render_rgbd(c2w, k, s, s, args.chunk)
-        reps += 1
-        _sync(args.device)
-        if time.perf_counter() - t0 > 3.0 or reps >= 20:
-            break
-    fps = reps * n / (time.perf_counter() - t0)
-    render_peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
-
+    scene = load_scene_for_rendering(run_dir, args)
+    speed = measure_rendering(scene, args)
     import resource
 
     figures = {
@@ -177,15 +166,96 @@ def main() -> None:
         "ssim": round(metrics.get("ssim", float("nan")), 4),
         "depth_error_median_m": metrics.get("depth_error_median_m"),
         "depth_error_rel_object_size": metrics.get("depth_error_median_rel"),
-        "render_frames_per_s": round(fps, 1),
-        "render_size_px": s,
+        **speed,
         "peak_gpu_memory_fit_gib": fit_peak,
-        "peak_gpu_memory_render_gib": render_peak,
         "peak_cpu_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         f"train_seconds_for_{args.objects_in_paper}_objects": round(metrics["train_seconds"] * args.objects_in_paper),
         "scene_config": params,
     }
     (out / f"{args.scene}-{args.object}.json").write_text(json.dumps(figures, indent=2) + "\n")
+    for key, value in figures.items():
+        print(f"{key:>36}: {value}")
+
+
+def load_scene_for_rendering(path: str | Path, args: argparse.Namespace):
+    """The fitted scene at ``path`` on ``args.device`` with the rendering options of ``args``."""
+    from tnf.scenes import load_scene
+
+    scene = load_scene(path, args.device)
+    if hasattr(scene, "render_half"):
+        scene.render_half = {"auto": None, "on": True, "off": False}[args.half]
+        scene.render_compile = args.compile
+    return scene
+
+
+def measure_rendering(scene, args: argparse.Namespace) -> dict:
+    """Frames/s of batches of ``render_views`` poses at ``render_size`` px around the object, peak memory,
+    the march's counts per ray, and how far the renders are from the dense quadrature (every sample)."""
+    import torch
+
+    from tnf.scenes.fit import psnr
+    from tnf.scenes.render import camera_rays
+    from tnf.scenes.synthetic import sphere_poses
+
+    cuda = args.device.startswith("cuda")
+    n, s = args.render_views, args.render_size
+    c2w = torch.tensor(sphere_poses(n, 2.2 * scene.bound, offset=0.123), dtype=torch.float32)
+    f = 0.5 * s / torch.tan(torch.tensor(0.5 * 0.7))
+    k = torch.tensor([f, f, s / 2, s / 2])
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    scene.render_rgbd(c2w, k, s, s, args.chunk)  # warm-up (and compilation, if asked for)
+    _sync(args.device)
+    stats = getattr(scene, "march_stats", None)
+    if stats is not None:
+        stats.update({key: 0 for key in stats})
+    t0 = time.perf_counter()
+    reps = 0
+    while True:
+        out = scene.render_rgbd(c2w, k, s, s, args.chunk)
+        reps += 1
+        _sync(args.device)
+        if time.perf_counter() - t0 > 3.0 or reps >= 20:
+            break
+    fps = reps * n / (time.perf_counter() - t0)
+    figures: dict = {"render_frames_per_s": round(fps, 1), "render_size_px": s, "render_batch_views": n}
+    figures["peak_gpu_memory_render_gib"] = torch.cuda.max_memory_allocated() / 2**30 if cuda else None
+    if stats is not None and stats["rays"]:
+        figures["render_rays_reaching_object_box"] = round(stats["marched_rays"] / stats["rays"], 3)
+        figures["render_network_samples_per_ray"] = round(stats["samples"] / stats["rays"], 2)
+        figures["render_march_rounds_per_batch"] = round(stats["rounds"] / reps, 1)
+    # The same two frames by the dense quadrature over every sample the occupancy grid keeps (the
+    # differentiable pass of training), against the fast renderer's output.
+    if hasattr(scene, "march_stats"):
+        o, d, z = camera_rays(c2w[:2], k, s, s)
+        o, d = o.reshape(-1, 3).to(args.device), d.reshape(-1, 3).to(args.device)
+        with torch.enable_grad():
+            parts = [scene.render_rays(o[i : i + 8192], d[i : i + 8192]) for i in range(0, o.shape[0], 8192)]
+        dense_rgb = torch.cat([p["rgb"].detach() for p in parts]).reshape(2, s, s, 3).clamp(0, 1).cpu()
+        dense_depth = torch.cat([p["depth"].detach() for p in parts]).reshape(2, s, s).cpu() * z
+        fast_rgb, fast_depth = out["rgb"][:2].cpu(), out["depth"][:2].cpu()
+        figures["render_psnr_vs_dense_db"] = round(float(psnr(fast_rgb, dense_rgb).min()), 2)
+        figures["render_max_depth_diff_vs_dense_m"] = float((fast_depth - dense_depth).abs().max())
+    return figures
+
+
+def render_only(args: argparse.Namespace) -> None:
+    """``--load``: print the rendering figures of a fitted scene."""
+    import resource
+
+    import torch
+
+    if args.device.startswith("cuda"):
+        torch.backends.cuda.matmul.allow_tf32 = True
+    scene = load_scene_for_rendering(args.load, args)
+    figures = {
+        "scene": args.load,
+        "device": torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu",
+        "half": args.half,
+        "compile": args.compile,
+        **measure_rendering(scene, args),
+        "peak_cpu_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+    }
     for key, value in figures.items():
         print(f"{key:>36}: {value}")
 

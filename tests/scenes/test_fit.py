@@ -8,8 +8,9 @@ import torch
 
 from tnf.errors import TnfError
 from tnf.scenes import load_scene, save_scene
-from tnf.scenes.fit import FitSettings, build_scene, evaluate_scene, fit_object, fit_scene, read_views
-from tnf.scenes.synthetic import look_at, render_sphere, write_sphere_dataset
+from tnf.scenes.fit import FitSettings, build_scene, evaluate_scene, fit_object, fit_scene, psnr, read_views
+from tnf.scenes.render import camera_rays
+from tnf.scenes.synthetic import look_at, render_sphere, sphere_poses, write_sphere_dataset
 
 TINY = {
     "name": "hashgrid",
@@ -142,3 +143,53 @@ def test_carving_keeps_the_object_and_removes_seen_empty_space(dataset):
     assert scene.hull[r < 0.045].all()
     assert scene.hull[r > 0.08].float().mean() < 0.2
     assert 0.0 < kept < 0.5
+
+
+def _dense_and_marched(scene, c2w, k, w, h):
+    """The reference (Eq. 1 over every sample the occupancy grid keeps, the differentiable pass) and the
+    renderer's early-terminating march, both as z-depth images."""
+    o, d, z = camera_rays(c2w, k, w, h)
+    with torch.enable_grad():
+        dense = scene.render_rays(o.reshape(-1, 3), d.reshape(-1, 3))
+    dense = {key: dense[key].detach().reshape(-1, h, w, *dense[key].shape[1:]) for key in ("rgb", "depth", "opacity")}
+    dense["depth"] = dense["depth"] * z
+    return dense, scene.render_rgbd(c2w, k, w, h)
+
+
+def test_fast_render_equals_the_dense_quadrature(fitted):
+    out, _, _ = fitted
+    scene = load_scene(out)
+    c2w = torch.tensor(sphere_poses(3, 0.2, offset=0.3), dtype=torch.float32)
+    k = torch.tensor([28.0, 28.0, 12.0, 12.0])
+    dense, fast = _dense_and_marched(scene, c2w, k, 24, 24)
+    assert (fast["opacity"] > 0.5).float().mean() > 0.2  # the object is in view
+    # The march drops only light below the termination threshold (1e-4 of it).
+    assert (fast["rgb"] - dense["rgb"]).abs().max() < 1e-3
+    assert (fast["opacity"] - dense["opacity"]).abs().max() < 1e-3
+    assert (fast["depth"] - dense["depth"]).abs().max() < 1e-4  # metres
+
+
+def test_march_rounds_do_not_change_the_image(fitted):
+    out, _, _ = fitted
+    scene = load_scene(out)
+    c2w = torch.tensor(sphere_poses(2, 0.2, offset=0.7), dtype=torch.float32)
+    k = torch.tensor([28.0, 28.0, 12.0, 12.0])
+    one = scene.render_rgbd(c2w, k, 24, 24)
+    # Many small rounds (windows of 8 samples, 2 network samples each) and small chunks.
+    scene.march_window, scene.march_samples, scene.march_budget = 8, 2, 0
+    rounds = scene.render_rgbd(c2w, k, 24, 24, chunk=100)
+    for key in ("rgb", "depth", "opacity"):
+        assert torch.allclose(one[key], rounds[key], atol=1e-5), key
+
+
+def test_half_precision_render_is_close_to_float32(fitted):
+    out, _, _ = fitted
+    scene = load_scene(out)
+    c2w = torch.tensor(sphere_poses(2, 0.2, offset=0.1), dtype=torch.float32)
+    k = torch.tensor([28.0, 28.0, 12.0, 12.0])
+    full = scene.render_rgbd(c2w, k, 24, 24)
+    scene.render_half = True  # the CUDA default, forced on the CPU
+    half = scene.render_rgbd(c2w, k, 24, 24)
+    assert float(psnr(half["rgb"], full["rgb"]).min()) > 40.0
+    both = (full["opacity"] > 0.5) & (half["opacity"] > 0.5)
+    assert (half["depth"][both] - full["depth"][both]).abs().median() < 2e-4  # metres

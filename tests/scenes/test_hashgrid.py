@@ -5,6 +5,7 @@ import torch
 
 from tnf.registry import from_dict
 from tnf.scenes.hashgrid import PRIMES, HashEncoding, HashGridScene
+from tnf.scenes.render import ray_box
 
 
 def _encoding(**kw):
@@ -89,6 +90,11 @@ def test_march_matches_the_differentiable_pass(scene):
     with torch.no_grad():
         marched = scene.render_rays(o, d)
     assert torch.isfinite(marched["t_stop"]).any()  # some rays did stop early
+    # Every cell is occupied here, so the dense pass evaluates every sample inside the cube; the march
+    # sends the network only those before each ray became opaque.
+    near, far = ray_box(o, d, scene.bound)
+    n = ((far - near) / scene.step_size - 0.5).ceil().clamp(0, scene.cfg.samples_per_ray)
+    assert scene.march_stats["samples"] < 0.5 * float(n.sum())
     for k in ("rgb", "depth", "opacity"):
         assert torch.allclose(dense[k], marched[k], atol=1e-3), k
 
@@ -118,3 +124,21 @@ def test_gather_rows_gradient_matches_index_select():
     (table.index_select(0, idx) * w).sum().backward()
     assert torch.allclose(ours, table.grad, atol=1e-6)
     assert torch.equal(gather_rows(table, idx), table.index_select(0, idx))
+
+
+def test_warp_kernel_equals_the_pytorch_encoding():
+    from tnf.scenes import hash_kernel
+
+    if not hash_kernel.available(torch.device("cpu")):
+        pytest.skip("Warp does not run here")
+    enc = _encoding(levels=4, max_resolution=64)  # one direct level, three hashed
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(500, 3, generator=g)
+    x[:3] = torch.tensor([[1.0, 0.0, 1.0], [-0.2, 0.5, 1.3], [0.25, 0.5, 0.75]])  # faces, outside, vertices
+    with torch.no_grad():
+        ref = enc(x)
+        out = hash_kernel.hash_encode(x, enc.table, enc.res, enc.n_dense, enc.table_size)
+        half = hash_kernel.hash_encode(x, enc.table.half(), enc.res, enc.n_dense, enc.table_size)
+    assert enc.n_dense == 1 and out.shape == ref.shape == (500, 8)
+    assert torch.allclose(out, ref, atol=1e-5)
+    assert torch.allclose(half, ref, atol=5e-3)  # float16 rows: 3 significant digits

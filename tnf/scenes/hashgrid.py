@@ -9,6 +9,8 @@ samples near the surface cost a hash-grid lookup.
 from __future__ import annotations
 
 import math
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -16,7 +18,7 @@ import torch
 from torch import nn
 
 from tnf.registry import SCENES
-from tnf.scenes.render import EMPTY_OPACITY, FieldScene, RayOutput, ray_box, volume_render
+from tnf.scenes.render import EMPTY_OPACITY, FieldScene, RayOutput, ray_aabb, ray_box, volume_render
 
 # Instant-NGP's spatial hash primes (the first is 1 so that x varies fastest, for cache coherence).
 PRIMES = (1, 2654435761, 805459861)
@@ -93,7 +95,13 @@ class HashEncoding(nn.Module):
         idx = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
         return idx + self.level_offset.view(1, -1, 1, 1, 1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, table: torch.Tensor | None = None) -> torch.Tensor:
+        """Features [P, L * F] at positions x [P, 3] in [0, 1]^3.
+
+        ``table``: rows read instead of the trainable table, without gradients (rendering passes a
+        half-precision copy); the output has its dtype. Cell coordinates stay float32 either way: the
+        finest levels need more bits than half precision has.
+        """
         P = x.shape[0]
         scaled = x.clamp(0.0, 1.0).unsqueeze(1) * self.res.view(1, -1, 1)  # [P, L, 3]
         base = scaled.floor()
@@ -104,7 +112,11 @@ class HashEncoding(nn.Module):
         # Trilinear weights, broadcast the same way as the corners.
         w = [torch.stack([1.0 - frac[..., a], frac[..., a]], dim=-1) for a in range(3)]
         weights = w[0][..., :, None, None] * w[1][..., None, :, None] * w[2][..., None, None, :]
-        feats = gather_rows(self.table, idx.reshape(-1)).view(P, self.levels, 8, self.features)
+        if table is None:
+            feats = gather_rows(self.table, idx.reshape(-1))
+        else:
+            feats, weights = table.index_select(0, idx.reshape(-1)), weights.to(table.dtype)
+        feats = feats.view(P, self.levels, 8, self.features)
         out = (feats * weights.reshape(P, self.levels, 8, 1)).sum(2)
         return out.reshape(P, -1)
 
@@ -251,6 +263,9 @@ class HashGridScene(FieldScene):
         self.register_buffer("occupied", torch.ones(G**3, dtype=torch.bool))
         # Cells inside the visual hull of the training masks (all, until ``carve`` is called).
         self.register_buffer("hull", torch.ones(G**3, dtype=torch.bool))
+        #: Counts of the rendering march, accumulated (reset it to measure): rays rendered, rays that reach
+        #: the occupied box, march rounds, samples sent to the network.
+        self.march_stats = {"rays": 0, "marched_rays": 0, "rounds": 0, "samples": 0}
 
     # -- field --------------------------------------------------------------------------------------
     def _normalise(self, pos: torch.Tensor) -> torch.Tensor:
@@ -386,58 +401,210 @@ class HashGridScene(FieldScene):
         out = volume_render(sigma, rgb, t, valid.float() * dt, bg)
         return {"rgb": out["rgb"], "depth": out["depth"], "opacity": out["opacity"]}
 
-    #: Samples per ray marched at once without gradients; rays that are opaque by then stop.
-    march_segment: int = 32
-    default_chunk = 1 << 16
-    #: Transmittance below which a ray stops.
+    # -- rendering without gradients -----------------------------------------------------------------
+    #: Rays per rendering chunk (32 frames of 128 x 128).
+    default_chunk = 1 << 19
+    #: Transmittance below which a ray stops (early ray termination).
     min_transmittance: float = 1e-4
+    #: Samples per ray whose occupancy a march round looks up at least (a cheap test, no network).
+    march_window: int = 64
+    #: Occupied samples per ray a march round sends to the network at least.
+    march_samples: int = 16
+    #: Samples looked up per round over all rays; rounds with fewer rays left look further along each
+    #: (fewer rounds, which matters on a GPU). None: 2^25 on CUDA, 2^20 on the CPU.
+    march_budget: int | None = None
+    #: Samples per network evaluation while rendering (bounds the hash encoding's memory).
+    field_chunk: int = 1 << 19
+    #: Half precision (float16) for the hash table and MLPs while rendering: None = on CUDA only.
+    render_half: bool | None = None
+    #: The hash encoding by one Warp kernel while rendering (``hash_kernel``; far less memory traffic than
+    #: the PyTorch encoding's [P, L, 8] tensors): None = wherever Warp runs, else the PyTorch encoding.
+    render_kernel: bool | None = None
+    #: Compile the rendering field with ``torch.compile`` (fuses the hash encoding's element-wise work on
+    #: CUDA); falls back to eager with a warning when compiling fails. Off by default: compiling takes
+    #: a while on the first render.
+    render_compile: bool = False
+
+    def _occupied_box(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Corners [3], [3] (metres) of the box around the occupied cells; None when none is occupied.
+
+        Cached until the occupancy grid changes (training refreshes it; loading a checkpoint replaces it).
+        """
+        key = (self.occupied.data_ptr(), self.occupied._version, self.bound)
+        cached = getattr(self, "_box_cache", None)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        G = self.cfg.occupancy_resolution
+        cells = self.occupied.view(G, G, G).nonzero()
+        box = None
+        if cells.numel() > 0:
+            size = 2.0 * self.bound / G
+            box = (cells.amin(0) * size - self.bound, (cells.amax(0) + 1) * size - self.bound)
+            box = (box[0].float(), box[1].float())
+        self._box_cache = (key, box)
+        return box
+
+    def _render_table(self, half: bool) -> torch.Tensor:
+        """The hash table to render with: a float16 copy (kept until the table changes) or the table."""
+        table = self.encoding.table
+        if not half:
+            return table.detach()
+        key = (table.data_ptr(), table._version, table.device)
+        cached = getattr(self, "_half_table", None)
+        if cached is None or cached[0] != key:
+            cached = (key, table.detach().half())
+            self._half_table = cached
+        return cached[1]
+
+    def _render_field(
+        self, pos: torch.Tensor, sh: torch.Tensor, table: torch.Tensor, half: bool
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``field`` without gradients: density [P] and colour [P, 3] (float32) at positions [P, 3], with the
+        spherical harmonics of the view directions [P, 16] computed once per ray by the caller."""
+        x = self._normalise(pos)
+        with torch.autocast(pos.device.type, dtype=torch.float16, enabled=half):
+            if self._use_kernel(pos.device):
+                from tnf.scenes.hash_kernel import hash_encode
+
+                enc = self.encoding
+                features = hash_encode(x, table, enc.res, enc.n_dense, enc.table_size)
+            else:
+                features = self.encoding(x, table)
+            h = self.density_net(features)
+            rgb = self.color_net(torch.cat([sh.to(h.dtype), h[:, 1:]], dim=-1))
+        sigma = torch.exp((h[:, 0].float() - 1.0).clamp(max=15.0))
+        return sigma, torch.sigmoid(rgb.float())
+
+    def _use_kernel(self, device: torch.device) -> bool:
+        if self.render_kernel is False:
+            return False
+        from tnf.scenes import hash_kernel
+
+        ok = hash_kernel.available(device)
+        if self.render_kernel and not ok:
+            raise RuntimeError(f"render_kernel is set but Warp cannot run on {device}")
+        return ok
+
+    def _field_fn(self) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+        """``_render_field``, compiled once when ``render_compile`` is set."""
+        if not self.render_compile:
+            return self._render_field
+        fn = getattr(self, "_compiled_field", None)
+        if fn is None:
+            fn = torch.compile(self._render_field, dynamic=True)
+            self._compiled_field = fn
+        return fn
+
+    def _eval_field(self, pos, sh, table, half) -> tuple[torch.Tensor, torch.Tensor]:
+        fn = self._field_fn()
+        if fn is self._render_field:
+            return fn(pos, sh, table, half)
+        try:
+            return fn(pos, sh, table, half)
+        except Exception as e:  # a compiler or backend failure must not stop rendering
+            msg = f"torch.compile of the hash-grid field failed ({type(e).__name__}: {e}); rendering eagerly"
+            warnings.warn(msg, stacklevel=2)
+            self.render_compile = False
+            return self._render_field(pos, sh, table, half)
 
     @torch.no_grad()
     def _march(self, origins, dirs, near, far, offset, bg) -> RayOutput:
-        """The same quadrature as ``volume_render``, segment by segment, dropping rays once opaque.
+        """The quadrature of ``volume_render`` over the same samples as the differentiable pass (sample n of
+        a ray at ``near + (n + offset) * step_size``), evaluating only what can change the result.
+
+        Rays that miss the box around the occupied cells are empty. The others are marched in rounds: a
+        round looks up the occupancy of the next samples of every ray (a window of at least
+        ``march_window``), sends the first ``march_samples`` occupied ones (twice as many each round) to
+        the network in one batch, composites them in order, and drops the rays whose transmittance fell
+        below ``min_transmittance`` or that left the box. So the network sees only occupied samples in
+        front of each ray's surface, and the count of operations depends on the rounds, not the samples.
 
         Returns rgb [R, 3], depth [R] (distance), opacity [R] and t_stop [R], the distance after which the
         remaining samples carry less than ``min_transmittance`` of the light (inf for rays that never stop).
         """
-        R, N, S, dt = origins.shape[0], self.cfg.samples_per_ray, self.march_segment, self.step_size
+        R, N, dt = origins.shape[0], self.cfg.samples_per_ray, self.step_size
         dev = origins.device
-        trans = torch.ones(R, device=dev)
-        acc_rgb = torch.zeros(R, 3, device=dev)
-        acc_t = torch.zeros(R, device=dev)
+        # Per ray: transmittance, accumulated colour (3) and accumulated distance.
+        acc = torch.zeros(R, 5, device=dev)
+        acc[:, 0] = 1.0
         t_stop = torch.full((R,), float("inf"), device=dev)
-        active = (far > near).nonzero(as_tuple=True)[0]
-        for start in range(0, N, S):
-            if active.numel() == 0:
-                break
-            n = min(S, N - start)
-            t = near[active, None] + (torch.arange(start, start + n, device=dev) + offset[active]) * dt  # [A, n]
-            valid = t < far[active, None]
-            ai, si = valid.nonzero(as_tuple=True)
-            pos = origins[active[ai]] + t[ai, si].unsqueeze(-1) * dirs[active[ai]]
-            keep = self.occupied[self._cell_index(pos)]
-            ai, si, pos = ai[keep], si[keep], pos[keep]
-            A = active.numel()
-            tau = torch.zeros(A, n, device=dev)
-            rgb = torch.zeros(A, n, 3, device=dev)
-            if ai.numel() > 0:
-                sg, c = self.field(pos, dirs[active[ai]])
-                tau[ai, si] = sg * dt
-                rgb[ai, si] = c
-            t_before = trans[active]
-            local = torch.exp(-(torch.cumsum(tau, dim=1) - tau)) * t_before.unsqueeze(1)  # transmittance
-            w = (1.0 - torch.exp(-tau)) * local
-            acc_rgb[active] += (w.unsqueeze(-1) * rgb).sum(1)
-            acc_t[active] += (w * t).sum(1)
-            t_after = t_before * torch.exp(-tau.sum(1))
-            trans[active] = t_after
-            done = t_after < self.min_transmittance
-            if done.any():
-                # The first sample after which the transmittance is below the threshold.
-                below = (local * torch.exp(-tau)) < self.min_transmittance
-                first = below.float().argmax(dim=1)
-                t_stop[active[done]] = t[done].gather(1, first[done].unsqueeze(1))[:, 0]
-            # Rays leave when opaque or when they have left the cube.
-            active = active[~done & valid[:, -1]]
+        self.march_stats["rays"] += R
+        box = self._occupied_box()
+        if box is not None and R > 0:
+            half = self.render_half if self.render_half is not None else dev.type == "cuda"
+            table = self._render_table(half)
+            budget = self.march_budget if self.march_budget is not None else 1 << (25 if dev.type == "cuda" else 20)
+            G, b = self.cfg.occupancy_resolution, self.bound
+            cell_stride = torch.tensor([G * G, G, 1], device=dev, dtype=torch.int32)
+            # Sample numbers [first, end) of each ray that lie in the occupied box, with a sample of margin:
+            # samples outside it are in empty cells, which the dense pass skips too.
+            box_in, box_out = ray_aabb(origins, dirs, box[0], box[1])
+            off = offset[:, 0]
+            first = (((box_in - near) / dt - off).floor() - 1).clamp(0, N)
+            end = (((torch.minimum(box_out, far) - near) / dt - off).ceil() + 1).clamp(0, N)
+            act = ((box_out > box_in) & (end > first)).nonzero()[:, 0]
+            # What a round needs of each active ray, packed so that dropping rays is one indexing per
+            # tensor: ray = origin (3), direction (3), near, far, offset, the direction's spherical
+            # harmonics (16); state = next and end sample numbers (floats: exact below 2^24), then ``acc``.
+            o, d = origins[act], dirs[act]
+            ray = torch.cat([o, d, near[act, None], far[act, None], off[act, None], spherical_harmonics(d)], 1)
+            state = torch.cat([first[act, None], end[act, None], acc[act]], dim=1)
+            stats = self.march_stats
+            stats["marched_rays"] += act.numel()
+            rounds = 0
+            while act.numel() > 0:
+                A = act.numel()
+                stats["rounds"] += 1
+                # Rays still going after a round are seldom opaque: each round sends twice the samples
+                # of the last (so at most twice what a ray needs), and looks further when few rays are left.
+                W = int(min(N, max(self.march_window, budget // A)))
+                K = int(min(W, self.march_samples << min(rounds, 16)))
+                rounds += 1
+                o, d, n0, n1, off_a, sh = ray[:, 0:3], ray[:, 3:6], ray[:, 6:7], ray[:, 7:8], ray[:, 8:9], ray[:, 9:]
+                ptr, end_a, tr = state[:, 0:1], state[:, 1:2], state[:, 2]
+                ar = torch.arange(W, device=dev, dtype=torch.float32)
+                j = ptr + ar  # [A, W] sample numbers
+                t = n0 + (j + off_a) * dt
+                # Occupancy of each sample: the arithmetic of ``_cell_index``.
+                pos = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
+                cell = ((pos + b) / (2.0 * b) * G).to(torch.int32).clamp_(0, G - 1)
+                occ = self.occupied[(cell * cell_stride).sum(-1)] & (j < end_a) & (t < n1)
+                del pos, cell
+                # The first K occupied samples of each ray, in order: slot = their rank among them.
+                rank = occ.cumsum(1, dtype=torch.int32)
+                sel = occ & (rank <= K)
+                ai, si = sel.nonzero(as_tuple=True)
+                slot = (rank[ai, si] - 1).long()
+                stats["samples"] += ai.numel()
+                tau = torch.zeros(A, K, device=dev)
+                rgb = torch.zeros(A, K, 3, device=dev)
+                ts = torch.zeros(A, K, device=dev)
+                for c in range(0, ai.numel(), self.field_chunk):
+                    a, s, k = ai[c : c + self.field_chunk], si[c : c + self.field_chunk], slot[c : c + self.field_chunk]
+                    tk = t[a, s]
+                    sg, rg = self._eval_field(o[a] + tk.unsqueeze(-1) * d[a], sh[a], table, half)
+                    tau[a, k] = sg * dt
+                    rgb[a, k] = rg
+                    ts[a, k] = tk
+                # Eq. 1 over the K slots, continuing the transmittance the ray brought into this round.
+                csum = tau.cumsum(1)
+                local = torch.exp(-(csum - tau)) * tr[:, None]
+                w = (1.0 - torch.exp(-tau)) * local
+                state[:, 3:6] += (w.unsqueeze(-1) * rgb).sum(1)
+                state[:, 6] += (w * ts).sum(1)
+                state[:, 2] = tr * torch.exp(-csum[:, -1])
+                # The next round starts after the K-th occupied sample, or after the window if it had fewer.
+                last = torch.where(sel, ar + 1, 0).amax(1)
+                state[:, 0] += torch.where(rank[:, -1] > K, last, W)
+                opaque = state[:, 2] < self.min_transmittance
+                # Where an opaque ray stopped: its first sample after which the transmittance is too low.
+                below = local * torch.exp(-tau) < self.min_transmittance
+                stop = ts.gather(1, below.float().argmax(1, keepdim=True))[:, 0]
+                acc[act] = state[:, 2:]
+                t_stop[act] = torch.where(opaque, stop, t_stop[act])
+                go = (~opaque & (state[:, 0] < state[:, 1])).nonzero()[:, 0]
+                act, ray, state = act[go], ray[go], state[go]
+        trans, acc_rgb, acc_t = acc[:, 0], acc[:, 1:4], acc[:, 4]
         opacity = 1.0 - trans
         depth = acc_t / opacity.clamp_min(1e-10)
         depth = torch.where(opacity > EMPTY_OPACITY, depth, torch.zeros_like(depth))

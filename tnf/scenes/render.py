@@ -100,15 +100,23 @@ def volume_render(
     return {"rgb": color, "depth": depth, "opacity": opacity, "weights": weights}
 
 
-def ray_box(origins: torch.Tensor, dirs: torch.Tensor, bound: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Entry and exit distances [R] of rays through the cube [-bound, bound]^3; exit <= entry on a miss."""
+def ray_aabb(
+    origins: torch.Tensor, dirs: torch.Tensor, lo: torch.Tensor | float, hi: torch.Tensor | float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distances [R] of rays (origins [R, 3], dirs [R, 3]) through the axis-aligned box
+    ``[lo, hi]`` (corners [3] or scalars, metres); entry is clamped at 0; exit <= entry on a miss."""
     safe = torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
     inv = 1.0 / safe
-    t0 = (-bound - origins) * inv
-    t1 = (bound - origins) * inv
+    t0 = (lo - origins) * inv
+    t1 = (hi - origins) * inv
     near = torch.minimum(t0, t1).amax(-1).clamp_min(0.0)
     far = torch.maximum(t0, t1).amin(-1)
     return near, far
+
+
+def ray_box(origins: torch.Tensor, dirs: torch.Tensor, bound: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distances [R] of rays through the cube [-bound, bound]^3; exit <= entry on a miss."""
+    return ray_aabb(origins, dirs, -bound, bound)
 
 
 class FieldScene(Scene):
@@ -150,6 +158,13 @@ class FieldScene(Scene):
         chunk: int | None = None,
     ) -> RGBD:
         """Render B views: c2w [B, 4, 4] (or [4, 4]), intrinsics [B, 4] or [4]; ``chunk`` rays per batch."""
+        # Inference mode rather than no_grad saves bookkeeping on each of the many small operations of a
+        # ray march; the results are copied out of it, since inference tensors cannot enter autograd later.
+        with torch.inference_mode():
+            out = self._render_views(c2w, intrinsics, width, height, chunk)
+        return {"rgb": out["rgb"].clone(), "depth": out["depth"].clone(), "opacity": out["opacity"].clone()}
+
+    def _render_views(self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, chunk: int | None):
         dev = self.background.device
         c2w = c2w.to(dev)
         origins, dirs, z_scale = camera_rays(c2w, intrinsics.to(dev), width, height)
