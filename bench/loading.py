@@ -6,12 +6,15 @@
 Building writes random images through ``PairWriter`` in object-sized chunks, as ``tnf pair`` assembles its
 caches. Loading reads from the page cache (one warm-up epoch first) with ``PairDataModule``'s loader and
 converts to float32 [-1, 1] tensors; with ``--device cuda`` each batch is also copied to the GPU.
-Prints build time, peak RSS while building, loading pairs/s and peak RSS while loading.
+Prints build time, peak RSS while building, loading pairs/s and peak RSS while loading, and the machine's
+load average (other processes slow every figure; with a busy machine ``--threads 1`` beats 2). Pairs per
+CPU-second of the loading process (all its threads; workers not counted) depend less on the other processes.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import shutil
 import tempfile
@@ -64,6 +67,19 @@ def build(folder: Path, n: int, per_object: int) -> tuple[float, float]:
     return time.perf_counter() - t0, peak
 
 
+def write_floor(batch_size: int, repeats: int = 30) -> float:
+    """Pairs/s at which this process can allocate and write the float32 tensors of a batch once (7 channels of
+    128 x 128 per pair): an upper bound for any loader that serves float batches."""
+    shapes = [(batch_size, 128, 128, 3), (batch_size, 1, 128, 128), (batch_size, 128, 128, 3)]
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for shape in shapes:
+            torch.empty(shape).fill_(0.5)
+        times.append(time.perf_counter() - t0)
+    return batch_size / float(np.median(times))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pairs", type=int, default=13500, help="pairs in the dataset")
@@ -91,6 +107,11 @@ def main() -> None:
         from tnf.data import PairDataModule
 
         cuda = args.device.startswith("cuda")
+        floor = write_floor(args.batch_size)
+        print(
+            f"floor: {floor:,.0f} pairs/s to allocate and fill a float batch once (rgb, depth, tactile; the "
+            "background is one shared image), no reading or converting"
+        )
         for compact in (False, True):
             dm = PairDataModule(
                 [folder],
@@ -117,14 +138,16 @@ def main() -> None:
                 return n
 
             epoch()  # warm-up: pages into the cache, workers started
-            t0 = time.perf_counter()
+            t0, cpu0 = time.perf_counter(), time.process_time()
             n = sum(epoch() for _ in range(args.epochs))
-            secs = time.perf_counter() - t0
+            secs, cpu = time.perf_counter() - t0, time.process_time() - cpu0
             mode = "compact batches, converted on " + args.device if compact else "float batches from the loader"
             print(
-                f"load ({mode}): {n / secs:,.0f} pairs/s (batch {args.batch_size}, workers {args.workers}, "
+                f"load ({mode}): {n / secs:,.0f} pairs/s, {n / cpu:,.0f} pairs per CPU-second of the main process "
+                f"(batch {args.batch_size}, workers {args.workers}, "
                 f"threads {args.threads}); RSS {rss_before:.0f} -> peak {peak:.0f} MiB in the main process "
-                f"(anonymous, i.e. not the memory-mapped arrays: {anon_mib():.0f} MiB)"
+                f"(anonymous, i.e. not the memory-mapped arrays: {anon_mib():.0f} MiB); "
+                f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores"
             )
             del loader, dm
     finally:

@@ -190,3 +190,88 @@ def test_compact_batches_convert_to_the_same_floats(tmp_path):
     dm = PairDataModule([tmp_path / "ds"], batch_size=4, convert_on_device=True)
     batch = dm.on_after_batch_transfer(next(iter(dm.val_dataloader())), 0)
     assert batch["rgb"].dtype == torch.float32 and batch["rgb"].shape == (2, 3, 128, 128)
+
+
+def _rows_of_object(ds, ref, obj):
+    return [j for j, row in enumerate(ds.index) if ref["object_id"][row] == obj]
+
+
+def test_one_background_batches_share_it_and_augment_copies_it(tmp_path):
+    from tnf.data import to_float_batch
+
+    ref = make_dataset(tmp_path / "ds")
+    ds = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view"))
+    idx = _rows_of_object(ds, ref, 1)  # object b: all pairs have background 1
+    batch = ds.__getitems__(idx)
+    expect_bg = torch.from_numpy(ref["backgrounds"][1]).permute(2, 0, 1).float() / 127.5 - 1
+    for i in range(len(idx)):
+        torch.testing.assert_close(batch["background"][i], expect_bg)
+        for k, v in ds[idx[i]].items():
+            torch.testing.assert_close(batch[k][i], v)
+    compact = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view"), compact=True).__getitems__(idx)
+    for k, v in to_float_batch(compact).items():
+        torch.testing.assert_close(v, batch[k])
+    # Augmenting flips each pair's background on its own (the shared image is copied, not flipped for all).
+    torch.manual_seed(3)
+    aug = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view"), augment=True).__getitems__(idx)
+    flips = [lambda x: x, lambda x: x.flip(-1), lambda x: x.flip(-2), lambda x: x.flip(-1).flip(-2)]
+    used = set()
+    for i in range(len(idx)):
+        f = next(j for j, f in enumerate(flips) if torch.equal(f(batch["tactile"][i]), aug["tactile"][i]))
+        used.add(f)
+        assert torch.equal(flips[f](batch["background"][0]), aug["background"][i])
+    assert len(used) > 1  # seed 3 flips some pairs and not others
+    torch.testing.assert_close(ds[idx[0]]["background"], expect_bg)  # the dataset's own copy is untouched
+
+
+def test_worker_batches_equal_main_process_batches(tmp_path):
+    from tnf.data import PairDataModule
+
+    make_dataset(tmp_path / "sim", objects=("a", "b", "c"))
+    make_dataset(tmp_path / "gen", objects=("b", "d"), novel=(), seed=1)
+    for compact in (False, True):
+        kw = dict(batch_size=5, convert_on_device=compact)
+        main = list(PairDataModule([tmp_path / "sim", tmp_path / "gen"], **kw).val_dataloader())
+        dm = PairDataModule([tmp_path / "sim", tmp_path / "gen"], num_workers=1, **kw)
+        workers = list(dm.val_dataloader())
+        assert len(main) == len(workers) > 0
+        for a, b in zip(main, workers):
+            for k in a:
+                torch.testing.assert_close(a[k], b[k])
+            conv = dm.on_after_batch_transfer(b, 0)
+            assert conv["rgb"].dtype == torch.float32 and conv["background"].shape == conv["rgb"].shape
+
+
+def test_mixed_batches_equal_the_parts_items(tmp_path):
+    from tnf.data import MixedPairDataset
+
+    make_dataset(tmp_path / "sim", objects=("a", "b", "c"))
+    make_dataset(tmp_path / "gen", objects=("b", "d"), novel=(), seed=1)
+    names = ["a", "b", "c", "d"]
+    parts = [PairDataset(tmp_path / f, object_names=names) for f in ("sim", "gen")]
+    mixed = MixedPairDataset(parts)
+    idx = [len(parts[0]) + 1, 0, 3, len(parts[0])]
+    batch = mixed.__getitems__(idx)
+    for j, i in enumerate(idx):
+        part, local = (parts[0], i) if i < len(parts[0]) else (parts[1], i - len(parts[0]))
+        for k, v in part[local].items():
+            torch.testing.assert_close(batch[k][j], v)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="pinned memory needs a GPU")
+def test_pinned_batches_with_a_shared_background(tmp_path):
+    from torch.utils.data import DataLoader
+
+    from tnf.data import collate_pairs
+
+    ref = make_dataset(tmp_path / "ds")
+    for compact in (False, True):
+        ds = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view"), compact=compact)
+        idx = _rows_of_object(ds, ref, 1)  # one background for the whole batch
+        loader = DataLoader(ds, batch_size=len(idx), sampler=idx, pin_memory=True, collate_fn=collate_pairs)
+        batch = next(iter(loader))
+        plain = ds.__getitems__(idx)
+        for k, v in batch.items():
+            assert v.is_pinned(), k
+            assert torch.equal(v, plain[k])
+            assert torch.equal(v.to("cuda", non_blocking=True).cpu(), plain[k])

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset, default_collate
+from torch.utils.data import Dataset, default_collate, get_worker_info
 
 from tnf.data.splits import SPLITS, split_code
 from tnf.data.store import PairArrays, open_pairs
@@ -17,14 +17,65 @@ from tnf.errors import TnfError
 Batch = dict[str, torch.Tensor]
 
 
-def _to_unit_range(x: np.ndarray) -> torch.Tensor:
+class PairBatch(dict):  # type: ignore[type-arg]
+    """A batch dict whose images shared by the whole batch (stride-0 expanded backgrounds) stay shared when a
+    ``DataLoader(pin_memory=True)`` pins it: ``Tensor.pin_memory`` keeps strides and cannot copy into an
+    expanded tensor, so the one shared image is pinned and expanded again."""
+
+    def pin_memory(self) -> PairBatch:
+        out = PairBatch()
+        for k, v in self.items():
+            if v.ndim > 0 and len(v) > 1 and v.stride(0) == 0:
+                out[k] = v[:1].pin_memory().expand(v.shape)
+            else:
+                out[k] = v.pin_memory()
+        return out
+
+
+def _batch_tensor(shape: Sequence[int], dtype: torch.dtype) -> torch.Tensor:
+    """An uninitialised CPU tensor for a batch; in a DataLoader worker, in shared memory.
+
+    A worker sends a batch to the main process through shared memory: a tensor allocated there from the start
+    goes as a handle, any other is first copied into a new shared segment (a second write of every byte).
+    """
+    if get_worker_info() is None:
+        return torch.empty(tuple(shape), dtype=dtype)
+    numel = int(np.prod(shape))
+    storage = torch.UntypedStorage._new_shared(numel * dtype.itemsize)
+    return torch.empty(0, dtype=dtype).set_(storage).view(tuple(shape))
+
+
+def _take_rows(array: np.ndarray, rows: np.ndarray) -> torch.Tensor:
+    """``array[rows]`` (one copy out of the memory map) as a tensor, in shared memory inside a worker."""
+    dtype = torch.from_numpy(np.empty(0, dtype=array.dtype)).dtype
+    out = _batch_tensor((len(rows), *array.shape[1:]), dtype)
+    np.take(array, rows, axis=0, out=out.numpy())
+    return out
+
+
+def _to_unit_range(x: np.ndarray | torch.Tensor) -> torch.Tensor:
     """uint8 [B, H, W, C] -> float32 [B, C, H, W] in [-1, 1], in channels-last memory layout.
 
     Converting in place of the stored HWC order avoids a transposing copy (about 2x faster on a CPU);
     convolutions take channels-last tensors as they are, ``.contiguous()`` gives the NCHW layout.
+    The cast and two in-place passes are memory-bound; the one-pass forms (``torch.add`` with ``alpha``,
+    ``addcmul``) use a fused multiply-add that maps 255 to 1 + 1.2e-7, outside [-1, 1], and a 256-entry
+    lookup table (a gather) is several times slower.
     """
-    t = torch.from_numpy(x if x.flags.writeable else np.array(x))
-    return t.float().mul_(2.0 / 255.0).sub_(1.0).permute(0, 3, 1, 2)
+    t = torch.from_numpy(x) if isinstance(x, np.ndarray) else x
+    cpu = t.device.type == "cpu"
+    out = _batch_tensor(t.shape, torch.float32) if cpu else torch.empty(t.shape, dtype=torch.float32, device=t.device)
+    return out.copy_(t).mul_(2.0 / 255.0).sub_(1.0).permute(0, 3, 1, 2)
+
+
+def _gather_backgrounds(backgrounds: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``backgrounds[index]`` for a batch: when the batch has one background (one sensor), a stride-0
+    expanded view of it instead of a copy per pair. Nothing writes into batches in place except
+    ``augment_batch``, which makes its own copy first."""
+    first = index[:1]
+    if len(index) > 1 and bool((index == first).all()):
+        return backgrounds[first].expand(len(index), *backgrounds.shape[1:])
+    return backgrounds[index]
 
 
 class PairDataset(Dataset):
@@ -33,7 +84,9 @@ class PairDataset(Dataset):
     Items (``ds[i]``) and batches (``ds.__getitems__(indices)``, which ``DataLoader`` calls with a whole
     batch of indices) are dicts of float32 tensors in [-1, 1]: ``rgb`` [3, 128, 128], ``depth``
     [1, 128, 128] (-1 nearest, 1 far or empty), ``background`` [3, 128, 128], ``tactile`` [3, 128, 128];
-    plus ``object_id`` (long; index into ``object_names``). Batches have a leading batch dimension.
+    plus ``object_id`` (long; index into ``object_names``). Batches have a leading batch dimension; when all
+    pairs of a batch share one background (one sensor), ``background`` is a stride-0 expanded view of it:
+    read it freely, but call ``.contiguous()`` before writing into it in place (``augment_batch`` does).
 
     Args:
         folder: a dataset folder (``<root>/pairs/<name>``).
@@ -82,9 +135,9 @@ class PairDataset(Dataset):
                 rows, np.asarray(self.arrays.object_id), np.asarray(self.arrays.touch_index), per_object, seed
             )
         self.index = rows.astype(np.int64)
-        # Backgrounds are few: convert once, then a batch is one gather.
-        self._backgrounds_u8 = np.array(self.arrays.backgrounds)
-        self._backgrounds_hwc = _to_unit_range(self._backgrounds_u8).permute(0, 2, 3, 1)  # [K, H, W, 3]
+        # Backgrounds are few (one per sensor): convert once; a batch gets a view of them, not copies.
+        self._backgrounds_u8 = torch.from_numpy(np.array(self.arrays.backgrounds))  # [K, H, W, 3]
+        self._backgrounds = _to_unit_range(self._backgrounds_u8)  # [K, 3, H, W] float32
         self._bg_index = torch.from_numpy(np.asarray(self.arrays.background_index).astype(np.int64))
         self._object_id = torch.from_numpy(np.asarray(self.arrays.object_id).astype(np.int64))
 
@@ -107,19 +160,25 @@ class PairDataset(Dataset):
         rows_t = torch.from_numpy(rows)
         # (Advanced indexing, not index_select: the latter is far slower for large rows on the CPU.)
         object_id = self._id_map[self._object_id[rows_t]]
+        bg_index = self._bg_index[rows_t]
         if self.compact:
-            return {
-                "rgb": torch.from_numpy(a.rgb[rows]),
-                "depth": torch.from_numpy(a.depth[rows]),
-                "background": torch.from_numpy(self._backgrounds_u8[a.background_index[rows]]),
-                "tactile": torch.from_numpy(a.tactile[rows]),
-                "object_id": object_id,
-            }
+            return PairBatch(
+                {
+                    "rgb": _take_rows(a.rgb, rows),
+                    "depth": _take_rows(a.depth, rows),
+                    "background": _gather_backgrounds(self._backgrounds_u8, bg_index),
+                    "tactile": _take_rows(a.tactile, rows),
+                    "object_id": object_id,
+                }
+            )
+        # One fancy index per array and batch (a copy out of the page cache), then the float conversion.
         rgb = _to_unit_range(a.rgb[rows])
         tactile = _to_unit_range(a.tactile[rows])
-        depth = torch.from_numpy(a.depth[rows]).unsqueeze(1).float().mul_(2.0).sub_(1.0)
-        background = self._backgrounds_hwc[self._bg_index[rows_t]].permute(0, 3, 1, 2)
-        batch = {"rgb": rgb, "depth": depth, "background": background, "tactile": tactile, "object_id": object_id}
+        depth = _batch_tensor((len(rows), 1, *a.depth.shape[1:]), torch.float32)
+        depth[:, 0].copy_(torch.from_numpy(a.depth[rows]))
+        depth.mul_(2.0).sub_(1.0)
+        background = _gather_backgrounds(self._backgrounds, bg_index)
+        batch = PairBatch(rgb=rgb, depth=depth, background=background, tactile=tactile, object_id=object_id)
         if self.augment:
             augment_batch(batch)
         return batch
@@ -140,7 +199,10 @@ def to_float_batch(batch: Batch) -> Batch:
     for k in ("rgb", "background", "tactile"):
         x = batch[k]
         if x.dtype == torch.uint8:
-            out[k] = x.float().mul_(2.0 / 255.0).sub_(1.0).permute(0, 3, 1, 2)
+            if x.ndim == 4 and len(x) > 1 and x.stride(0) == 0:  # one background expanded: convert it once
+                out[k] = _to_unit_range(x[:1]).expand(len(x), -1, -1, -1)
+            else:
+                out[k] = _to_unit_range(x)
     d = batch["depth"]
     if d.ndim == 3:
         out["depth"] = d.unsqueeze(1).float().mul_(2.0).sub_(1.0)
@@ -167,9 +229,15 @@ def _subsample_touches(
 
 
 def augment_batch(batch: Batch) -> None:
-    """In place: per-pair random flips of all images, and RGB brightness/contrast jitter (+-10 %)."""
+    """In place: per-pair random flips of all images, and RGB brightness/contrast jitter (+-10 %).
+
+    An image shared by the whole batch (a stride-0 expanded background) is replaced by its own copy first.
+    """
     b = batch["rgb"].shape[0]
     images = ("rgb", "depth", "background", "tactile")
+    for k in images:
+        if b > 1 and batch[k].stride(0) == 0:
+            batch[k] = batch[k].contiguous()
     for dim in (-1, -2):
         flip = torch.rand(b) < 0.5
         if flip.any():
@@ -204,7 +272,9 @@ class MixedPairDataset(Dataset):
         fetched = [self.datasets[int(which[pos[0]])].__getitems__(local) for pos, local in parts]
         out: Batch = {}
         for k, v in fetched[0].items():
-            out[k] = torch.empty((len(idx), *v.shape[1:]), dtype=v.dtype)
+            # Same memory layout as the parts (channels-last float images), so the copies below do not transpose.
+            fmt = torch.channels_last if v.ndim == 4 and v.is_contiguous(memory_format=torch.channels_last) else None
+            out[k] = torch.empty((len(idx), *v.shape[1:]), dtype=v.dtype, memory_format=fmt or torch.contiguous_format)
             for (pos, _), f in zip(parts, fetched):
                 out[k][torch.from_numpy(pos)] = f[k]
         return out
