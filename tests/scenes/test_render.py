@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from tnf.scenes.render import camera_rays, ray_box, volume_render
+from tnf.scenes.render import camera_rays, distortion_loss, interval_termination, ray_box, volume_render
 
 
 def _uniform(R=4, N=100, length=1.0):
@@ -65,3 +65,54 @@ def test_ray_box_entry_and_exit():
     near, far = ray_box(o, d, 0.5)
     assert torch.allclose(near[0], torch.tensor(1.5)) and torch.allclose(far[0], torch.tensor(2.5))
     assert far[1] <= near[1]  # a miss
+
+
+def test_interval_starts_put_an_opaque_surface_where_it_begins():
+    # Coarse samples (step 0.1) and a surface at 1.23, between two samples: each interval is
+    # [t - delta/2, t + delta/2). Without starts the depth is the first inside sample's centre (1.25 or
+    # deeper); with them, an opaque interval ends light where it begins.
+    t, delta = _uniform(N=20, length=2.0)
+    start = t - 0.5 * delta
+    sigma = torch.where(start >= 1.2 - 1e-6, 1e5, 0.0)
+    out = volume_render(sigma, torch.ones(*t.shape, 3), t, delta, torch.zeros(3), start=start)
+    assert torch.allclose(out["depth"], torch.full((4,), 1.2), atol=1e-4)
+    plain = volume_render(sigma, torch.ones(*t.shape, 3), t, delta, torch.zeros(3))
+    assert torch.allclose(plain["depth"], torch.full((4,), 1.25), atol=1e-4)
+
+
+def test_interval_starts_give_the_exact_depth_of_a_constant_medium():
+    # Few coarse intervals: the per-interval exact termination point makes the quadrature's depth equal the
+    # closed form, where placing each interval's share at its centre does not.
+    length, sigma = 0.3, 20.0
+    t, delta = _uniform(N=6, length=length)
+    out = volume_render(
+        torch.full_like(t, sigma), torch.ones(*t.shape, 3), t, delta, torch.zeros(3), start=t - 0.5 * delta
+    )
+    expected = 1.0 - math.exp(-sigma * length)
+    mean_t = (1 / sigma - math.exp(-sigma * length) * (length + 1 / sigma)) / expected
+    assert abs(float(out["depth"][0]) - mean_t) < 1e-5
+
+
+def test_interval_termination_limits():
+    tau = torch.tensor([0.0, 1e-4, 1.0, 50.0])
+    f = interval_termination(tau)
+    assert abs(float(f[0]) - 0.5) < 1e-6 and abs(float(f[1]) - 0.5) < 1e-4
+    assert abs(float(f[2]) - (1.0 - 1.0 / (math.e - 1.0))) < 1e-6
+    assert float(f[3]) < 0.021  # opaque: light ends near where the interval begins
+
+
+def test_distortion_loss_is_small_for_a_surface_and_large_for_a_spread():
+    t, delta = _uniform(R=1, N=50, length=1.0)
+    peaked = torch.zeros_like(t)
+    peaked[0, 25] = 1.0
+    spread = torch.full_like(t, 1.0 / 50)
+    lp, ls = distortion_loss(peaked, t, delta), distortion_loss(spread, t, delta)
+    # One sample: only the self term w^2 delta / 3. Uniform over [0, 1]: E|t_i - t_j| = 1/3.
+    assert torch.allclose(lp, torch.tensor([delta[0, 25] / 3.0]))
+    assert abs(float(ls[0]) - 1.0 / 3.0) < 0.01
+    # The O(N) form equals the double sum.
+    w = torch.rand(2, 30)
+    tt, dd = _uniform(R=2, N=30, length=1.0)
+    brute = (w[:, :, None] * w[:, None, :] * (tt[:, :, None] - tt[:, None, :]).abs()).sum((1, 2))
+    brute = brute + (w**2 * dd).sum(-1) / 3.0
+    assert torch.allclose(distortion_loss(w, tt, dd), brute, atol=1e-6)

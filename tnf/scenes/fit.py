@@ -54,6 +54,10 @@ class FitSettings:
     """Steps between loss records in the training log."""
     carve: bool = True
     """Start the occupancy grid from the visual hull of the training views' alpha masks (skips empty space)."""
+    distortion_weight: float = 0.0
+    """Weight of the distortion loss (Mip-NeRF 360) that gathers each ray's weights on one surface; scenes
+    that report it (hashgrid) only. The colour loss alone leaves the density profile behind an opaque
+    surface free, and a spread-out profile biases the expected depth away from the camera."""
 
     def validate(self) -> None:
         for k in ("steps", "batch_rays"):
@@ -62,6 +66,8 @@ class FitSettings:
                 raise ValueError(f"{k} must be >= 1, got {v}")
         if self.lr is not None and self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.distortion_weight < 0:
+            raise ValueError(f"distortion_weight must be >= 0, got {self.distortion_weight}")
         if not 0 < self.lr_final_factor <= 1:
             raise ValueError(f"lr_final_factor must be in (0, 1], got {self.lr_final_factor}")
 
@@ -207,6 +213,8 @@ def fit_scene(
         gt = composite(target[idx], bg)
         out = scene.render_rays(o[idx], d[idx], bg, perturb=True)
         loss = torch.mean((out["rgb"] - gt) ** 2)
+        if s.distortion_weight and "distortion" in out:
+            loss = loss + s.distortion_weight * out["distortion"].mean()
         if "rgb_coarse" in out:
             loss = loss + torch.mean((out["rgb_coarse"] - gt) ** 2)
         opt.zero_grad(set_to_none=True)

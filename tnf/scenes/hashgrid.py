@@ -18,7 +18,16 @@ import torch
 from torch import nn
 
 from tnf.registry import SCENES
-from tnf.scenes.render import EMPTY_OPACITY, FieldScene, RayOutput, ray_aabb, ray_box, volume_render
+from tnf.scenes.render import (
+    EMPTY_OPACITY,
+    FieldScene,
+    RayOutput,
+    distortion_loss,
+    interval_termination,
+    ray_aabb,
+    ray_box,
+    volume_render,
+)
 
 # Instant-NGP's spatial hash primes (the first is 1 so that x varies fastest, for cache coherence).
 PRIMES = (1, 2654435761, 805459861)
@@ -398,8 +407,12 @@ class HashGridScene(FieldScene):
             s, c = self.field(pos, dirs[ri])
             sigma = sigma.index_put((ri, si), s)
             rgb = rgb.index_put((ri, si), c)
-        out = volume_render(sigma, rgb, t, valid.float() * dt, bg)
-        return {"rgb": out["rgb"], "depth": out["depth"], "opacity": out["opacity"]}
+        delta = valid.float() * dt
+        # Sample n's interval begins ``offset`` steps before it.
+        out = volume_render(sigma, rgb, t, delta, bg, start=t - offset * dt)
+        # The distortion loss in units of the cube's size, for fitting (``FitSettings.distortion_weight``).
+        dist = distortion_loss(out["weights"], t, delta) / (2.0 * self.bound)
+        return {"rgb": out["rgb"], "depth": out["depth"], "opacity": out["opacity"], "distortion": dist}
 
     # -- rendering without gradients -----------------------------------------------------------------
     #: Rays per rendering chunk (32 frames of 128 x 128).
@@ -591,7 +604,9 @@ class HashGridScene(FieldScene):
                 local = torch.exp(-(csum - tau)) * tr[:, None]
                 w = (1.0 - torch.exp(-tau)) * local
                 state[:, 3:6] += (w.unsqueeze(-1) * rgb).sum(1)
-                state[:, 6] += (w * ts).sum(1)
+                # Expected termination distance as in ``volume_render`` (each interval begins offset steps
+                # before its sample; empty slots have zero weight).
+                state[:, 6] += (w * (ts - off_a * dt + dt * interval_termination(tau))).sum(1)
                 state[:, 2] = tr * torch.exp(-csum[:, -1])
                 # The next round starts after the K-th occupied sample, or after the window if it had fewer.
                 last = torch.where(sel, ar + 1, 0).amax(1)
