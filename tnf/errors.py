@@ -3,3 +3,7 @@
 
 class TnfError(Exception):
     """A user-facing error. The ``tnf`` command prints its message as one line and exits non-zero."""
+
+
+class NonFiniteLoss(TnfError):
+    """A training loss became NaN or infinite; training stopped before any checkpoint was overwritten."""

@@ -179,3 +179,14 @@ def test_fit_scene_killed_resumes(tmp_path, capture_reference):
     run_to_end(root, *fit)
     out = root / "scenes" / "hashgrid" / "builtin" / "ball"
     assert (out / "scene.pt").is_file() and partials(root / "scenes") == []
+    # The resumed fit ends bit for bit where an uninterrupted one does.
+    ref = tmp_path / "ref"
+    shutil.copytree(capture_reference / "capture", ref / "capture")
+    run_to_end(ref, *fit)
+    a = torch.load(out / "scene.pt", weights_only=True)["state"]
+    b = torch.load(ref / "scenes" / "hashgrid" / "builtin" / "ball" / "scene.pt", weights_only=True)["state"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    ma, mb = (
+        json.loads((d / "scenes" / "hashgrid" / "builtin" / "ball" / "metrics.json").read_text()) for d in (root, ref)
+    )
+    assert ma["train_log"] == mb["train_log"] and ma["psnr"] == mb["psnr"]

@@ -89,22 +89,26 @@ def test_renders_a_pose_outside_the_training_set(fitted):
     assert err < 0.025, err  # 2.5 cm: a quarter of the sphere's size, after 120 steps on 24 px images
 
 
+class Stop(Exception):
+    pass
+
+
+def _stop_at(step):
+    def on_step(s, loss):
+        if s == step:
+            raise Stop
+
+    return on_step
+
+
 def test_resume_continues_from_the_checkpoint(dataset, tmp_path):
     views = read_views(dataset / "transforms.json")
     resume = tmp_path / "resume.pt"
     settings = FitSettings(steps=12, batch_rays=64, checkpoint_every=5, log_every=1)
     torch.manual_seed(0)
     scene = build_scene(TINY, views)
-
-    class Stop(Exception):
-        pass
-
-    def interrupt(step, loss):
-        if step == 7:
-            raise Stop
-
     with pytest.raises(Stop):
-        fit_scene(scene, views, settings, "hashgrid", resume_path=resume, on_step=interrupt)
+        fit_scene(scene, views, settings, "hashgrid", resume_path=resume, on_step=_stop_at(7))
     assert resume.is_file()
     steps = []
     torch.manual_seed(0)
@@ -112,6 +116,72 @@ def test_resume_continues_from_the_checkpoint(dataset, tmp_path):
     info = fit_scene(fresh, views, settings, "hashgrid", resume_path=resume, on_step=lambda s, loss: steps.append(s))
     assert steps[0] == 5 and steps[-1] == 11 and info["steps"] == 12
     assert not resume.exists()
+
+
+def test_resumed_fit_equals_an_uninterrupted_fit(dataset, tmp_path):
+    # Each step's draws (ray batch, backgrounds, the scene's sampling) depend only on (seed, step), and the
+    # checkpoint holds the optimiser and scheduler state: the resumed fit ends bit for bit where the other does.
+    views = read_views(dataset / "transforms.json")
+    settings = FitSettings(steps=20, batch_rays=64, checkpoint_every=8, log_every=3, distortion_weight=0.01)
+    torch.manual_seed(0)
+    whole = build_scene(TINY, views)
+    ref = fit_scene(whole, views, settings, "hashgrid", resume_path=tmp_path / "whole.pt", seed=5)
+    resume = tmp_path / "parts.pt"
+    for stop in (10, 17):  # stopped twice: after the checkpoint of step 8, then after that of step 16
+        torch.manual_seed(0)
+        with pytest.raises(Stop):
+            fit_scene(
+                build_scene(TINY, views),
+                views,
+                settings,
+                "hashgrid",
+                resume_path=resume,
+                on_step=_stop_at(stop),
+                seed=5,
+            )
+        assert resume.is_file()
+    torch.manual_seed(1)  # the scene's initial weights come from the checkpoint, not from this
+    parts = build_scene(TINY, views)
+    info = fit_scene(parts, views, settings, "hashgrid", resume_path=resume, seed=5)
+    a, b = whole.state_dict(), parts.state_dict()
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    assert info["log"] == ref["log"] and info["final_loss"] == ref["final_loss"]
+    assert not resume.exists()
+
+
+def test_non_finite_loss_stops_the_fit_naming_the_step(dataset, tmp_path):
+    views = read_views(dataset / "transforms.json")
+    settings = FitSettings(steps=30, batch_rays=64, checkpoint_every=10, log_every=5)
+    resume = tmp_path / "resume.pt"
+    torch.manual_seed(0)
+    scene = build_scene(TINY, views)
+
+    def poison(step, loss):
+        if step == 12:  # the loss of step 13 is the first NaN
+            with torch.no_grad():
+                scene.encoding.table.fill_(float("nan"))
+
+    with pytest.raises(TnfError, match=r"non-finite scene fitting loss \(NaN or Inf\) at step 13;"):
+        fit_scene(scene, views, settings, "hashgrid", resume_path=resume, on_step=poison)
+    # Caught at step 15 (a logged step), before the checkpoint of step 20 could overwrite the good one.
+    assert torch.load(resume, weights_only=True)["global_step"] == 10
+
+
+def test_a_checkpoint_of_other_settings_is_not_resumed_from(dataset, tmp_path, caplog):
+    views = read_views(dataset / "transforms.json")
+    resume = tmp_path / "resume.pt"
+    settings = FitSettings(steps=12, batch_rays=64, checkpoint_every=5)
+    with pytest.raises(Stop):
+        fit_scene(build_scene(TINY, views), views, settings, "hashgrid", resume_path=resume, on_step=_stop_at(7))
+    steps = []
+    other = FitSettings(steps=12, batch_rays=64, checkpoint_every=5, lr=1e-3)
+    fit_scene(
+        build_scene(TINY, views), views, other, "hashgrid", resume_path=resume, on_step=lambda s, loss: steps.append(s)
+    )
+    assert steps == list(range(12))
+    assert "other settings" in caplog.text and not resume.exists()
 
 
 def test_cpu_memory_of_a_tiny_fit_is_small(fitted):

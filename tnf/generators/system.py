@@ -18,16 +18,12 @@ import lightning as L
 import numpy as np
 import torch
 
-from tnf.errors import TnfError
+from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.base import Generator
 from tnf.registry import GENERATORS, config_to_dict, split_spec
 
 #: Version of the checkpoint layout written by ``GeneratorSystem``; loading another one is an error.
 CHECKPOINT_FORMAT = 1
-
-
-class NonFiniteLoss(TnfError):
-    """A training loss became NaN or infinite; training stopped before any checkpoint was overwritten."""
 
 
 class _LightningOptimisation:

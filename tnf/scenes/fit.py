@@ -1,25 +1,34 @@
 """Fitting a scene to one object's captured views, and measuring it on the held-out views.
 
 ``fit_scene`` trains on random batches of rays drawn from all training images of a ``transforms.json``
-(instant-ngp / nerfstudio format, RGBA images composited over a known background), saves resumable
-checkpoints, then ``evaluate_scene`` renders the views of ``transforms_test.json`` and reports PSNR, SSIM
-and the depth error against ground-truth depth where the dataset has it.
+(instant-ngp / nerfstudio format, RGBA images composited over a known background): a ``lightning.Trainer``
+runs ``tnf.scenes.system.SceneFitSystem``, which saves resumable checkpoints. ``evaluate_scene`` then
+renders the views of ``transforms_test.json`` and reports PSNR, SSIM and the depth error against
+ground-truth depth where the dataset has it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import time
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
 
 from tnf.errors import TnfError
 from tnf.scenes.render import FieldScene, camera_rays
+
+if TYPE_CHECKING:
+    import lightning
+
+log = logging.getLogger(__name__)
 
 # Defaults per scene kind where one value does not suit both (fit settings of null pick these).
 KIND_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -66,6 +75,10 @@ class FitSettings:
                 raise ValueError(f"{k} must be >= 1, got {v}")
         if self.lr is not None and self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.log_every < 1:
+            raise ValueError(f"log_every must be >= 1, got {self.log_every}")
+        if self.checkpoint_every < 0:
+            raise ValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if self.distortion_weight < 0:
             raise ValueError(f"distortion_weight must be >= 0, got {self.distortion_weight}")
         if not 0 < self.lr_final_factor <= 1:
@@ -171,90 +184,92 @@ def fit_scene(
 ) -> dict[str, Any]:
     """Train ``scene`` on ``views`` in place; returns ``{"steps", "train_seconds", "final_loss", "log"}``.
 
-    ``resume_path``: a checkpoint file written every ``checkpoint_every`` steps; when it exists, training
-    resumes from it (the scene, optimizer and step). It is removed when training completes.
-    ``on_step(step, loss)`` is called after every step (progress bars).
+    A ``lightning.Trainer`` runs ``tnf.scenes.system.SceneFitSystem`` for ``steps`` steps of ``batch_rays``
+    random rays on ``device`` (``cpu``, ``cuda``, ``cuda:N``). ``resume_path``: a checkpoint file written
+    atomically every ``checkpoint_every`` steps (scene, optimiser, scheduler, step, loss log, training
+    seconds); when one of a fit with the same settings exists, training resumes from it and ends exactly as
+    an uninterrupted fit would. It is removed when training completes. ``on_step(step, loss)`` is called
+    after every step (progress bars). ``train_seconds``: wall time of the training steps (all parts of a
+    resumed fit). ``log``: ``{"step", "loss"}`` every ``log_every`` steps and at the last. The scene ends on
+    ``device`` in eval mode. A NaN or infinite loss raises ``tnf.errors.NonFiniteLoss`` naming the step.
     """
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    from tnf.scenes.system import SceneFitSystem
+
     s = settings.resolved(kind)
-    assert s.steps is not None and s.batch_rays is not None and s.lr is not None
-    scene.to(device).train()
-    gen = torch.Generator(device="cpu").manual_seed(seed)
-    # All training rays and their RGBA targets, kept on the device: random batches are one gather.
-    o, d, _ = camera_rays(views.c2w, views.intrinsics, views.width, views.height)
-    o, d = o.reshape(-1, 3).to(device), d.reshape(-1, 3).to(device)
-    target = views.rgba.reshape(-1, 4).to(device)
-    M = o.shape[0]
-    groups = (
-        cast(Any, scene).param_groups(s.lr)
-        if hasattr(scene, "param_groups")
-        else [{"params": list(scene.parameters())}]
-    )
-    opt = torch.optim.Adam(groups, lr=s.lr, betas=(0.9, 0.99), eps=1e-15)
-    gamma = s.lr_final_factor ** (1.0 / max(s.steps, 1))
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
-    start, log, elapsed = 0, [], 0.0
+    system = SceneFitSystem(scene, views, s, seed=seed, resume_path=resume_path, on_step=on_step)
     resume = Path(resume_path) if resume_path else None
+    ckpt_path = None
     if resume is not None and resume.is_file():
-        ck = torch.load(resume, map_location=device, weights_only=True)
-        scene.load_state_dict(ck["scene"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        start, log, elapsed = int(ck["step"]), list(ck["log"]), float(ck["train_seconds"])
-        gen.manual_seed(seed + start)
-    t0 = time.perf_counter()
-    loss_val = float("nan")
-    for step in range(start, s.steps):
-        scene.update_occupancy(step)
-        idx = torch.randint(0, M, (s.batch_rays,), generator=gen).to(device)
-        if s.random_background:
-            bg = torch.rand(s.batch_rays, 3, generator=gen).to(device)
+        ok, why = system.resumable(resume)
+        if ok:
+            ckpt_path = str(resume)
         else:
-            bg = scene.background.expand(s.batch_rays, 3)
-        gt = composite(target[idx], bg)
-        out = scene.render_rays(o[idx], d[idx], bg, perturb=True)
-        loss = torch.mean((out["rgb"] - gt) ** 2)
-        if s.distortion_weight and "distortion" in out:
-            loss = loss + s.distortion_weight * out["distortion"].mean()
-        if "rgb_coarse" in out:
-            loss = loss + torch.mean((out["rgb_coarse"] - gt) ** 2)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        if step % s.log_every == 0 or step == s.steps - 1:
-            loss_val = float(loss.detach())
-            log.append({"step": step, "loss": loss_val})
-        if on_step is not None:
-            on_step(step, loss_val)
-        if resume is not None and s.checkpoint_every and (step + 1) % s.checkpoint_every == 0 and step + 1 < s.steps:
-            _save_resume(resume, scene, opt, sched, step + 1, log, elapsed + time.perf_counter() - t0)
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-    elapsed += time.perf_counter() - t0
-    if resume is not None and resume.is_file():
-        resume.unlink()
-    scene.eval()
-    return {"steps": s.steps, "train_seconds": elapsed, "final_loss": log[-1]["loss"] if log else None, "log": log}
+            log.warning("not resuming from %s (%s): the fit starts afresh", resume, why)
+            resume.unlink()
+    try:
+        with _quiet_lightning():
+            # resumable() has read the checkpoint with weights_only=True already.
+            _trainer(s, device).fit(system, ckpt_path=ckpt_path)
+    except SystemExit as e:
+        # Lightning ends a fit on Ctrl+C with exit(1), and on SIGTERM with an exit of status 0 (success).
+        if isinstance(e.__context__, KeyboardInterrupt):
+            raise e.__context__ from None
+        if isinstance(e, SIGTERMException):
+            raise TnfError(f"scene fitting stopped by SIGTERM; {system.resume_note()}") from None
+        raise
+    # Lightning's teardown leaves the module on the CPU.
+    scene.to(device).eval()
+    if resume is not None:
+        resume.unlink(missing_ok=True)
+    records = system.loss_log
+    return {
+        "steps": s.steps,
+        "train_seconds": system.train_seconds,
+        "final_loss": records[-1]["loss"] if records else None,
+        "log": records,
+    }
 
 
-def _save_resume(path: Path, scene, opt, sched, step: int, log: list, seconds: float) -> None:
-    import io
+def _trainer(settings: FitSettings, device: str) -> lightning.Trainer:
+    """A Trainer for ``settings.steps`` steps on ``device`` with nothing that costs time per step: no logger,
+    progress bar (callers draw their own through ``on_step``), model summary, validation or checkpoint
+    callback (``SceneFitSystem`` writes its resume checkpoint itself, atomically)."""
+    import lightning as L
 
-    from tnf.artifacts import write_bytes
+    from tnf.scenes.system import AtomicCheckpointIO, lightning_device
 
-    buf = io.BytesIO()
-    torch.save(
-        {
-            "scene": scene.state_dict(),
-            "optimizer": opt.state_dict(),
-            "scheduler": sched.state_dict(),
-            "step": step,
-            "log": log,
-            "train_seconds": seconds,
-        },
-        buf,
+    assert settings.steps is not None
+    accelerator, devices = lightning_device(device)
+    return L.Trainer(
+        accelerator=accelerator,
+        devices=devices,
+        max_steps=settings.steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        limit_val_batches=0,
+        plugins=[AtomicCheckpointIO()],
     )
-    write_bytes(path, buf.getvalue())
+
+
+@contextlib.contextmanager
+def _quiet_lightning() -> Iterator[None]:
+    """Silence Lightning's per-fit notices (available devices, "max_steps reached"): a stage fits many
+    objects and draws its own progress. Also its use of torch's deprecated ``LeafSpec`` (a FutureWarning
+    that is Lightning's to fix, not the user's)."""
+    logger = logging.getLogger("lightning.pytorch")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", FutureWarning)
+            yield
+    finally:
+        logger.setLevel(level)
 
 
 def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
