@@ -9,9 +9,12 @@
 # The end-to-end time of sim_digit for one seed is the sum of the digit-data and digit-models stage times.
 set -euo pipefail
 export TNF_DATA=${TNF_DATA:-/tmp/tnf-paper} PYTHONUNBUFFERED=1
+# Several tnf processes share the machine's cores: torch's default of one thread per core in each of them
+# oversubscribes the CPU (six fit workers ran 3x slower per step than one).
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 out=${OUT:-$TNF_DATA/out}
 seeds=${SEEDS:-0}
-fit_workers=${FIT_WORKERS:-6}
+fit_workers=${FIT_WORKERS:-4}
 # More overrides for every command, and the objects dealt to the fit workers (default: sim_digit's). A dry run
 # on a CPU: DEVICE=cpu TRAINER=cpu FIT_WORKERS=2 OBJECTS="ball box can mug" EXTRA="debug=tiny object_names=[...] ..."
 extra=(${EXTRA:-})

@@ -101,7 +101,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             rows.append({"object": name, "status": "fitted", "seconds": time.perf_counter() - t0, **metrics})
             log.info("fitted %s %s: %s", kind, name, {k: metrics.get(k) for k in ("psnr", "ssim", "steps")})
     table = Table(title=f"fit-scene {kind} -> {store.path('scenes', kind, source)}", header_style="bold")
-    for col in ("object", "status", "PSNR dB", "SSIM", "depth err %", "train s"):
+    for col in ("object", "status", "PSNR dB", "SSIM", "depth err %", "train s", "total s"):
         table.add_column(col)
     for r in rows:
         rel = r.get("depth_error_median_rel")
@@ -112,6 +112,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             f"{r['ssim']:.3f}" if "ssim" in r else "",
             f"{100 * rel:.2f}" if rel is not None else "",
             f"{r['train_seconds']:.1f}" if "train_seconds" in r else "",
+            f"{r['seconds']:.1f}" if "seconds" in r else "",
         )
     Console(highlight=False).print(table)
     return rows
