@@ -93,8 +93,10 @@ def run_to_end(root: Path, *args: str, timeout: float = 300) -> subprocess.Compl
     return out
 
 
-def kill_when(root: Path, args: tuple[str, ...], ready, timeout: float = 300, poll: float = 0.02) -> bool:
-    """Start ``tnf ARGS``, SIGKILL it as soon as ``ready()`` is true; False when it finished first."""
+def kill_when(root: Path, args: tuple[str, ...], ready, timeout: float = 300, poll: float = 0.002) -> bool:
+    """Start ``tnf ARGS``, SIGKILL it as soon as ``ready()`` is true; False when it finished first.
+
+    Some kill points last only milliseconds (an item's temporary folder while its files are written): poll often."""
     p = subprocess.Popen(
         tnf_cmd(*args), env=tnf_env(root), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
     )

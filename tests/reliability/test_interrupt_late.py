@@ -379,7 +379,7 @@ def test_pipeline_from_scratch_killed_in_every_stage_resumes(tmp_path, reference
     }
     stamps: dict = {}
     for stage, ready in kill_points.items():
-        assert kill_when(root, PIPELINE, ready, poll=0.05 if stage == "train" else 0.02), f"finished before {stage}"
+        assert kill_when(root, PIPELINE, ready, poll=0.05 if stage == "train" else 0.002), f"finished before {stage}"
         # Whatever had finished before this kill is still the same files after it.
         assert_not_rewritten(stamps)
         stamps = manifest_stamps(root, "capture", "scenes", "touch", "pairs")
