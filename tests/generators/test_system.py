@@ -16,7 +16,7 @@ SPEC = {"name": "tn_cgan", "image_size": 32, "ngf": 4, "ndf": 4, "dropout_at_gen
 CPU = {"accelerator": "cpu", "devices": 1, "precision": "32-true"}
 
 
-def train(run_dir, epochs=2, dm=None, system=None, resume=True, **kw):
+def train(run_dir, epochs=2, dm=None, system=None, resume=True, checkpoint_every_s=0.0, **kw):
     torch.manual_seed(0)
     system = system or GeneratorSystem(SPEC, epochs=epochs, decay_epochs=1, grid_rows=3, finite_check_every=1)
     dm = dm or SyntheticPairs(n_train=8, n_val=4, size=32, batch_size=4)
@@ -29,6 +29,7 @@ def train(run_dir, epochs=2, dm=None, system=None, resume=True, **kw):
         progress=False,
         resume=resume,
         log_every_n_steps=1,
+        checkpoint_every_s=checkpoint_every_s,
     )
     return system, summary
 
@@ -116,6 +117,29 @@ def test_resume_continues_from_last(tmp_path):
         train(run_dir, epochs=2, system=system)
     _, s2 = train(run_dir, epochs=1, system=GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1))
     assert s2["epochs"] == 2 and s2["global_step"] == 2 * steps
+
+
+def test_last_checkpoint_interval_skips_epochs_but_keeps_the_final_one(tmp_path):
+    """With an hour between writes, last.ckpt is written after the first epoch, not after the second, and after
+    the last; best.ckpt holds the weights without the optimiser's state."""
+    run_dir = tmp_path / "run"
+    seen = []
+
+    class Watch(GeneratorSystem):
+        def on_train_epoch_start(self):
+            last = run_dir / "last.ckpt"
+            seen.append(torch.load(last, weights_only=True)["epoch"] if last.is_file() else None)
+            super().on_train_epoch_start()
+
+    system = Watch(SPEC, epochs=3, decay_epochs=1, grid_rows=3, finite_check_every=1)
+    _, summary = train(run_dir, epochs=3, system=system, checkpoint_every_s=3600)
+    assert summary["epochs"] == 3
+    assert seen == [None, 0, 0]  # written after epoch 0; epoch 1's write skipped
+    last = torch.load(run_dir / "last.ckpt", weights_only=True)
+    assert last["epoch"] == 2 and "optimizer_states" in last
+    best = torch.load(run_dir / "best.ckpt", weights_only=True)
+    assert "optimizer_states" not in best and best["state_dict"].keys() == last["state_dict"].keys()
+    assert load_generator(run_dir / "best.ckpt").generator_name == "tn_cgan"
 
 
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path):

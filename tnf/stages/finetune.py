@@ -80,7 +80,7 @@ def run(cfg: Any) -> dict[str, Any]:
         "generator": spec,
         "source": source,
         "data": run_section(cfg.data, ()),
-        "finetune": run_section(f, ("resume", "force", "run_name", "checkpoint")),
+        "finetune": run_section(f, ("resume", "force", "run_name", "checkpoint_every_s", "checkpoint")),
         "precision": str(cfg.trainer.precision),
         "seed": int(cfg.seed),
     }
@@ -107,6 +107,7 @@ def run(cfg: Any) -> dict[str, Any]:
         limit_train_batches=f.limit_train_batches,
         limit_val_batches=f.limit_val_batches,
         log_every_n_steps=int(f.log_every_n_steps),
+        checkpoint_every_s=float(f.checkpoint_every_s),
         info={"generator": spec["name"], "datasets": datasets, "source": source, "frozen": frozen},
     )
     last = summary.get("last", {})

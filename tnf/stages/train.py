@@ -40,7 +40,7 @@ def run(cfg: Any) -> dict[str, Any]:
     config = {
         "generator": spec,
         "data": run_section(cfg.data, ()),
-        "train": run_section(t, ("resume", "force", "run_name")),
+        "train": run_section(t, ("resume", "force", "run_name", "checkpoint_every_s")),
         "precision": str(cfg.trainer.precision),
         "seed": int(cfg.seed),
     }
@@ -70,6 +70,7 @@ def run(cfg: Any) -> dict[str, Any]:
         limit_train_batches=t.limit_train_batches,
         limit_val_batches=t.limit_val_batches,
         log_every_n_steps=int(t.log_every_n_steps),
+        checkpoint_every_s=float(t.checkpoint_every_s),
         info={"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names},
     )
     _print_summary(console, run_name, summary)
