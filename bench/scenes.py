@@ -96,6 +96,9 @@ def main() -> None:
     ap.add_argument("--load", default=None, help="a fitted scene (folder or scene.pt): measure rendering only")
     ap.add_argument("--half", choices=["auto", "on", "off"], default="auto", help="float16 rendering (auto: CUDA)")
     ap.add_argument("--compile", action="store_true", help="torch.compile the hash grid's rendering field")
+    ap.add_argument("--march-kernel", choices=["auto", "on", "off"], default="auto", help="Warp march selection")
+    ap.add_argument("--distortion-weight", type=float, default=0.0, help="fit.distortion_weight (Mip-NeRF 360)")
+    ap.add_argument("--profile", action="store_true", help="with --load: print the top operators of one batch")
     args = ap.parse_args()
     if args.load:
         render_only(args)
@@ -115,7 +118,13 @@ def main() -> None:
     for kv in args.set:
         k, v = kv.split("=", 1)
         params[k] = json.loads(v)
-    settings = FitSettings(steps=args.steps, batch_rays=args.batch_rays, lr=args.lr, chunk=args.chunk)
+    settings = FitSettings(
+        steps=args.steps,
+        batch_rays=args.batch_rays,
+        lr=args.lr,
+        chunk=args.chunk,
+        distortion_weight=args.distortion_weight,
+    )
     run_dir = out / f"{args.scene}-{args.object}"
     run_dir.mkdir(parents=True, exist_ok=True)
     train, test = read_views(data / "transforms.json"), read_views(data / "transforms_test.json")
@@ -170,6 +179,7 @@ def main() -> None:
         "peak_gpu_memory_fit_gib": fit_peak,
         "peak_cpu_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         f"train_seconds_for_{args.objects_in_paper}_objects": round(metrics["train_seconds"] * args.objects_in_paper),
+        "distortion_weight": args.distortion_weight,
         "scene_config": params,
     }
     (out / f"{args.scene}-{args.object}.json").write_text(json.dumps(figures, indent=2) + "\n")
@@ -185,6 +195,7 @@ def load_scene_for_rendering(path: str | Path, args: argparse.Namespace):
     if hasattr(scene, "render_half"):
         scene.render_half = {"auto": None, "on": True, "off": False}[args.half]
         scene.render_compile = args.compile
+        scene.march_kernel = {"auto": None, "on": True, "off": False}[args.march_kernel]
     return scene
 
 
@@ -253,11 +264,34 @@ def render_only(args: argparse.Namespace) -> None:
         "device": torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu",
         "half": args.half,
         "compile": args.compile,
+        "march_kernel": args.march_kernel,
         **measure_rendering(scene, args),
         "peak_cpu_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
     }
     for key, value in figures.items():
         print(f"{key:>36}: {value}")
+    if args.profile:
+        profile_rendering(scene, args)
+
+
+def profile_rendering(scene, args: argparse.Namespace) -> None:
+    """Print the operators (CUDA kernels on a GPU) that took the most time in one batch of renders."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from tnf.scenes.synthetic import sphere_poses
+
+    n, s = args.render_views, args.render_size
+    c2w = torch.tensor(sphere_poses(n, 2.2 * scene.bound, offset=0.123), dtype=torch.float32)
+    f = 0.5 * s / torch.tan(torch.tensor(0.5 * 0.7))
+    k = torch.tensor([f, f, s / 2, s / 2])
+    cuda = args.device.startswith("cuda")
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=activities) as prof:
+        scene.render_rgbd(c2w, k, s, s, args.chunk)
+        _sync(args.device)
+    key = "self_cuda_time_total" if cuda else "self_cpu_time_total"
+    print(prof.key_averages().table(sort_by=key, row_limit=30, max_name_column_width=60))
 
 
 def _sync(device: str) -> None:

@@ -1,12 +1,18 @@
 # mypy: ignore-errors
 # (Warp kernels use Warp's types in annotations and arithmetic, which mypy cannot check.)
-"""The hash encoding's forward pass as one Warp kernel, for rendering (no gradients).
+"""Warp kernels for rendering the hash grid (no gradients): the hash encoding, and the march's sample selection.
 
 The PyTorch ``HashEncoding.forward`` builds [P, L, 8] tensors of corner indices, weights and features for P
 samples and L levels, about 2 kB of memory traffic per sample; this kernel reads the position and the
 8 L table rows and writes the L * F outputs, one thread per sample and level. It computes the same
 function (the same cells, the same hash, trilinear weights), so renders agree with the PyTorch encoding to
-float rounding. It runs on the CPU (Warp's LLVM backend) and CUDA, on torch tensors without copies.
+float rounding.
+
+``march_select`` finds each ray's next occupied samples: one thread per ray steps along it, looking up the
+occupancy grid, until it has K of them or leaves its range. The PyTorch form of the same selection builds
+[rays, window] tensors of sample positions, cells, ranks and masks; this writes only the K chosen distances.
+
+Both run on the CPU (Warp's LLVM backend) and CUDA, on torch tensors without copies.
 """
 
 from __future__ import annotations
@@ -94,6 +100,92 @@ for _dtype in (wp.float32, wp.float16):
     wp.overload(_encode, {"table": wp.array2d(dtype=_dtype)})
 
 
+@wp.kernel
+def _march_select(
+    ray: wp.array2d(dtype=wp.float32),  # [A, >=9]: origin (3), direction (3), near, far, offset
+    state: wp.array2d(dtype=wp.float32),  # [A, >=2]: next and end sample numbers; the next is advanced here
+    occupied: wp.array(dtype=wp.uint8),  # [G^3] occupancy grid, x slowest
+    grid: int,
+    bound: float,
+    dt: float,
+    k_max: int,
+    t_out: wp.array2d(dtype=wp.float32),  # [A, K] distances of the chosen samples (0 after the count)
+    count: wp.array(dtype=wp.int32),  # [A] samples chosen
+):
+    a = wp.tid()
+    ox = ray[a, 0]
+    oy = ray[a, 1]
+    oz = ray[a, 2]
+    dx = ray[a, 3]
+    dy = ray[a, 4]
+    dz = ray[a, 5]
+    near = ray[a, 6]
+    far = ray[a, 7]
+    off = ray[a, 8]
+    j = int(state[a, 0])
+    end = int(state[a, 1])
+    scale = float(grid) / (2.0 * bound)
+    n = int(0)  # noqa: UP018  (a typed variable: Warp lets loops reassign it)
+    while j < end and n < k_max:
+        t = near + (float(j) + off) * dt
+        if t >= far:
+            j = end
+            break
+        # The cell arithmetic of HashGridScene._cell_index (truncation toward zero, then clamped).
+        cx = wp.clamp(int((ox + t * dx + bound) * scale), 0, grid - 1)
+        cy = wp.clamp(int((oy + t * dy + bound) * scale), 0, grid - 1)
+        cz = wp.clamp(int((oz + t * dz + bound) * scale), 0, grid - 1)
+        if occupied[(cx * grid + cy) * grid + cz] != wp.uint8(0):
+            t_out[a, n] = t
+            n = n + 1
+        j = j + 1
+    for m in range(n, k_max):
+        t_out[a, m] = 0.0
+    count[a] = n
+    state[a, 0] = float(j)
+
+
+def march_select(
+    ray: torch.Tensor, state: torch.Tensor, occupied: torch.Tensor, bound: float, dt: float, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each ray's next ``k`` occupied samples: distances [A, k] (0 where none) and counts [A] (int32).
+
+    ``ray`` [A, >=9] float32: origin, direction, near, far and the sample offset (sample n at
+    ``near + (n + offset) * dt``); ``state`` [A, >=2] float32: the next sample number, advanced in place past
+    the last sample looked at, and the end; ``occupied`` [G^3] uint8. Samples at or beyond ``far`` are not
+    taken (the ray's next number becomes its end). All on one device, contiguous.
+    """
+    wp.init()
+    A = ray.shape[0]
+    grid = round(occupied.numel() ** (1.0 / 3.0))
+    t_out = torch.empty(A, k, device=ray.device, dtype=torch.float32)
+    count = torch.empty(A, device=ray.device, dtype=torch.int32)
+    if A == 0:
+        return t_out, count
+    args = [
+        wp.from_torch(ray),
+        wp.from_torch(state),
+        wp.from_torch(occupied),
+        int(grid),
+        float(bound),
+        float(dt),
+        int(k),
+        wp.from_torch(t_out),
+        wp.from_torch(count),
+    ]
+    _launch(_march_select, A, args, ray)
+    return t_out, count
+
+
+def _launch(kernel: Any, dim: Any, args: list[Any], like: torch.Tensor) -> None:
+    if like.is_cuda:
+        # On PyTorch's current stream, so the kernel runs in order with the surrounding torch operations.
+        stream = wp.stream_from_torch(torch.cuda.current_stream(like.device))
+        wp.launch(kernel, dim=dim, inputs=args, device=stream.device, stream=stream)
+    else:
+        wp.launch(kernel, dim=dim, inputs=args, device="cpu")
+
+
 def available(device: torch.device) -> bool:
     """Whether Warp runs on ``device`` here (the kernel compiles on its first launch)."""
     key = str(device)
@@ -134,10 +226,5 @@ def hash_encode(
         int(table_size),
         wp.from_torch(out),
     ]
-    if x.is_cuda:
-        # On PyTorch's current stream, so the kernel runs in order with the surrounding torch operations.
-        stream = wp.stream_from_torch(torch.cuda.current_stream(x.device))
-        wp.launch(_encode, dim=(P, L), inputs=args, device=stream.device, stream=stream)
-    else:
-        wp.launch(_encode, dim=(P, L), inputs=args, device="cpu")
+    _launch(_encode, (P, L), args, x)
     return out

@@ -433,6 +433,9 @@ class HashGridScene(FieldScene):
     #: The hash encoding by one Warp kernel while rendering (``hash_kernel``; far less memory traffic than
     #: the PyTorch encoding's [P, L, 8] tensors): None = wherever Warp runs, else the PyTorch encoding.
     render_kernel: bool | None = None
+    #: The march's sample selection by a Warp kernel (``hash_kernel.march_select``: one thread per ray, no
+    #: [rays, window] tensors): None = wherever Warp runs, else PyTorch (``_select_window``).
+    march_kernel: bool | None = None
     #: Compile the rendering field with ``torch.compile`` (fuses the hash encoding's element-wise work on
     #: CUDA); falls back to eager with a warning when compiling fails. Off by default: compiling takes
     #: a while on the first render.
@@ -488,14 +491,17 @@ class HashGridScene(FieldScene):
         sigma = torch.exp((h[:, 0].float() - 1.0).clamp(max=15.0))
         return sigma, torch.sigmoid(rgb.float())
 
-    def _use_kernel(self, device: torch.device) -> bool:
-        if self.render_kernel is False:
+    def _use_kernel(self, device: torch.device, wanted: bool | None = None) -> bool:
+        """Whether to render with a Warp kernel: ``wanted`` (default ``render_kernel``) True, or None and Warp
+        runs on ``device``."""
+        wanted = self.render_kernel if wanted is None else wanted
+        if wanted is False:
             return False
         from tnf.scenes import hash_kernel
 
         ok = hash_kernel.available(device)
-        if self.render_kernel and not ok:
-            raise RuntimeError(f"render_kernel is set but Warp cannot run on {device}")
+        if wanted and not ok:
+            raise RuntimeError(f"a Warp kernel was asked for but Warp cannot run on {device}")
         return ok
 
     def _field_fn(self) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
@@ -549,6 +555,11 @@ class HashGridScene(FieldScene):
             budget = self.march_budget if self.march_budget is not None else 1 << (25 if dev.type == "cuda" else 20)
             G, b = self.cfg.occupancy_resolution, self.bound
             cell_stride = torch.tensor([G * G, G, 1], device=dev, dtype=torch.int32)
+            kernel = self.march_kernel is not False and self._use_kernel(dev, self.march_kernel)
+            if kernel:
+                from tnf.scenes import hash_kernel
+
+                occ_u8 = self.occupied.to(torch.uint8)
             # Sample numbers [first, end) of each ray that lie in the occupied box, with a sample of margin:
             # samples outside it are in empty cells, which the dense pass skips too.
             box_in, box_out = ray_aabb(origins, dirs, box[0], box[1])
@@ -571,30 +582,25 @@ class HashGridScene(FieldScene):
                 # Rays still going after a round are seldom opaque: each round sends twice the samples
                 # of the last (so at most twice what a ray needs), and looks further when few rays are left.
                 W = int(min(N, max(self.march_window, budget // A)))
-                K = int(min(W, self.march_samples << min(rounds, 16)))
+                K = int(min(N if kernel else W, self.march_samples << min(rounds, 16)))
                 rounds += 1
-                o, d, n0, n1, off_a, sh = ray[:, 0:3], ray[:, 3:6], ray[:, 6:7], ray[:, 7:8], ray[:, 8:9], ray[:, 9:]
-                ptr, end_a, tr = state[:, 0:1], state[:, 1:2], state[:, 2]
-                ar = torch.arange(W, device=dev, dtype=torch.float32)
-                j = ptr + ar  # [A, W] sample numbers
-                t = n0 + (j + off_a) * dt
-                # Occupancy of each sample: the arithmetic of ``_cell_index``.
-                pos = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
-                cell = ((pos + b) / (2.0 * b) * G).to(torch.int32).clamp_(0, G - 1)
-                occ = self.occupied[(cell * cell_stride).sum(-1)] & (j < end_a) & (t < n1)
-                del pos, cell
-                # The first K occupied samples of each ray, in order: slot = their rank among them.
-                rank = occ.cumsum(1, dtype=torch.int32)
-                sel = occ & (rank <= K)
-                ai, si = sel.nonzero(as_tuple=True)
-                slot = (rank[ai, si] - 1).long()
+                o, d, off_a, sh = ray[:, 0:3], ray[:, 3:6], ray[:, 8:9], ray[:, 9:]
+                tr = state[:, 2]
+                if kernel:
+                    # One thread per ray steps to its next K occupied samples (no window: it looks as far as
+                    # it needs); the next sample number is advanced in place.
+                    t_sel, count = hash_kernel.march_select(ray, state, occ_u8, b, dt, K)
+                    ai, slot = (torch.arange(K, device=dev) < count[:, None]).nonzero(as_tuple=True)
+                    t_chosen = t_sel[ai, slot]
+                else:
+                    ai, slot, t_chosen = self._select_window(ray, state, W, K, cell_stride)
                 stats["samples"] += ai.numel()
                 tau = torch.zeros(A, K, device=dev)
                 rgb = torch.zeros(A, K, 3, device=dev)
                 ts = torch.zeros(A, K, device=dev)
                 for c in range(0, ai.numel(), self.field_chunk):
-                    a, s, k = ai[c : c + self.field_chunk], si[c : c + self.field_chunk], slot[c : c + self.field_chunk]
-                    tk = t[a, s]
+                    a, k = ai[c : c + self.field_chunk], slot[c : c + self.field_chunk]
+                    tk = t_chosen[c : c + self.field_chunk]
                     sg, rg = self._eval_field(o[a] + tk.unsqueeze(-1) * d[a], sh[a], table, half)
                     tau[a, k] = sg * dt
                     rgb[a, k] = rg
@@ -608,9 +614,6 @@ class HashGridScene(FieldScene):
                 # before its sample; empty slots have zero weight).
                 state[:, 6] += (w * (ts - off_a * dt + dt * interval_termination(tau))).sum(1)
                 state[:, 2] = tr * torch.exp(-csum[:, -1])
-                # The next round starts after the K-th occupied sample, or after the window if it had fewer.
-                last = torch.where(sel, ar + 1, 0).amax(1)
-                state[:, 0] += torch.where(rank[:, -1] > K, last, W)
                 opaque = state[:, 2] < self.min_transmittance
                 # Where an opaque ray stopped: its first sample after which the transmittance is too low.
                 below = local * torch.exp(-tau) < self.min_transmittance
@@ -625,6 +628,36 @@ class HashGridScene(FieldScene):
         depth = torch.where(opacity > EMPTY_OPACITY, depth, torch.zeros_like(depth))
         rgb_out = acc_rgb + trans.unsqueeze(-1) * bg
         return {"rgb": rgb_out, "depth": depth, "opacity": opacity, "t_stop": t_stop}
+
+    def _select_window(
+        self, ray: torch.Tensor, state: torch.Tensor, W: int, K: int, cell_stride: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A march round's samples in PyTorch: each ray's first K occupied samples among its next W.
+
+        Returns the ray of each chosen sample (row of ``ray``), its slot (rank among the ray's chosen ones) and
+        its distance; advances ``state[:, 0]`` (next sample number) past the K-th chosen sample, or past the
+        window when it held fewer. ``ray`` and ``state`` as in ``_march``.
+        """
+        dt, G, b = self.step_size, self.cfg.occupancy_resolution, self.bound
+        o, d, n0, n1, off_a = ray[:, 0:3], ray[:, 3:6], ray[:, 6:7], ray[:, 7:8], ray[:, 8:9]
+        ptr, end_a = state[:, 0:1], state[:, 1:2]
+        ar = torch.arange(W, device=ray.device, dtype=torch.float32)
+        j = ptr + ar  # [A, W] sample numbers
+        t = n0 + (j + off_a) * dt
+        # Occupancy of each sample: the arithmetic of ``_cell_index``.
+        pos = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
+        cell = ((pos + b) / (2.0 * b) * G).to(torch.int32).clamp_(0, G - 1)
+        occ = self.occupied[(cell * cell_stride).sum(-1)] & (j < end_a) & (t < n1)
+        del pos, cell
+        # The first K occupied samples of each ray, in order: slot = their rank among them.
+        rank = occ.cumsum(1, dtype=torch.int32)
+        sel = occ & (rank <= K)
+        ai, si = sel.nonzero(as_tuple=True)
+        slot = (rank[ai, si] - 1).long()
+        # The next round starts after the K-th occupied sample, or after the window if it had fewer.
+        last = torch.where(sel, ar + 1, 0).amax(1)
+        state[:, 0] += torch.where(rank[:, -1] > K, last, W)
+        return ai, slot, t[ai, si]
 
     def param_groups(self, lr: float) -> list[dict]:
         """Optimizer groups: the hash table without weight decay, the MLPs with a little (Instant-NGP)."""
