@@ -79,7 +79,6 @@ class UNetDecoder(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
-        image_skip_ch: int = 0,
     ):
         super().__init__()
         nl = norm_layer(norm)
@@ -89,15 +88,13 @@ class UNetDecoder(nn.Module):
         cin = bottleneck_ch
         for k, level in enumerate(reversed(range(num_downs))):  # level of the input's resolution
             last = level == 0
-            cout = out_ch if last and not image_skip_ch else level_channels(ngf, max(level - 1, 0))
+            cout = out_ch if last else level_channels(ngf, level - 1)
             layers: list[nn.Module] = [
                 nn.ReLU(True),
                 nn.ConvTranspose2d(cin, cout, kernel, 2, pad, output_padding=out_pad, bias=use_bias or last),
             ]
-            if last and not image_skip_ch:
+            if last:
                 layers.append(nn.Tanh())
-            elif last:
-                layers.append(nl(cout))
             else:
                 layers.append(nl(cout))
                 if k < dropout_blocks and dropout > 0:
@@ -106,16 +103,9 @@ class UNetDecoder(nn.Module):
             if not last:
                 cin = cout + skip_ch[level - 1]
         self.blocks = nn.ModuleList(blocks)
-        # Full resolution: the skip images themselves join the last features in a 3 x 3 output convolution.
-        self.out = None
-        if image_skip_ch:
-            self.out = nn.Sequential(nn.ReLU(True), nn.Conv2d(ngf + image_skip_ch, out_ch, 3, 1, 1), nn.Tanh())
 
-    def forward(
-        self, bottleneck: torch.Tensor, skips: list[list[torch.Tensor]], images: list[torch.Tensor] | None = None
-    ) -> torch.Tensor:
-        """``skips[level]``: tensors to concatenate after upsampling to ``level``'s resolution; ``images``: the
-        full-resolution skip inputs (when built with ``image_skip_ch``)."""
+    def forward(self, bottleneck: torch.Tensor, skips: list[list[torch.Tensor]]) -> torch.Tensor:
+        """``skips[level]``: tensors to concatenate after upsampling to ``level``'s resolution."""
         x = bottleneck
         n = len(self.blocks)
         for k, block in enumerate(self.blocks):
@@ -123,8 +113,6 @@ class UNetDecoder(nn.Module):
             level = n - 2 - k
             if level >= 0 and skips[level]:
                 x = torch.cat([x, *skips[level]], 1)
-        if self.out is not None:
-            x = self.out(torch.cat([x, *(images or [])], 1))
         return x
 
 
@@ -146,28 +134,22 @@ class MultiEncoderUNet(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
-        image_skip: bool = False,
     ):
         super().__init__()
         self.inputs = tuple(inputs)
         self.skips = tuple(skips)
-        self.image_skip = image_skip
         n = num_downs
         self.encoders = nn.ModuleDict({k: Encoder(CHANNELS[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
-        image_ch = sum(CHANNELS[k] for k in self.skips) if image_skip else 0
-        self.decoder = UNetDecoder(
-            bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel, image_skip_ch=image_ch
-        )
+        self.decoder = UNetDecoder(bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         feats = {k: self.encoders[k](inputs[k]) for k in self.inputs}
         bottleneck = torch.cat([feats[k][-1] for k in self.inputs], 1)
         n = len(next(iter(feats.values())))
         skips = [[feats[k][lv] for k in self.skips] for lv in range(n - 1)]
-        images = [inputs[k] for k in self.skips] if self.image_skip else None
-        return self.decoder(bottleneck, skips, images)
+        return self.decoder(bottleneck, skips)
 
 
 def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
@@ -189,10 +171,6 @@ class TNcGAN(Generator):
         """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations)."""
         skips: list[str] = field(default_factory=lambda: ["background"])
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only)."""
-        image_skip: bool = False
-        """Also pass the skip inputs themselves at full resolution to a 3 x 3 output convolution (the encoders'
-        first features are at half resolution, so without it the decoder redraws the background's finest
-        detail through its last transposed convolution)."""
         image_size: int = 128
         """Input and output image size in pixels (square, a power of two)."""
         ngf: int = 64
@@ -251,14 +229,7 @@ class TNcGAN(Generator):
         self.cfg = cfg
         self.inputs = tuple(cfg.inputs)
         self.net_g = MultiEncoderUNet(
-            cfg.inputs,
-            cfg.skips,
-            cfg.ngf,
-            cfg.num_downs,
-            cfg.norm,
-            cfg.dropout,
-            cfg.dropout_blocks,
-            image_skip=cfg.image_skip,
+            cfg.inputs, cfg.skips, cfg.ngf, cfg.num_downs, cfg.norm, cfg.dropout, cfg.dropout_blocks
         )
         cond_ch = sum(CHANNELS[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
