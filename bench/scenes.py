@@ -97,7 +97,7 @@ def main() -> None:
     ap.add_argument("--half", choices=["auto", "on", "off"], default="auto", help="float16 rendering (auto: CUDA)")
     ap.add_argument("--compile", action="store_true", help="torch.compile the hash grid's rendering field")
     ap.add_argument("--march-kernel", choices=["auto", "on", "off"], default="auto", help="Warp march selection")
-    ap.add_argument("--distortion-weight", type=float, default=0.0, help="fit.distortion_weight (Mip-NeRF 360)")
+    ap.add_argument("--distortion-weight", type=float, default=0.1, help="fit.distortion_weight (Mip-NeRF 360)")
     ap.add_argument("--profile", action="store_true", help="with --load: print the top operators of one batch")
     args = ap.parse_args()
     if args.load:

@@ -63,10 +63,12 @@ class FitSettings:
     """Steps between loss records in the training log."""
     carve: bool = True
     """Start the occupancy grid from the visual hull of the training views' alpha masks (skips empty space)."""
-    distortion_weight: float = 0.0
+    distortion_weight: float = 0.1
     """Weight of the distortion loss (Mip-NeRF 360) that gathers each ray's weights on one surface; scenes
     that report it (hashgrid) only. The colour loss alone leaves the density profile behind an opaque
-    surface free, and a spread-out profile biases the expected depth away from the camera."""
+    surface free, and a spread-out profile biases the expected depth away from the camera. On an H100 at
+    128 px, 0.1 took the median depth error of the box from 2.1 % to 0.91 % and of the mug from 3.2 % to
+    0.94 % of their size, for 1.8 and 0.1 dB of PSNR (results/scenes/distortion_weight.md)."""
 
     def validate(self) -> None:
         for k in ("steps", "batch_rays"):
