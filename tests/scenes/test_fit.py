@@ -252,8 +252,11 @@ def test_march_rounds_do_not_change_the_image(fitted, kernel):
     # Many small rounds (windows of 8 samples, 2 network samples each) and small chunks.
     scene.march_window, scene.march_samples, scene.march_budget = 8, 2, 0
     rounds = scene.render_rgbd(c2w, k, 24, 24, chunk=100)
-    for key in ("rgb", "depth", "opacity"):
-        assert torch.allclose(one[key], rounds[key], atol=1e-5), key
+    # A ray stops at the end of the round in which it turned opaque: smaller rounds stop it sooner, dropping
+    # at most min_transmittance of its light (1e-4), never more.
+    for key in ("rgb", "opacity"):
+        assert (one[key] - rounds[key]).abs().max() <= scene.min_transmittance, key
+    assert (one["depth"] - rounds["depth"]).abs().max() < 1e-5  # metres
 
 
 def test_warp_march_selects_the_samples_of_the_pytorch_march(fitted):

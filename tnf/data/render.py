@@ -81,8 +81,17 @@ class TouchItem:
         return resize_uint8(_read_png(self.folder / "background.png"), out)
 
     def tactile(self, rows: Sequence[int], out: int = SIZE) -> np.ndarray:
-        """Tactile images of touches ``rows`` (positions in ``touches``), uint8 [len(rows), out, out, 3]."""
-        return np.stack([resize_uint8(_read_png(self.folder / self.touches[i]["image"]), out) for i in rows])
+        """Tactile images of touches ``rows`` (positions in ``touches``), uint8 [len(rows), out, out, 3].
+
+        Decoded and resized by a few threads (PIL releases the GIL there): hundreds of PNGs per object.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        def load(i: int) -> np.ndarray:
+            return resize_uint8(_read_png(self.folder / self.touches[i]["image"]), out)
+
+        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+            return np.stack(list(pool.map(load, rows)))
 
 
 def _read_png(path: Path) -> np.ndarray:

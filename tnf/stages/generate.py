@@ -50,6 +50,7 @@ def sample_poses(n: int, radius: float, up: Any, random_roll: bool, seed: int) -
 
 def run(cfg: Any) -> dict[str, Any]:
     import zlib
+    from concurrent.futures import Future, ThreadPoolExecutor
 
     import torch
     from omegaconf import OmegaConf
@@ -156,7 +157,12 @@ def run(cfg: Any) -> dict[str, Any]:
             rsize, intr = render_intrinsics(focal[0], focal[1], crop, render_px=prep["render_px"])
             intr_t = torch.tensor(intr, dtype=torch.float32, device=device)
             touches = []
-            with store.writing("generated", run_name, src, obj, config=config, info={}) as tmp:
+            # PNG encoding on a few threads (PIL releases the GIL), overlapping the next batch's rendering.
+            with (
+                store.writing("generated", run_name, src, obj, config=config, info={}) as tmp,
+                ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool,
+            ):
+                saves: list[Future] = []
                 (tmp / "images").mkdir()
                 Image.fromarray(background_full).save(tmp / "background.png")
                 for s in range(0, len(poses), batch_size):
@@ -180,7 +186,7 @@ def run(cfg: Any) -> dict[str, Any]:
                     for i in range(b):
                         index = s + i
                         rel = f"images/{index:05d}.png"
-                        Image.fromarray(images[i]).save(tmp / rel)
+                        saves.append(pool.submit(Image.fromarray(images[i]).save, tmp / rel))
                         pose = poses[index]
                         hit = centre[i] > 0
                         touches.append(
@@ -196,6 +202,8 @@ def run(cfg: Any) -> dict[str, Any]:
                             }
                         )
                     bar.advance(task, b)
+                for f in saves:
+                    f.result()  # re-raises a failed write
                 from tnf.artifacts import write_json
 
                 write_json(
