@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The paper-scale runs of results/paper/ on one GPU, one phase per call so that each fits a 10-minute job.
 # Usage: bash bench/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
-#   digit-data    capture, fit-scene (FIT_WORKERS processes share the GPU), touch, pair     (sim_digit)
+#   digit-data    digit-scenes then digit-pairs                                            (sim_digit)
+#   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU)
+#   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for tn_cgan, lee and cyclegan, one process each, for each of SEEDS
 #   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
 #   report        rebuild both reports from every run present and copy them to $OUT
@@ -47,6 +49,9 @@ case "$1" in
     python bench/loading.py --device cuda --workers 4 2>&1 | tee "$out/bench_loading_cuda.txt"
     ;;
   digit-data)
+    bash "$0" digit-scenes && bash "$0" digit-pairs
+    ;;
+  digit-scenes)
     t0=$SECONDS
     timed capture tnf capture "${digit[@]}"
     # Each fit is small for an H100: several processes keep it busy. Objects are dealt round-robin.
@@ -58,10 +63,19 @@ case "$1" in
       [[ ${#g[@]} -gt 0 ]] && groups+=("[$(IFS=,; echo "${g[*]}")]")
     done
     parallel fit tnf fit-scene "${digit[@]}" "object_names={}" -- "${groups[@]}"
-    echo "fit-scene (all workers): $((SECONDS - t0)) s since start" | tee -a "$out/stage_times.txt"
+    echo "digit-scenes: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
+    ;;
+  digit-pairs)
+    t0=$SECONDS
     timed touch tnf touch "${digit[@]}"
-    timed pair tnf pair "${digit[@]}"
-    echo "digit-data: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
+    if [[ ${PROFILE:-0} == 1 ]]; then
+      timed pair python -m cProfile -o "$out/pair.prof" -m tnf.cli pair "${digit[@]}"
+      python -c "import pstats; pstats.Stats('$out/pair.prof').sort_stats('tottime').print_stats(40)" >"$out/pair_profile.txt"
+      rm -f "$out/pair.prof"
+    else
+      timed pair tnf pair "${digit[@]}"
+    fi
+    echo "digit-pairs: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     ;;
   digit-models)
     t0=$SECONDS
