@@ -9,6 +9,7 @@ converts to float32 [-1, 1] tensors; with ``--device cuda`` each batch is also c
 Prints build time, peak RSS while building, loading pairs/s and peak RSS while loading, and the machine's
 load average (other processes slow every figure; with a busy machine ``--threads 1`` beats 2). Pairs per
 CPU-second of the loading process (all its threads; workers not counted) depend less on the other processes.
+Page faults per batch count first touches of memory (freshly allocated batches the C library had given back).
 """
 
 from __future__ import annotations
@@ -38,6 +39,11 @@ def anon_mib() -> float:
             if line.startswith("RssAnon:"):
                 return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def minor_faults() -> int:
+    """Minor page faults of this process so far (first touches of memory it was given, mapped file pages)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
 def build(folder: Path, n: int, per_object: int) -> tuple[float, float]:
@@ -138,14 +144,16 @@ def main() -> None:
                 return n
 
             epoch()  # warm-up: pages into the cache, workers started
-            t0, cpu0 = time.perf_counter(), time.process_time()
+            t0, cpu0, faults0 = time.perf_counter(), time.process_time(), minor_faults()
             n = sum(epoch() for _ in range(args.epochs))
             secs, cpu = time.perf_counter() - t0, time.process_time() - cpu0
+            faults = (minor_faults() - faults0) / (n / args.batch_size)
             mode = "compact batches, converted on " + args.device if compact else "float batches from the loader"
             print(
                 f"load ({mode}): {n / secs:,.0f} pairs/s, {n / cpu:,.0f} pairs per CPU-second of the main process "
                 f"(batch {args.batch_size}, workers {args.workers}, "
-                f"threads {args.threads}); RSS {rss_before:.0f} -> peak {peak:.0f} MiB in the main process "
+                f"threads {args.threads}; {faults:,.0f} page faults per batch); "
+                f"RSS {rss_before:.0f} -> peak {peak:.0f} MiB in the main process "
                 f"(anonymous, i.e. not the memory-mapped arrays: {anon_mib():.0f} MiB); "
                 f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores"
             )

@@ -77,7 +77,11 @@ def test_items_values_and_splits(tmp_path):
     assert item["depth"].shape == (1, 128, 128) and item["background"].shape == (3, 128, 128)
     assert item["tactile"].shape == (3, 128, 128) and item["object_id"].dtype == torch.long
     row = int(ds.index[0])
-    assert item["rgb"][:, 0, 0].tolist() == [-1.0, 1.0, pytest.approx(128 / 127.5 - 1, abs=1e-6)]
+    assert item["rgb"][:, 0, 0].tolist() == [
+        -1.0,
+        pytest.approx(1.0, abs=2**-23),
+        pytest.approx(128 / 127.5 - 1, abs=1e-6),
+    ]
     assert item["depth"][0, 0, :2].tolist() == [-1.0, 1.0]
     expect_t = torch.from_numpy(ref["tactile"][row]).permute(2, 0, 1).float() / 127.5 - 1
     torch.testing.assert_close(item["tactile"], expect_t)
@@ -89,6 +93,46 @@ def test_items_values_and_splits(tmp_path):
     novel = PairDataset(tmp_path / "ds", splits=("novel_object",))
     assert len(novel) == 6 and {int(novel[i]["object_id"]) for i in range(6)} == {2}
     assert PairDataset(tmp_path / "ds", splits=("train", "val")).split_counts() == {"train": 8, "val": 2}
+
+
+def test_conversion_of_every_value(tmp_path):
+    """All 256 uint8 values and all float16 depths in [0, 1] map into [-1, 1]: 0 to -1, the top to 1 (uint8 255
+    to within 2**-23 below it, never above), the rest within 1.2e-7 of x * 2/255 - 1 and exactly 2d - 1;
+    whole batches, rows of a read-only memory map, and odd sizes (vector loops' tails) alike."""
+    from tnf.data.dataset import _depth_to_unit_range, _to_unit_range
+
+    values = np.arange(256, dtype=np.uint8)
+    ref = values.astype(np.float64) * 2 / 255 - 1
+    images = np.stack([np.roll(values, k).repeat(3 * 64).reshape(128, 128, 3) for k in range(5)])  # [5, H, W, 3]
+    np.save(tmp_path / "u8.npy", images)
+    mapped = np.load(tmp_path / "u8.npy", mmap_mode="r")
+    odd = torch.from_numpy(np.tile(values, 7)[:-3].reshape(1, 1, -1, 1).copy())  # 1789 values: not a multiple of 16
+    for out, src in [
+        (_to_unit_range(images), images),
+        (_to_unit_range(mapped, [3, 0, 3, 4]), images[[3, 0, 3, 4]]),
+        (_to_unit_range(torch.from_numpy(images)[:1].expand(4, -1, -1, -1)), images[[0, 0, 0, 0]]),
+        (_to_unit_range(odd), odd.numpy()),
+    ]:
+        assert out.dtype == torch.float32 and out.shape == (len(src), src.shape[3], *src.shape[1:3])
+        assert out.permute(0, 2, 3, 1).is_contiguous()  # channels-last
+        got = out.permute(0, 2, 3, 1).numpy().astype(np.float64)
+        assert got.min() >= -1 and got.max() <= 1
+        assert (got[src == 0] == -1).all() and (got[src == 255] >= 1 - 2**-23).all()
+        assert np.abs(got - ref[src]).max() <= 1.2e-7
+        for v in range(256):  # each value maps to one float wherever it is
+            assert len(np.unique(got[src == v])) == 1
+
+    halfs = np.arange(0, 0x3C01, dtype=np.uint16).view(np.float16)  # every float16 from 0 to 1
+    assert halfs[-1] == 1 and np.all(np.diff(halfs.astype(np.float32)) > 0)
+    depth = np.resize(halfs, (2, 128, 128)).copy()  # [2, H, W], every value at least once
+    np.save(tmp_path / "d.npy", depth)
+    for out, src in [
+        (_depth_to_unit_range(depth), depth),
+        (_depth_to_unit_range(np.load(tmp_path / "d.npy", mmap_mode="r"), [1, 0, 1]), depth[[1, 0, 1]]),
+        (_depth_to_unit_range(halfs[None, None, :-2]), halfs[None, None, :-2]),
+    ]:
+        assert out.dtype == torch.float32 and out.shape == (len(src), 1, *src.shape[1:])
+        np.testing.assert_array_equal(out[:, 0].numpy(), src.astype(np.float32) * 2 - 1)
 
 
 def test_batch_equals_items(tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -49,23 +50,92 @@ def _take_rows(array: np.ndarray, rows: np.ndarray) -> torch.Tensor:
     """``array[rows]`` (one copy out of the memory map) as a tensor, in shared memory inside a worker."""
     dtype = torch.from_numpy(np.empty(0, dtype=array.dtype)).dtype
     out = _batch_tensor((len(rows), *array.shape[1:]), dtype)
-    np.take(array, rows, axis=0, out=out.numpy())
+    # mode="clip": the rows are valid (they come from the dataset's index); the default mode="raise" first
+    # gathers into a temporary buffer and copies that (about 2x slower).
+    np.take(array, rows, axis=0, out=out.numpy(), mode="clip")
     return out
 
 
-def _to_unit_range(x: np.ndarray | torch.Tensor) -> torch.Tensor:
+# x * _U8_SCALE - 1 maps uint8 to [-1, 1] in one fused multiply-add (CPUs and GPUs round it once). The scale is
+# the float32 just below 2/255: float32(2/255) itself is a little above 2/255 and maps 255 to 1 + 2**-23, outside
+# [-1, 1]; this one maps 0 to -1 exactly, 255 to 1 - 2**-23 and every value within 1.2e-7 of x * 2/255 - 1
+# (tests/data/test_dataset.py checks all 256). Depth, float16 in [0, 1], maps by 2d - 1, which is exact.
+_U8_SCALE = float(np.nextafter(np.float32(2 / 255), np.float32(0)))
+_MINUS_ONE = torch.tensor(-1.0)
+
+
+# Pairs' float bytes converted per step: in L2-cache-sized steps the cast's output is still in the cache when
+# the multiply-add rewrites it, so each float byte goes out to main memory once.
+_STEP_BYTES = 1 << 20
+
+
+def _convert_rows(
+    out: torch.Tensor, src: np.ndarray | torch.Tensor, rows: Sequence[int] | None, scale: float
+) -> torch.Tensor:
+    """``out[i] = src[rows[i]] * scale - 1`` (``src[i]`` without ``rows``) in float32, and ``out``.
+
+    The rows are first gathered as stored (one ``np.take`` out of the memory map: uint8 or float16, a quarter
+    or half of the float bytes), then cast into ``out`` and mapped by the multiply-add in place in steps of
+    about ``_STEP_BYTES`` of output, so that the multiply-add finds the cast's output in the L2 cache and each
+    float byte goes out to main memory once. Over a whole batch at once the cast and the multiply-add each go
+    through main memory (and a single ``torch.add(-1, uint8, alpha=scale)`` on the CPU casts into a temporary
+    tensor first); a step per pair, or a step's rows gathered straight from the memory map, costs as much or
+    more in per-operation overhead.
+    """
+    if rows is not None:
+        src = np.take(src, rows, axis=0, mode="clip")
+    step = max(1, _STEP_BYTES // (out[0].numel() * out.element_size())) if len(out) else 1
+    for i in range(0, len(out), step):
+        part = out[i : i + step]
+        part.copy_(_as_tensor(src[i : i + step]))
+        torch.add(_MINUS_ONE, part, alpha=scale, out=part)
+    return out
+
+
+def _to_unit_range(x: np.ndarray | torch.Tensor, rows: Sequence[int] | None = None) -> torch.Tensor:
     """uint8 [B, H, W, C] -> float32 [B, C, H, W] in [-1, 1], in channels-last memory layout.
+
+    With ``rows``, converts those rows of ``x`` (a uint8 [N, H, W, C] array, e.g. a memory map), in that
+    order (``_convert_rows``).
 
     Converting in place of the stored HWC order avoids a transposing copy (about 2x faster on a CPU);
     convolutions take channels-last tensors as they are, ``.contiguous()`` gives the NCHW layout.
-    The cast and two in-place passes are memory-bound; the one-pass forms (``torch.add`` with ``alpha``,
-    ``addcmul``) use a fused multiply-add that maps 255 to 1 + 1.2e-7, outside [-1, 1], and a 256-entry
-    lookup table (a gather) is several times slower.
+    On a GPU the conversion is one kernel.
     """
-    t = torch.from_numpy(x) if isinstance(x, np.ndarray) else x
-    cpu = t.device.type == "cpu"
-    out = _batch_tensor(t.shape, torch.float32) if cpu else torch.empty(t.shape, dtype=torch.float32, device=t.device)
-    return out.copy_(t).mul_(2.0 / 255.0).sub_(1.0).permute(0, 3, 1, 2)
+    n = len(rows) if rows is not None else len(x)
+    shape = (n, *x.shape[1:])
+    if isinstance(x, np.ndarray) or x.device.type == "cpu":
+        return _convert_rows(_batch_tensor(shape, torch.float32), x, rows, _U8_SCALE).permute(0, 3, 1, 2)
+    out = torch.empty(shape, dtype=torch.float32, device=x.device)
+    src = x if rows is None else x[torch.as_tensor(rows, device=x.device)]
+    return torch.add(_MINUS_ONE, src, alpha=_U8_SCALE, out=out).permute(0, 3, 1, 2)
+
+
+def _depth_to_unit_range(x: np.ndarray | torch.Tensor, rows: Sequence[int] | None = None) -> torch.Tensor:
+    """float16 depth [B, H, W] in [0, 1] (or the rows ``rows`` of an [N, H, W] array) -> float32 [B, 1, H, W],
+    2d - 1 (exact)."""
+    n = len(rows) if rows is not None else len(x)
+    shape = (n, 1, *x.shape[1:])
+    if isinstance(x, np.ndarray) or x.device.type == "cpu":
+        out = _batch_tensor(shape, torch.float32)
+        _convert_rows(out[:, 0], x, rows, 2.0)
+        return out
+    out = torch.empty(shape, dtype=torch.float32, device=x.device)
+    src = x if rows is None else x[torch.as_tensor(rows, device=x.device)]
+    torch.add(_MINUS_ONE, src, alpha=2.0, out=out[:, 0])
+    return out
+
+
+def _as_tensor(x: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """A tensor sharing ``x``'s memory; read-only arrays (memory maps opened with mode "r") too: nothing writes
+    into them (torch would warn once that it could)."""
+    if isinstance(x, torch.Tensor):
+        return x
+    if x.flags.writeable:
+        return torch.from_numpy(x)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+        return torch.from_numpy(x)
 
 
 def _gather_backgrounds(backgrounds: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -171,12 +241,10 @@ class PairDataset(Dataset):
                     "object_id": object_id,
                 }
             )
-        # One fancy index per array and batch (a copy out of the page cache), then the float conversion.
-        rgb = _to_unit_range(a.rgb[rows])
-        tactile = _to_unit_range(a.tactile[rows])
-        depth = _batch_tensor((len(rows), 1, *a.depth.shape[1:]), torch.float32)
-        depth[:, 0].copy_(torch.from_numpy(a.depth[rows]))
-        depth.mul_(2.0).sub_(1.0)
+        # Rows gathered out of the page cache (the memory maps) as stored, then converted in cache-sized steps.
+        rgb = _to_unit_range(a.rgb, rows)
+        tactile = _to_unit_range(a.tactile, rows)
+        depth = _depth_to_unit_range(a.depth, rows)
         background = _gather_backgrounds(self._backgrounds, bg_index)
         batch = PairBatch(rgb=rgb, depth=depth, background=background, tactile=tactile, object_id=object_id)
         if self.augment:
@@ -205,7 +273,7 @@ def to_float_batch(batch: Batch) -> Batch:
                 out[k] = _to_unit_range(x)
     d = batch["depth"]
     if d.ndim == 3:
-        out["depth"] = d.unsqueeze(1).float().mul_(2.0).sub_(1.0)
+        out["depth"] = _depth_to_unit_range(d)
     return out
 
 
