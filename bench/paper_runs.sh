@@ -5,6 +5,8 @@
 #   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU)
 #   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for tn_cgan, lee and cyclegan, one process each, for each of SEEDS
+#                 (give one seed per call: on one H100, three processes took 540 s, while six (two seeds) had not
+#                 finished training after 570 s)
 #   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
 #   report        rebuild both reports from every run present and copy them to $OUT
 # Artifacts go to $TNF_DATA (default /tmp/tnf-paper); logs, stage times and reports go to $OUT when it is set.
