@@ -319,3 +319,22 @@ def test_pinned_batches_with_a_shared_background(tmp_path):
             assert v.is_pinned(), k
             assert torch.equal(v, plain[k])
             assert torch.equal(v.to("cuda", non_blocking=True).cpu(), plain[k])
+
+
+@pytest.mark.parametrize("convert", [True, False])
+def test_every_data_setting_reaches_the_training_datamodule(convert, tmp_path):
+    """``tnf train``'s PairDataModule takes each key of the data section (convert_on_device was once dropped)."""
+    from tnf.generators.training import datamodule_from_cfg
+    from tnf.testing import compose
+
+    make_dataset(tmp_path / "pairs" / "some_pairs")
+    cfg = compose(
+        "train",
+        [f"data.convert_on_device={convert}", "data.batch_size=7", "data.num_workers=1", f"data_root={tmp_path}"],
+    )
+    dm = datamodule_from_cfg(cfg, ["some_pairs"])
+    assert dm.convert_on_device is convert
+    assert (dm.batch_size, dm.num_workers) == (7, 1)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["rgb"].dtype == (torch.uint8 if convert else torch.float32)

@@ -163,14 +163,16 @@ class PairDataModule(L.LightningDataModule):
         return self._loader((split,), train=False)
 
 
-def datamodule_from_config(cfg: DictConfig) -> PairDataModule:
-    """A ``PairDataModule`` from a composed tnf config (its ``data`` section, ``seed`` and ``data_root``)."""
+def datamodule_from_config(cfg: DictConfig, datasets: Sequence[str] | None = None) -> PairDataModule:
+    """A ``PairDataModule`` from a composed tnf config: every key of its ``data`` section, ``seed`` and
+    ``data_root``; ``datasets`` replaces ``data.datasets``."""
     from omegaconf import OmegaConf
 
     d = cast(dict[str, Any], OmegaConf.to_container(cfg.data, resolve=True))
     assert isinstance(d, dict)
+    names = d.pop("datasets")
     return PairDataModule(
-        d.pop("datasets"),
+        list(datasets) if datasets is not None else names,
         seed=int(cfg.seed),
         data_root=cfg.data_root,
         **d,

@@ -142,6 +142,8 @@ def _gather_backgrounds(backgrounds: torch.Tensor, index: torch.Tensor) -> torch
     """``backgrounds[index]`` for a batch: when the batch has one background (one sensor), a stride-0
     expanded view of it instead of a copy per pair. Nothing writes into batches in place except
     ``augment_batch``, which makes its own copy first."""
+    if len(backgrounds) == 1:  # a dataset of one sensor: no need to look at the index
+        return backgrounds.expand(len(index), *backgrounds.shape[1:])
     first = index[:1]
     if len(index) > 1 and bool((index == first).all()):
         return backgrounds[first].expand(len(index), *backgrounds.shape[1:])

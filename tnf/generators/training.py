@@ -360,24 +360,12 @@ def _last_good(run_dir: Path) -> str:
 
 
 def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
-    """``tnf.data.PairDataModule`` from the ``data`` section (``datasets`` overrides ``data.datasets``)."""
-    from tnf.data import PairDataModule
+    """``tnf.data.PairDataModule`` from the ``data`` section (``datasets`` overrides ``data.datasets``; an
+    unset dataset name becomes the one ``tnf pair`` gives this config)."""
+    from tnf.data import datamodule_from_config
 
-    d = cfg.data
     names = dataset_names(cfg) if datasets is None else [str(x) for x in datasets]
-    return PairDataModule(
-        names,
-        batch_size=int(d.batch_size),
-        num_workers=int(d.num_workers),
-        per_object=d.per_object,
-        augment=bool(d.augment),
-        pin_memory=bool(d.pin_memory),
-        seed=int(cfg.seed),
-        train_splits=list(d.train_splits),
-        val_splits=list(d.val_splits),
-        drop_last=bool(d.get("drop_last", False)),
-        data_root=cfg.data_root,
-    )
+    return datamodule_from_config(cfg, names)
 
 
 def dataset_names(cfg: Any) -> list[str]:
