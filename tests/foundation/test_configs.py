@@ -44,4 +44,3 @@ def test_component_groups_name_registered_components():
             name = node.pop("name")
             node.update(REQUIRED.get((group, path.stem), {}))
             REGISTRIES[kind].config(name, node)  # raises TnfError on unknown or mistyped keys
-
