@@ -70,7 +70,7 @@ _STEP_BYTES = 1 << 20
 
 
 def _convert_rows(
-    out: torch.Tensor, src: np.ndarray | torch.Tensor, rows: Sequence[int] | None, scale: float
+    out: torch.Tensor, src: np.ndarray | torch.Tensor, rows: np.ndarray | Sequence[int] | None, scale: float
 ) -> torch.Tensor:
     """``out[i] = src[rows[i]] * scale - 1`` (``src[i]`` without ``rows``) in float32, and ``out``.
 
@@ -92,7 +92,7 @@ def _convert_rows(
     return out
 
 
-def _to_unit_range(x: np.ndarray | torch.Tensor, rows: Sequence[int] | None = None) -> torch.Tensor:
+def _to_unit_range(x: np.ndarray | torch.Tensor, rows: np.ndarray | Sequence[int] | None = None) -> torch.Tensor:
     """uint8 [B, H, W, C] -> float32 [B, C, H, W] in [-1, 1], in channels-last memory layout.
 
     With ``rows``, converts those rows of ``x`` (a uint8 [N, H, W, C] array, e.g. a memory map), in that
@@ -111,7 +111,7 @@ def _to_unit_range(x: np.ndarray | torch.Tensor, rows: Sequence[int] | None = No
     return torch.add(_MINUS_ONE, src, alpha=_U8_SCALE, out=out).permute(0, 3, 1, 2)
 
 
-def _depth_to_unit_range(x: np.ndarray | torch.Tensor, rows: Sequence[int] | None = None) -> torch.Tensor:
+def _depth_to_unit_range(x: np.ndarray | torch.Tensor, rows: np.ndarray | Sequence[int] | None = None) -> torch.Tensor:
     """float16 depth [B, H, W] in [0, 1] (or the rows ``rows`` of an [N, H, W] array) -> float32 [B, 1, H, W],
     2d - 1 (exact)."""
     n = len(rows) if rows is not None else len(x)
