@@ -97,7 +97,7 @@ def main() -> None:
     ap.add_argument("--half", choices=["auto", "on", "off"], default="auto", help="float16 rendering (auto: CUDA)")
     ap.add_argument("--compile", action="store_true", help="torch.compile the hash grid's rendering field")
     ap.add_argument("--march-kernel", choices=["auto", "on", "off"], default="auto", help="Warp march selection")
-    ap.add_argument("--distortion-weight", type=float, default=0.1, help="fit.distortion_weight (Mip-NeRF 360)")
+    ap.add_argument("--distortion-weight", type=float, default=None, help="fit.distortion_weight (default: fit's)")
     ap.add_argument("--profile", action="store_true", help="with --load: print the top operators of one batch")
     args = ap.parse_args()
     if args.load:
@@ -118,13 +118,8 @@ def main() -> None:
     for kv in args.set:
         k, v = kv.split("=", 1)
         params[k] = json.loads(v)
-    settings = FitSettings(
-        steps=args.steps,
-        batch_rays=args.batch_rays,
-        lr=args.lr,
-        chunk=args.chunk,
-        distortion_weight=args.distortion_weight,
-    )
+    extra = {} if args.distortion_weight is None else {"distortion_weight": args.distortion_weight}
+    settings = FitSettings(steps=args.steps, batch_rays=args.batch_rays, lr=args.lr, chunk=args.chunk, **extra)
     run_dir = out / f"{args.scene}-{args.object}"
     run_dir.mkdir(parents=True, exist_ok=True)
     train, test = read_views(data / "transforms.json"), read_views(data / "transforms_test.json")
@@ -179,7 +174,7 @@ def main() -> None:
         "peak_gpu_memory_fit_gib": fit_peak,
         "peak_cpu_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         f"train_seconds_for_{args.objects_in_paper}_objects": round(metrics["train_seconds"] * args.objects_in_paper),
-        "distortion_weight": args.distortion_weight,
+        "distortion_weight": settings.distortion_weight,
         "scene_config": params,
     }
     (out / f"{args.scene}-{args.object}.json").write_text(json.dumps(figures, indent=2) + "\n")
@@ -199,6 +194,18 @@ def load_scene_for_rendering(path: str | Path, args: argparse.Namespace):
     return scene
 
 
+def render_cameras(scene, n: int, size: int):
+    """``n`` camera poses around the object (2.2 bounds away) and the intrinsics of a 40-degree view at
+    ``size`` px: the frames every rendering figure is measured on."""
+    import torch
+
+    from tnf.scenes.synthetic import sphere_poses
+
+    c2w = torch.tensor(sphere_poses(n, 2.2 * scene.bound, offset=0.123), dtype=torch.float32)
+    f = 0.5 * size / torch.tan(torch.tensor(0.5 * 0.7))
+    return c2w, torch.tensor([f, f, size / 2, size / 2])
+
+
 def measure_rendering(scene, args: argparse.Namespace) -> dict:
     """Frames/s of batches of ``render_views`` poses at ``render_size`` px around the object, peak memory,
     the march's counts per ray, and how far the renders are from the dense quadrature (every sample)."""
@@ -206,13 +213,10 @@ def measure_rendering(scene, args: argparse.Namespace) -> dict:
 
     from tnf.scenes.fit import psnr
     from tnf.scenes.render import camera_rays
-    from tnf.scenes.synthetic import sphere_poses
 
     cuda = args.device.startswith("cuda")
     n, s = args.render_views, args.render_size
-    c2w = torch.tensor(sphere_poses(n, 2.2 * scene.bound, offset=0.123), dtype=torch.float32)
-    f = 0.5 * s / torch.tan(torch.tensor(0.5 * 0.7))
-    k = torch.tensor([f, f, s / 2, s / 2])
+    c2w, k = render_cameras(scene, n, s)
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     scene.render_rgbd(c2w, k, s, s, args.chunk)  # warm-up (and compilation, if asked for)
@@ -276,15 +280,10 @@ def render_only(args: argparse.Namespace) -> None:
 
 def profile_rendering(scene, args: argparse.Namespace) -> None:
     """Print the operators (CUDA kernels on a GPU) that took the most time in one batch of renders."""
-    import torch
     from torch.profiler import ProfilerActivity, profile
 
-    from tnf.scenes.synthetic import sphere_poses
-
-    n, s = args.render_views, args.render_size
-    c2w = torch.tensor(sphere_poses(n, 2.2 * scene.bound, offset=0.123), dtype=torch.float32)
-    f = 0.5 * s / torch.tan(torch.tensor(0.5 * 0.7))
-    k = torch.tensor([f, f, s / 2, s / 2])
+    s = args.render_size
+    c2w, k = render_cameras(scene, args.render_views, s)
     cuda = args.device.startswith("cuda")
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities) as prof:

@@ -142,6 +142,12 @@ def test_last_checkpoint_interval_skips_epochs_but_keeps_the_final_one(tmp_path)
     assert load_generator(run_dir / "best.ckpt").generator_name == "tn_cgan"
 
 
+def test_negative_checkpoint_interval_is_refused_before_training(tmp_path):
+    with pytest.raises(TnfError, match="checkpoint_every_s"):
+        train(tmp_path / "run", epochs=1, checkpoint_every_s=-1)
+    assert not (tmp_path / "run").exists()
+
+
 def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
     run_dir = tmp_path / "run"
     train(run_dir, epochs=1)

@@ -37,9 +37,12 @@ class LatestCheckpoint(ModelCheckpoint):
             return True
         path = Path(self.dirpath or ".") / f"{self.filename}{self.FILE_EXTENSION}"
         try:
-            return time.time() - path.stat().st_mtime >= self.every_s
+            due = time.time() - path.stat().st_mtime >= self.every_s
         except FileNotFoundError:
-            return True
+            due = True
+        # Process 0 decides for all: saving waits at a barrier, so DDP processes that judged the file's age
+        # differently would wait for each other for ever.
+        return bool(trainer.strategy.broadcast(due, src=0))
 
     def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
         if self._due(trainer):
@@ -141,6 +144,8 @@ def fit(
     the end of an epoch once ``checkpoint_every_s`` seconds have passed since it was last written (0: after
     every epoch), and always after the last epoch.
     """
+    if checkpoint_every_s < 0:
+        raise TnfError(f"checkpoint_every_s must be >= 0 seconds (0: after every epoch), got {checkpoint_every_s}")
     import lightning as L
     from lightning.pytorch.callbacks import RichProgressBar
     from torch.multiprocessing import ProcessRaisedException

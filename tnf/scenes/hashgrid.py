@@ -419,12 +419,13 @@ class HashGridScene(FieldScene):
     default_chunk = 1 << 19
     #: Transmittance below which a ray stops (early ray termination).
     min_transmittance: float = 1e-4
-    #: Samples per ray whose occupancy a march round looks up at least (a cheap test, no network).
+    #: Samples per ray whose occupancy a march round looks up at least (a cheap test, no network; the
+    #: PyTorch selection only: the Warp kernel looks as far as each ray needs).
     march_window: int = 64
     #: Occupied samples per ray a march round sends to the network at least.
     march_samples: int = 16
     #: Samples looked up per round over all rays; rounds with fewer rays left look further along each
-    #: (fewer rounds, which matters on a GPU). None: 2^25 on CUDA, 2^20 on the CPU.
+    #: (fewer rounds, which matters on a GPU). None: 2^25 on CUDA, 2^20 on the CPU. PyTorch selection only.
     march_budget: int | None = None
     #: Samples per network evaluation while rendering (bounds the hash encoding's memory).
     field_chunk: int = 1 << 19
@@ -434,7 +435,7 @@ class HashGridScene(FieldScene):
     #: the PyTorch encoding's [P, L, 8] tensors): None = wherever Warp runs, else the PyTorch encoding.
     render_kernel: bool | None = None
     #: The march's sample selection by a Warp kernel (``hash_kernel.march_select``: one thread per ray, no
-    #: [rays, window] tensors): None = wherever Warp runs, else PyTorch (``_select_window``).
+    #: [rays, window] tensors): None = as ``render_kernel``, False = PyTorch (``_select_window``).
     march_kernel: bool | None = None
     #: Compile the rendering field with ``torch.compile`` (fuses the hash encoding's element-wise work on
     #: CUDA); falls back to eager with a warning when compiling fails. Off by default: compiling takes
@@ -532,11 +533,12 @@ class HashGridScene(FieldScene):
         a ray at ``near + (n + offset) * step_size``), evaluating only what can change the result.
 
         Rays that miss the box around the occupied cells are empty. The others are marched in rounds: a
-        round looks up the occupancy of the next samples of every ray (a window of at least
-        ``march_window``), sends the first ``march_samples`` occupied ones (twice as many each round) to
-        the network in one batch, composites them in order, and drops the rays whose transmittance fell
-        below ``min_transmittance`` or that left the box. So the network sees only occupied samples in
-        front of each ray's surface, and the count of operations depends on the rounds, not the samples.
+        round finds the next ``march_samples`` occupied samples of every ray (twice as many each round; a
+        Warp kernel steps along each ray, the PyTorch fallback looks up a window of at least
+        ``march_window`` samples at once), sends them to the network in one batch, composites them in order,
+        and drops the rays whose transmittance fell below ``min_transmittance`` or that left the box. So the
+        network sees only occupied samples in front of each ray's surface, and the count of operations depends
+        on the rounds, not the samples.
 
         Returns rgb [R, 3], depth [R] (distance), opacity [R] and t_stop [R], the distance after which the
         remaining samples carry less than ``min_transmittance`` of the light (inf for rays that never stop).
@@ -555,7 +557,7 @@ class HashGridScene(FieldScene):
             budget = self.march_budget if self.march_budget is not None else 1 << (25 if dev.type == "cuda" else 20)
             G, b = self.cfg.occupancy_resolution, self.bound
             cell_stride = torch.tensor([G * G, G, 1], device=dev, dtype=torch.int32)
-            kernel = self.march_kernel is not False and self._use_kernel(dev, self.march_kernel)
+            kernel = self._use_kernel(dev, self.march_kernel)
             if kernel:
                 from tnf.scenes import hash_kernel
 
