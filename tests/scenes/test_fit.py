@@ -291,3 +291,23 @@ def test_half_precision_render_is_close_to_float32(fitted):
     assert float(psnr(half["rgb"], full["rgb"]).min()) > 40.0
     both = (full["opacity"] > 0.5) & (half["opacity"] > 0.5)
     assert (half["depth"][both] - full["depth"][both]).abs().median() < 2e-4  # metres
+
+
+def test_distortion_loss_starts_at_its_fraction_of_the_steps(dataset):
+    # Each step's draws depend only on (seed, step): until distortion_start the fit is the colour-only fit,
+    # bit for bit; from that step on the distortion term changes the loss.
+    views = read_views(dataset / "transforms.json")
+
+    def losses(**kw):
+        out: list[float] = []
+        torch.manual_seed(0)
+        settings = FitSettings(steps=12, batch_rays=64, checkpoint_every=0, log_every=1, **kw)
+        fit_scene(build_scene(TINY, views), views, settings, "hashgrid", on_step=lambda s, loss: out.append(loss))
+        return out
+
+    colour = losses(distortion_weight=0.0)
+    late = losses(distortion_weight=1.0, distortion_start=0.5)
+    assert late[:6] == colour[:6]
+    assert all(a != b for a, b in zip(late[6:], colour[6:]))
+    with pytest.raises(ValueError, match="distortion_start"):
+        FitSettings(distortion_start=1.0).validate()

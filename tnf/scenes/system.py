@@ -92,6 +92,7 @@ class SceneFitSystem(L.LightningModule):
         self.scene = scene
         self.settings = settings
         self.steps, self.batch_rays, self.lr = settings.steps, settings.batch_rays, settings.lr
+        self._distortion_from = int(round(settings.distortion_start * self.steps))  # first step with it
         self.seed = seed
         self.resume_path = Path(resume_path) if resume_path is not None else None
         self.on_step = on_step
@@ -123,6 +124,7 @@ class SceneFitSystem(L.LightningModule):
             "lr_final_factor": s.lr_final_factor,
             "random_background": s.random_background,
             "distortion_weight": s.distortion_weight,
+            "distortion_start": s.distortion_start,
             "seed": self.seed,
             "rays": self.num_rays,
             "shapes": {k: list(v.shape) for k, v in self.scene.state_dict().items()},
@@ -174,7 +176,7 @@ class SceneFitSystem(L.LightningModule):
         gt = composite(self.targets[idx], bg)
         out = scene.render_rays(self.origins[idx], self.directions[idx], bg, perturb=True)
         loss = torch.mean((out["rgb"] - gt) ** 2)
-        if self.settings.distortion_weight and "distortion" in out:
+        if self.settings.distortion_weight and "distortion" in out and step >= self._distortion_from:
             loss = loss + self.settings.distortion_weight * out["distortion"].mean()
         if "rgb_coarse" in out:
             loss = loss + torch.mean((out["rgb_coarse"] - gt) ** 2)
