@@ -21,6 +21,8 @@ from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, 
 from tnf.registry import GENERATORS
 
 CHANNELS = {"rgb": 3, "depth": 1, "background": 3}
+# Background values are clamped to this before atanh in the residual output; 1 - 1e-3 is 0.06 of an 8-bit level.
+RESIDUAL_LIMIT = 1.0 - 1e-3
 
 
 def level_channels(ngf: int, level: int) -> int:
@@ -79,6 +81,7 @@ class UNetDecoder(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
+        final_tanh: bool = True,
     ):
         super().__init__()
         nl = norm_layer(norm)
@@ -93,7 +96,7 @@ class UNetDecoder(nn.Module):
                 nn.ReLU(True),
                 nn.ConvTranspose2d(cin, cout, kernel, 2, pad, output_padding=out_pad, bias=use_bias or last),
             ]
-            if last:
+            if last and final_tanh:
                 layers.append(nn.Tanh())
             else:
                 layers.append(nl(cout))
@@ -134,22 +137,32 @@ class MultiEncoderUNet(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
+        residual: bool = False,
     ):
         super().__init__()
         self.inputs = tuple(inputs)
+        self.residual = residual
         self.skips = tuple(skips)
         n = num_downs
         self.encoders = nn.ModuleDict({k: Encoder(CHANNELS[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
-        self.decoder = UNetDecoder(bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel)
+        self.decoder = UNetDecoder(
+            bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel, final_tanh=not residual
+        )
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         feats = {k: self.encoders[k](inputs[k]) for k in self.inputs}
         bottleneck = torch.cat([feats[k][-1] for k in self.inputs], 1)
         n = len(next(iter(feats.values())))
         skips = [[feats[k][lv] for k in self.skips] for lv in range(n - 1)]
-        return self.decoder(bottleneck, skips)
+        out = self.decoder(bottleneck, skips)
+        if self.residual:
+            # The decoder's output changes the background in tanh's pre-image: zero leaves it as it is, and
+            # the result stays in (-1, 1) with a gradient everywhere.
+            bg = inputs["background"].float().clamp(-RESIDUAL_LIMIT, RESIDUAL_LIMIT)
+            out = torch.tanh(torch.atanh(bg) + out.float()).to(out.dtype)
+        return out
 
 
 def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
@@ -171,6 +184,9 @@ class TNcGAN(Generator):
         """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations)."""
         skips: list[str] = field(default_factory=lambda: ["background"])
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only)."""
+        residual: bool = False
+        """Predict the change the touch makes to the background image, not the whole image: the output is
+        tanh(atanh(background) + decoder output), so a decoder output of zero is the background itself."""
         image_size: int = 128
         """Input and output image size in pixels (square, a power of two)."""
         ngf: int = 64
@@ -208,6 +224,8 @@ class TNcGAN(Generator):
                 raise ValueError(f"inputs must be a non-empty subset of {list(CHANNELS)}, got {self.inputs}")
             if len(set(self.inputs)) != len(self.inputs):
                 raise ValueError(f"inputs has duplicates: {self.inputs}")
+            if self.residual and "background" not in self.inputs:
+                raise ValueError("residual: true needs background in inputs")
             extra = [k for k in self.skips if k not in self.inputs]
             if extra:
                 raise ValueError(f"skips {extra} are not in inputs {self.inputs}; set skips to a subset of inputs")
@@ -229,8 +247,9 @@ class TNcGAN(Generator):
         self.cfg = cfg
         self.inputs = tuple(cfg.inputs)
         self.net_g = MultiEncoderUNet(
-            cfg.inputs, cfg.skips, cfg.ngf, cfg.num_downs, cfg.norm, cfg.dropout, cfg.dropout_blocks
-        )
+            cfg.inputs, cfg.skips, cfg.ngf, cfg.num_downs, cfg.norm, cfg.dropout, cfg.dropout_blocks,
+            residual=cfg.residual,
+        )  # fmt: skip
         cond_ch = sum(CHANNELS[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
         init_weights(self.net_g)
