@@ -78,3 +78,16 @@ def test_images_are_compared_at_128():
     big = _images(4, n=1, size=256)
     small = torch.nn.functional.interpolate(big.float(), size=(128, 128), mode="bilinear", antialias=True)
     assert ssim(big, small.round().byte()).item() > 0.999
+
+
+def test_metrics_inside_bf16_autocast_equal_float32_metrics():
+    # A bf16-mixed trainer validates inside autocast: SSIM's variances of values near 255 in bfloat16 would
+    # cancel to noise (validation SSIM 0.66 where the float32 figure was 0.92).
+    g = torch.Generator().manual_seed(0)
+    real = (torch.rand(4, 3, 128, 128, generator=g) * 1.6 - 0.8).clamp(-1, 1)
+    fake = (real + 0.05 * torch.randn(4, 3, 128, 128, generator=g)).clamp(-1, 1)
+    ref_ssim, ref_mse = ssim(fake, real), mse(fake, real)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        s, m = ssim(fake, real), mse(fake, real)
+    assert s.dtype == torch.float32 and torch.equal(s, ref_ssim)
+    assert torch.equal(m, ref_mse)

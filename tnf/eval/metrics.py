@@ -3,6 +3,9 @@
 Following the paper: images are compared as 8-bit RGB at 128 x 128; SSIM uses a Gaussian window of 11
 pixels with sigma 1.5 and data range 255, averaged over the RGB channels; MSE is on the 0-255 scale
 (range 0-65025).
+
+Both compute in float32 even inside an autocast region (a bf16-mixed trainer's validation): SSIM's local
+variances E[x^2] - E[x]^2 of values near 255 cancel to noise in bfloat16.
 """
 
 from __future__ import annotations
@@ -36,14 +39,16 @@ def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per-image SSIM, [B], of [B, 3, H, W] images (uint8 or [-1, 1] floats), mean over channels."""
     from torchmetrics.functional.image import structural_similarity_index_measure
 
-    p, t = _prepare(pred), _prepare(target)
-    out = structural_similarity_index_measure(
-        p, t, gaussian_kernel=True, kernel_size=11, sigma=1.5, data_range=255.0, reduction="none"
-    )
+    with torch.autocast(pred.device.type, enabled=False):
+        p, t = _prepare(pred), _prepare(target)
+        out = structural_similarity_index_measure(
+            p, t, gaussian_kernel=True, kernel_size=11, sigma=1.5, data_range=255.0, reduction="none"
+        )
     return cast(torch.Tensor, out)  # a tuple only with return_full_image=True
 
 
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per-image MSE on the 0-255 scale, [B], of [B, 3, H, W] images (uint8 or [-1, 1] floats)."""
-    p, t = _prepare(pred), _prepare(target)
-    return ((p - t) ** 2).flatten(1).mean(1)
+    with torch.autocast(pred.device.type, enabled=False):
+        p, t = _prepare(pred), _prepare(target)
+        return ((p - t) ** 2).flatten(1).mean(1)
