@@ -44,8 +44,12 @@ def test_tn_cgan_default_architecture():
     assert set(g.net_g.encoders) == {"rgb", "depth", "background"}
     assert all(len(e.blocks) == 7 for e in g.net_g.encoders.values())
     assert g.net_g.encoders["depth"].blocks[0].in_channels == 1
-    # Dropout 0.5 in the three innermost decoder blocks, on when generating.
-    drops = [m for m in g.net_g.decoder.modules() if isinstance(m, NoiseDropout)]
+    # Skips from the background and depth encoders; no dropout (deterministic generation).
+    assert g.net_g.skips == ("background", "depth")
+    assert not [m for m in g.net_g.decoder.modules() if isinstance(m, NoiseDropout)]
+    # The paper's layout: dropout 0.5 in the three innermost decoder blocks, on when generating.
+    paper = GENERATORS.build({"name": "tn_cgan", "skips": ["background"], "dropout": 0.5})
+    drops = [m for m in paper.net_g.decoder.modules() if isinstance(m, NoiseDropout)]
     assert len(drops) == 3 and all(d.p == 0.5 and d.always_on for d in drops)
     # PatchGAN on condition (3 + 1 + 3) + tactile (3) channels: 14 x 14 logits for 128 px.
     assert g.net_d.net[0].in_channels == 10
@@ -53,9 +57,10 @@ def test_tn_cgan_default_architecture():
     assert g.cfg.lambda_l1 == 100 and g.cfg.lr == 2e-4 and g.cfg.beta1 == 0.5
 
 
-def test_tn_cgan_skips_come_from_background_encoder():
+@pytest.mark.parametrize("skips", [["background"], ["background", "depth"]])
+def test_tn_cgan_skips_come_from_the_named_encoders(skips):
     torch.manual_seed(0)
-    g = build("tn_cgan", image_size=32).eval()
+    g = build("tn_cgan", image_size=32, skips=skips).eval()
     batch = make_pairs(2, 32)
     feats = {k: g.net_g.encoders[k](batch[k]) for k in g.inputs}
     seen = []
@@ -67,23 +72,23 @@ def test_tn_cgan_skips_come_from_background_encoder():
         h.remove()
     # Bottleneck = concatenated innermost features of the three encoders.
     assert torch.equal(seen[0], torch.cat([feats[k][-1] for k in ("rgb", "depth", "background")], 1))
-    # Every later block's input ends with the background encoder's feature at that scale.
+    # Every later block's input ends with the named encoders' features at that scale, in the order named.
     n = len(seen)
     for k in range(1, n):
-        f = feats["background"][n - 1 - k]
+        f = torch.cat([feats[s][n - 1 - k] for s in skips], 1)
         assert seen[k].shape[-2:] == f.shape[-2:]
         assert torch.equal(seen[k][:, -f.shape[1] :], f)
 
 
 def test_tn_cgan_inputs_are_configurable():
-    g = build("tn_cgan", inputs=["rgb", "background"], image_size=32)
+    g = build("tn_cgan", inputs=["rgb", "background"], skips=["background"], image_size=32)
     assert set(g.net_g.encoders) == {"rgb", "background"}
     assert g.net_d.net[0].in_channels == 9
     batch = make_pairs(2, 32)
     del batch["depth"]
     assert g.generate(batch).shape == (2, 3, 32, 32)
     with pytest.raises(TnfError, match="skips"):
-        build("tn_cgan", inputs=["rgb", "depth"])  # the default skips (background) are not an input
+        build("tn_cgan", inputs=["rgb", "depth"])  # a default skip (background) is not an input
     with pytest.raises(TnfError, match="needs batch keys"):
         build("tn_cgan", image_size=32).generate({"rgb": batch["rgb"]})
 
@@ -119,11 +124,11 @@ def test_bad_configs_are_errors():
 
 def test_dropout_at_generation_makes_outputs_stochastic():
     torch.manual_seed(0)
-    g = build("tn_cgan", image_size=32).eval()
+    g = build("tn_cgan", image_size=32, dropout=0.5).eval()
     batch = make_pairs(2, 32)
     with torch.no_grad():
         assert not torch.equal(g.generate(batch), g.generate(batch))
-    g = build("tn_cgan", image_size=32, dropout_at_generation=False).eval()
+    g = build("tn_cgan", image_size=32, dropout=0.5, dropout_at_generation=False).eval()
     with torch.no_grad():
         assert torch.equal(g.generate(batch), g.generate(batch))
 
