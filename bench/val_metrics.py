@@ -1,0 +1,65 @@
+"""SSIM and MSE of trained generator runs on a paired dataset's validation split, beside the BG baseline.
+
+    python bench/val_metrics.py --data-root tnf-data --dataset digit-hashgrid RUN [RUN ...] [--device cuda]
+
+Each RUN is a folder under <data-root>/models/ (its best.ckpt is scored). Generators that keep dropout on when
+generating are scored both ways (the row ``dropout off`` switches it off). This is how tn_cgan's defaults were
+chosen (results/generators/tn_cgan_variants.md): on the validation split, never on a test split.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+from torch.utils.data import DataLoader
+
+from tnf.data import PairDataset, collate_pairs
+from tnf.eval import metrics
+from tnf.generators import load_generator
+from tnf.generators.nets import NoiseDropout
+
+
+def score(generate, loader: DataLoader, device: str) -> tuple[float, float]:
+    ssim, mse = [], []
+    for batch in loader:
+        batch = {k: v.to(device) for k, v in batch.items()}
+        fake = generate(batch)
+        ssim.append(metrics.ssim(fake, batch["tactile"]).cpu())
+        mse.append(metrics.mse(fake, batch["tactile"]).cpu())
+    return float(torch.cat(ssim).mean()), float(torch.cat(mse).mean())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", help="run folders under <data-root>/models/")
+    ap.add_argument("--data-root", default="tnf-data")
+    ap.add_argument("--dataset", default="digit-hashgrid", help="paired dataset under <data-root>/pairs/")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--batch", type=int, default=64)
+    args = ap.parse_args()
+
+    root = Path(args.data_root)
+    ds = PairDataset(root / "pairs" / args.dataset, [args.split])
+    loader = DataLoader(ds, batch_size=args.batch, shuffle=False, collate_fn=collate_pairs)
+    print(f"{args.dataset} {args.split}: {len(ds)} pairs, device {args.device}")
+    print(f"{'run':<28} {'generation':<12} {'SSIM':>7} {'MSE':>7}")
+    for run in args.runs:
+        system = load_generator(root / "models" / run / "best.ckpt", args.device)
+        drops = [m for m in system.modules() if isinstance(m, NoiseDropout)]
+        modes = [("as trained", None)] + ([("dropout off", False)] if any(d.always_on for d in drops) else [])
+        for label, on in modes:
+            for d in drops:
+                if on is not None:
+                    d.always_on = on
+            torch.manual_seed(0)
+            s, m = score(system.generate, loader, args.device)
+            print(f"{run:<28} {label:<12} {s:7.4f} {m:7.1f}")
+    s, m = score(lambda b: b["background"], loader, args.device)
+    print(f"{'BG':<28} {'-':<12} {s:7.4f} {m:7.1f}")
+
+
+if __name__ == "__main__":
+    main()
