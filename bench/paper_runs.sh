@@ -4,9 +4,9 @@
 #   digit-data    digit-scenes then digit-pairs                                            (sim_digit)
 #   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU)
 #   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
-#   digit-models  train + generate + evaluate for tn_cgan, lee and cyclegan, one process each, for each of SEEDS
-#                 (give one seed per call: on one H100, three processes took 540 s, while six (two seeds) had not
-#                 finished training after 570 s)
+#   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
+#                 process each (on one H100, three processes take 470-540 s, e.g. SEEDS="0 1 2" GENERATORS=tn_cgan
+#                 511 s; six had not finished training after 570 s: give at most three per call)
 #   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
 #   report        rebuild both reports from every run present and copy them to $OUT
 # Artifacts go to $TNF_DATA (default /tmp/tnf-paper); logs, stage times and reports go to $OUT when it is set.
