@@ -16,6 +16,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from tnf.data import PairDataset, collate_pairs
+from tnf.errors import TnfError
 from tnf.eval import metrics
 from tnf.generators import load_generator
 from tnf.generators.nets import NoiseDropout
@@ -42,7 +43,12 @@ def main() -> None:
     args = ap.parse_args()
 
     root = Path(args.data_root)
+    missing = [r for r in args.runs if not (root / "models" / r / "best.ckpt").is_file()]
+    if missing:
+        raise SystemExit(f"no best.ckpt under {root / 'models'} for: {', '.join(missing)}")
     ds = PairDataset(root / "pairs" / args.dataset, [args.split])
+    if len(ds) == 0:
+        raise SystemExit(f"dataset {args.dataset} has no {args.split} pairs")
     loader = DataLoader(ds, batch_size=args.batch, shuffle=False, collate_fn=collate_pairs)
     print(f"{args.dataset} {args.split}: {len(ds)} pairs, device {args.device}")
     print(f"{'run':<28} {'generation':<12} {'SSIM':>7} {'MSE':>7}")
@@ -62,4 +68,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except TnfError as e:  # a bad dataset or checkpoint: one line, as the tnf command prints it
+        raise SystemExit(f"error: {e}") from None

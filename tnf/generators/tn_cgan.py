@@ -26,8 +26,6 @@ from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, 
 from tnf.registry import GENERATORS
 
 CHANNELS = {"rgb": 3, "depth": 1, "background": 3}
-# Background values are clamped to this before atanh in the residual output; 1 - 1e-3 is 0.06 of an 8-bit level.
-RESIDUAL_LIMIT = 1.0 - 1e-3
 
 
 def level_channels(ngf: int, level: int) -> int:
@@ -86,7 +84,6 @@ class UNetDecoder(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
-        final_tanh: bool = True,
     ):
         super().__init__()
         nl = norm_layer(norm)
@@ -101,7 +98,7 @@ class UNetDecoder(nn.Module):
                 nn.ReLU(True),
                 nn.ConvTranspose2d(cin, cout, kernel, 2, pad, output_padding=out_pad, bias=use_bias or last),
             ]
-            if last and final_tanh:
+            if last:
                 layers.append(nn.Tanh())
             else:
                 layers.append(nl(cout))
@@ -142,32 +139,22 @@ class MultiEncoderUNet(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
-        residual: bool = False,
     ):
         super().__init__()
         self.inputs = tuple(inputs)
-        self.residual = residual
         self.skips = tuple(skips)
         n = num_downs
         self.encoders = nn.ModuleDict({k: Encoder(CHANNELS[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
-        self.decoder = UNetDecoder(
-            bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel, final_tanh=not residual
-        )
+        self.decoder = UNetDecoder(bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         feats = {k: self.encoders[k](inputs[k]) for k in self.inputs}
         bottleneck = torch.cat([feats[k][-1] for k in self.inputs], 1)
         n = len(next(iter(feats.values())))
         skips = [[feats[k][lv] for k in self.skips] for lv in range(n - 1)]
-        out = self.decoder(bottleneck, skips)
-        if self.residual:
-            # The decoder's output changes the background in tanh's pre-image: zero leaves it as it is, and
-            # the result stays in (-1, 1) with a gradient everywhere.
-            bg = inputs["background"].float().clamp(-RESIDUAL_LIMIT, RESIDUAL_LIMIT)
-            out = torch.tanh(torch.atanh(bg) + out.float()).to(out.dtype)
-        return out
+        return self.decoder(bottleneck, skips)
 
 
 def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
@@ -190,10 +177,6 @@ class TNcGAN(Generator):
         skips: list[str] = field(default_factory=lambda: ["background", "depth"])
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only). Depth
         skips place the imprint's edges from the depth image at every scale, not from the 1 x 1 bottleneck."""
-        residual: bool = False
-        """Predict the change the touch makes to the background image, not the whole image: the output is
-        tanh(atanh(background) + decoder output), so a decoder output of zero is the background itself. On
-        sim_digit it trained worse (validation SSIM 0.58 against 0.66 after 8 epochs, as measured then)."""
         image_size: int = 128
         """Input and output image size in pixels (square, a power of two)."""
         ngf: int = 64
@@ -231,8 +214,6 @@ class TNcGAN(Generator):
                 raise ValueError(f"inputs must be a non-empty subset of {list(CHANNELS)}, got {self.inputs}")
             if len(set(self.inputs)) != len(self.inputs):
                 raise ValueError(f"inputs has duplicates: {self.inputs}")
-            if self.residual and "background" not in self.inputs:
-                raise ValueError("residual: true needs background in inputs")
             extra = [k for k in self.skips if k not in self.inputs]
             if extra:
                 raise ValueError(f"skips {extra} are not in inputs {self.inputs}; set skips to a subset of inputs")
@@ -254,9 +235,8 @@ class TNcGAN(Generator):
         self.cfg = cfg
         self.inputs = tuple(cfg.inputs)
         self.net_g = MultiEncoderUNet(
-            cfg.inputs, cfg.skips, cfg.ngf, cfg.num_downs, cfg.norm, cfg.dropout, cfg.dropout_blocks,
-            residual=cfg.residual,
-        )  # fmt: skip
+            cfg.inputs, cfg.skips, cfg.ngf, cfg.num_downs, cfg.norm, cfg.dropout, cfg.dropout_blocks
+        )
         cond_ch = sum(CHANNELS[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
         init_weights(self.net_g)
