@@ -1,0 +1,83 @@
+"""How much can added touches lift the classification task? Ground truth in place of generated images.
+
+The evaluation's classification rows (``Sim``, ``Sim + G``) train on 20 simulated touches per object and test
+on the novel-view touches. This script trains the same classifier (the evaluate stage's defaults) on ground
+truth only, to show what a perfect generator could add:
+
+- ``Sim``: the ``--sim-per-object`` training touches per object (as in the evaluation);
+- ``Sim (all)``: every training touch (500 per object in sim_digit), all outside the novel-view cone;
+- ``Sim + GT uniform``: ``Sim`` plus simulated touches from directions spread over the whole sphere, the
+  distribution ``tnf generate`` samples its poses from (``--uniform``: a touch data root made with
+  ``touch.novel_view_cone=0``, a different seed and no val or novel-view touches);
+- ``GT uniform only``.
+
+    tnf touch experiment=sim_digit                                            # TNF_DATA=A
+    tnf touch experiment=sim_digit seed=1 touch.n_touches=200 touch.n_val=0 \\
+        touch.n_novel_view=0 touch.novel_view_cone=0                         # TNF_DATA=B
+    python bench/classify_ceiling.py --data A --uniform B [--device cuda] [--seeds 0 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="data root with touch/SENSOR/SOURCE/OBJECT/ (train, novel_view)")
+    ap.add_argument("--uniform", required=True, help="data root with touches from the whole sphere (split train)")
+    ap.add_argument("--sensor", default="digit")
+    ap.add_argument("--source", default="builtin")
+    ap.add_argument("--sim-per-object", type=int, default=20)
+    ap.add_argument("--uniform-per-object", type=int, default=200)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--device", default="cpu")
+    a = ap.parse_args()
+
+    import torch
+
+    from tnf.errors import TnfError
+    from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
+
+    cfg = ClassifierConfig()
+    root = Path(a.data) / "touch" / a.sensor / a.source
+    objects = sorted(p.name for p in root.iterdir() if (p / "manifest.json").is_file()) if root.is_dir() else []
+    if len(objects) < 2:
+        raise TnfError(f"need touches of at least 2 objects under {root}; run `tnf touch` first")
+    results: dict[str, list[float]] = {}
+    for seed in a.seeds:
+        sets: dict[str, list[LabelledImages]] = {k: [] for k in ("sim", "all", "uniform", "test")}
+        for label, obj in enumerate(objects):
+            uniform = Path(a.uniform) / "touch" / a.sensor / a.source / obj
+            parts = {
+                "sim": load_touch_images(root / obj, cfg.image_size, ["train"], a.sim_per_object, seed),
+                "all": load_touch_images(root / obj, cfg.image_size, ["train"]),
+                "uniform": load_touch_images(uniform, cfg.image_size, ["train"], a.uniform_per_object, seed),
+                "test": load_touch_images(root / obj, cfg.image_size, ["novel_view"]),
+            }
+            for k, x in parts.items():
+                sets[k].append(LabelledImages(x, torch.full((len(x),), label, dtype=torch.long)))
+        sim, all_, uniform, test = (LabelledImages.concat(sets[k]) for k in ("sim", "all", "uniform", "test"))
+        rows = {
+            f"Sim ({a.sim_per_object}/object)": sim,
+            f"Sim (all {len(all_) // len(objects)}/object)": all_,
+            f"Sim + GT uniform ({a.uniform_per_object}/object)": LabelledImages.concat([sim, uniform]),
+            "GT uniform only": uniform,
+        }
+        acc = run_rows(rows, test, len(objects), cfg, seed, a.device)
+        for row, v in acc.items():
+            results.setdefault(row, []).append(v)
+            print(f"seed {seed}  {row:32s} {v:5.1f} %  ({len(rows[row])} train images)", flush=True)
+    print(f"\n{len(objects)} objects, {len(test)} novel-view test touches; mean over seeds {a.seeds}:")
+    for row, vs in results.items():
+        se = statistics.stdev(vs) / len(vs) ** 0.5 if len(vs) > 1 else 0.0
+        print(f"  {row:32s} {statistics.mean(vs):5.1f} ± {se:.1f} %")
+
+
+if __name__ == "__main__":
+    main()
