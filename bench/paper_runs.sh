@@ -2,7 +2,7 @@
 # The paper-scale runs of results/paper/ on one GPU, one phase per call so that each fits a 10-minute job.
 # Usage: bash bench/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
 #   digit-data    digit-scenes then digit-pairs                                            (sim_digit)
-#   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU)
+#   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU); every scene's figures to scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
 #                 process each (on one H100, three processes take 470-540 s, e.g. SEEDS="0 1 2" GENERATORS=tn_cgan
@@ -66,6 +66,7 @@ case "$1" in
     done
     parallel fit tnf fit-scene "${digit[@]}" "object_names={}" -- "${groups[@]}"
     echo "digit-scenes: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
+    python bench/scene_table.py "$TNF_DATA" --csv "$out/scenes.csv" | tee "$out/scenes.txt" | tail -2
     ;;
   digit-pairs)
     t0=$SECONDS
