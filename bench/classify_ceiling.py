@@ -1,8 +1,8 @@
 """How much can added touches lift the classification task? Ground truth in place of generated images.
 
 The evaluation's classification rows (``Sim``, ``Sim + G``) train on 20 simulated touches per object and test
-on the novel-view touches. This script trains the same classifier (the evaluate stage's defaults) on ground
-truth only, to show what a perfect generator could add:
+on the novel-view touches. This script trains the same classifier (``conf/evaluate/default.yaml``'s
+``classifier``) on ground truth only, to show what a perfect generator could add:
 
 - ``Sim``: the ``--sim-per-object`` training touches per object (as in the evaluation);
 - ``Sim (all)``: every training touch (500 per object in sim_digit), all outside the novel-view cone;
@@ -40,29 +40,35 @@ def main() -> None:
     a = ap.parse_args()
 
     import torch
+    from omegaconf import OmegaConf
 
     from tnf.errors import TnfError
     from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
 
-    cfg = ClassifierConfig()
+    conf = Path(__file__).resolve().parents[1] / "conf" / "evaluate" / "default.yaml"
+    cfg = ClassifierConfig.from_dict(OmegaConf.to_container(OmegaConf.load(conf).classifier))
     root = Path(a.data) / "touch" / a.sensor / a.source
+    uroot = Path(a.uniform) / "touch" / a.sensor / a.source
     objects = sorted(p.name for p in root.iterdir() if (p / "manifest.json").is_file()) if root.is_dir() else []
     if len(objects) < 2:
         raise TnfError(f"need touches of at least 2 objects under {root}; run `tnf touch` first")
+    if missing := [o for o in objects if not (uroot / o / "manifest.json").is_file()]:
+        raise TnfError(f"no whole-sphere touches under {uroot} for {', '.join(missing)}; see the commands above")
+
+    def load(folder: Path, split: str, limit: int | None = None, seed: int = 0) -> LabelledImages:
+        """Every object's touches of one split, labelled by the object's index."""
+        sets = []
+        for label, o in enumerate(objects):
+            x = load_touch_images(folder / o, cfg.image_size, [split], limit, seed)
+            sets.append(LabelledImages(x, torch.full((len(x),), label, dtype=torch.long)))
+        return LabelledImages.concat(sets)
+
+    # The full training set and the test set do not depend on the seed: loaded once.
+    all_, test = load(root, "train"), load(root, "novel_view")
     results: dict[str, list[float]] = {}
     for seed in a.seeds:
-        sets: dict[str, list[LabelledImages]] = {k: [] for k in ("sim", "all", "uniform", "test")}
-        for label, obj in enumerate(objects):
-            uniform = Path(a.uniform) / "touch" / a.sensor / a.source / obj
-            parts = {
-                "sim": load_touch_images(root / obj, cfg.image_size, ["train"], a.sim_per_object, seed),
-                "all": load_touch_images(root / obj, cfg.image_size, ["train"]),
-                "uniform": load_touch_images(uniform, cfg.image_size, ["train"], a.uniform_per_object, seed),
-                "test": load_touch_images(root / obj, cfg.image_size, ["novel_view"]),
-            }
-            for k, x in parts.items():
-                sets[k].append(LabelledImages(x, torch.full((len(x),), label, dtype=torch.long)))
-        sim, all_, uniform, test = (LabelledImages.concat(sets[k]) for k in ("sim", "all", "uniform", "test"))
+        sim = load(root, "train", a.sim_per_object, seed)
+        uniform = load(uroot, "train", a.uniform_per_object, seed)
         rows = {
             f"Sim ({a.sim_per_object}/object)": sim,
             f"Sim (all {len(all_) // len(objects)}/object)": all_,
@@ -80,4 +86,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from tnf.errors import TnfError
+
+    try:
+        main()
+    except TnfError as e:  # missing or malformed touches: one line, as the tnf command prints it
+        raise SystemExit(f"error: {e}") from None

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import statistics
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 PSNR_BAR = 30.0
 DEPTH_BAR = 1.0  # percent of the object's size
@@ -27,13 +28,20 @@ def main() -> None:
     ap.add_argument("--source", default="builtin")
     ap.add_argument("--csv", help="also write the table here")
     a = ap.parse_args()
+
+    from tnf.artifacts import read_json
+    from tnf.errors import TnfError
+
     folder = Path(a.data_root) / "scenes" / a.scene / a.source
     files = sorted(folder.glob("*/metrics.json"))
     if not files:
-        sys.exit(f"no fitted scenes under {folder}: run `tnf fit-scene` first")
+        raise TnfError(f"no fitted scenes under {folder}: run `tnf fit-scene` first")
     rows = []
     for f in files:
-        m = json.loads(f.read_text())
+        m = read_json(f, "scene metrics")
+        missing = [k for k in ("steps", "psnr", "ssim", "train_seconds") if k not in m]
+        if missing:
+            raise TnfError(f"scene metrics {f} lack {', '.join(missing)}; fit the scene again with `tnf fit-scene`")
         depth = m.get("depth_error_median_rel")
         rows.append(
             {
@@ -57,13 +65,13 @@ def main() -> None:
     low = [r["object"] for r in rows if r["psnr_db"] < PSNR_BAR]
     print(
         f"{len(rows)} scenes: PSNR {min(psnr):.2f}-{max(psnr):.2f} dB (median {statistics.median(psnr):.2f}), "
-        f"{len(low)} under {PSNR_BAR:g} dB {low or ''}"
+        f"{len(low)} under {PSNR_BAR:g} dB" + (f": {', '.join(low)}" if low else "")
     )
     if depth:
         high = [r["object"] for r in rows if (r["depth_error_median_pct"] or 0) > DEPTH_BAR]
         print(
             f"median depth error {min(depth):.2f}-{max(depth):.2f} % (median {statistics.median(depth):.2f}), "
-            f"{len(high)} over {DEPTH_BAR:g} % {high or ''}"
+            f"{len(high)} over {DEPTH_BAR:g} %" + (f": {', '.join(high)}" if high else "")
         )
     if a.csv:
         with open(a.csv, "w", newline="") as fh:
@@ -73,4 +81,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from tnf.errors import TnfError
+
+    try:
+        main()
+    except TnfError as e:  # a missing or malformed metrics file: one line, as the tnf command prints it
+        raise SystemExit(f"error: {e}") from None
