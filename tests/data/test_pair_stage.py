@@ -29,8 +29,10 @@ def test_pair_end_to_end(data_root):
     assert m["counts"] == {"train": 3, "val": 1, "novel_view": 2, "novel_object": 6}
     assert m["sensor"]["name"] == "digit" and m["scene_source"] == "fitted"
     assert m["scene_checkpoints"]["ball"].endswith("scenes/hashgrid/builtin/ball/scene.pt")
-    # Gel footprint 30 mm x 1.5 at the median contact distance 0.06 m, focal 60 px -> 45 px.
-    assert m["preprocess"]["crop_px"] == {"ball": 45, "box": 45}
+    # Each crop is sized at its touch's first contact: no fixed crop; 0.06 m is the reference distance.
+    pre = m["preprocess"]
+    assert pre["crop_px"] == {} and pre["crop_distance"] == "contact" and pre["depth_norm"] == "contact"
+    assert pre["footprint_distance"] == pytest.approx(0.06)
     assert len(a) == 12 and a.rgb.shape == (12, 128, 128, 3) and a.depth.dtype == np.float16
     assert [SPLITS[s] for s in a.split[:6]] == ["train", "train", "train", "val", "novel_view", "novel_view"]
     assert list(a.touch_index) == list(range(6)) * 2 and list(a.object_id) == [0] * 6 + [1] * 6
@@ -48,7 +50,8 @@ def test_pair_end_to_end(data_root):
         d = a.depth[row].astype(np.float32)
         assert d[63:65, 63:65].min() == pytest.approx(0.5, abs=0.01)
         assert d.min() >= 0.49  # the centre is the nearest point
-        # Crop half-width 20.6 deg: the edge centres hit the sphere (angular radius 23.6 deg), corners miss.
+        # The gel's 30 mm x 1.5 at the first contact, 0.06 m: half-width 20.6 deg. The edge centres hit the
+        # sphere (angular radius 23.6 deg), the corners miss.
         assert 0.5 < d[64, 1] < 1 and 0.5 < d[1, 64] < 1 and d[0, 0] == 1
     assert len(list((folder / "previews").glob("*.png"))) == 2
     ds = PairDataset(folder, splits=("novel_object",))
@@ -128,6 +131,9 @@ def test_mesh_source_needs_no_fitted_scene(data_root):
     assert a.manifest["scene_source"] == "mesh" and a.manifest["scene_checkpoints"] == {"ball": None, "box": None}
     assert len(a) == 6
     depth = a.depth.astype(np.float32)
-    hit = depth[:, 63:65, 63:65].min(axis=(1, 2)) < 1
-    assert hit.any()  # the builtin objects are hit by the centre ray of (at least some) touches
-    assert np.allclose(depth[hit, 63:65, 63:65].min(axis=(1, 2)), 0.5, atol=0.01)
+    # The gel's footprint is the crop's central 1 / 1.5: 57 x 85 px (20 x 30 mm). Where a surface lies in it,
+    # the nearest one (the first contact) is at 0.5; a coarser probe found it, hence the tolerance.
+    footprint = depth[:, 64 - 42 : 64 + 42, 64 - 28 : 64 + 28].min(axis=(1, 2))
+    hit = footprint < 1
+    assert hit.any()  # the builtin objects lie in the footprint of (at least some) touches
+    assert np.allclose(footprint[hit], 0.5, atol=0.02)

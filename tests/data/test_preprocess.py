@@ -10,6 +10,8 @@ import torch
 
 from tests.data.pair_inputs import SphereScene, look_at
 from tnf.data import SPLITS, assign_splits, choose_novel_objects, crop_for_sensor, preprocess_rgbd
+from tnf.data.preprocess import contact_depth
+from tnf.data.render import Framing, render_rgbd_crops
 from tnf.errors import TnfError
 from tnf.registry import SENSORS
 
@@ -95,6 +97,57 @@ def test_crop_for_sensor_matches_gel_footprint():
     assert crop_for_sensor(sensor, (100.0, 100.0, 64, 64), distance=0.1, margin=2) == 60
     with pytest.raises(TnfError):
         crop_for_sensor(sensor, (100.0, 100.0, 64, 64), distance=0)
+
+
+def test_contact_depth_is_the_nearest_surface_inside_the_gel_footprint():
+    # A wall 0.1 m away; a post 0.07 m away whose pixels lie 25 mm off the axis, outside a 20 x 30 mm gel;
+    # a bump 0.09 m away, 8 mm off the axis (inside). Camera: 100 px focal, centre (32, 32).
+    depth = torch.full((2, 64, 64), 0.1)
+    k = torch.tensor([100.0, 100.0, 32.0, 32.0])
+    depth[:, 30:34, 57:60] = 0.07  # (u + 0.5 - 32) / 100 * 0.07 > 0.0175 m
+    depth[1, 30:34, 40:42] = 0.09  # 8.5-10 px * 0.09 / 100 = 7.7-9.5 mm < 10 mm
+    assert contact_depth(depth, k, (0.02, 0.03)).tolist() == pytest.approx([0.1, 0.09])
+    # A wider gel reaches the post; nothing at all in the footprint gives NaN.
+    assert contact_depth(depth, k, (0.06, 0.03))[0] == pytest.approx(0.07)
+    assert math.isnan(contact_depth(torch.zeros(1, 8, 8), k, (0.02, 0.03))[0])
+
+
+@pytest.mark.parametrize("crop_distance", ["contact", "fixed"])
+def test_contact_crops_keep_the_gel_scale_at_any_start_distance(crop_distance):
+    # The same sphere point touched from start poses 0.1 and 0.16 m from its centre (first contact at 0.06 and
+    # 0.12 m). Framed at the contact, both crops show the same 45 mm patch around it: the images agree. With
+    # one fixed crop (the footprint at 0.09 m) the near one shows a smaller patch than the far one.
+    scene = SphereScene(SphereScene.Config(0.04))
+    framing = Framing(crop_distance=crop_distance, footprint_distance=0.09, crop_margin=1.5, depth_norm="contact")
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    c2w = torch.tensor(np.stack([look_at(axis * 0.1), look_at(axis * 0.16)]), dtype=torch.float32)
+    rgb, depth, contact = render_rgbd_crops(scene, c2w, (60.0, 60.0), (0.02, 0.03), framing)
+    np.testing.assert_allclose(contact, [0.06, 0.12], atol=2e-4)
+    # First contact at 0.5: the sphere's nearest point is on the axis.
+    assert depth[:, 62:66, 62:66].astype(np.float32).min() == pytest.approx(0.5, abs=2e-3)
+    hit = depth < 1
+    both = hit[0] & hit[1]
+    colour_change = np.abs(rgb[0].astype(int) - rgb[1].astype(int))[both].mean()
+    if crop_distance == "contact":
+        # The same surface patch in the same pixels (perspective alone moves the sphere's rim a little).
+        assert abs(hit[0].mean() - hit[1].mean()) < 0.1 and colour_change < 5
+    else:
+        assert hit[1].mean() < 0.85 * hit[0].mean() and colour_change > 15
+
+
+def test_framing_settings_and_older_datasets():
+    f = Framing.from_settings(
+        {"crop_distance": "contact", "crop_px": None, "depth_norm": "contact"}, footprint_distance=0.1
+    )
+    assert f.per_view and f.crop_margin == 1.5
+    assert Framing.from_settings({"crop_distance": "contact", "crop_px": 40}).per_view is False
+    # A dataset manifest from before per-view crops: a fixed crop.
+    old = Framing.from_settings({"footprint_distance": 0.1, "depth_norm": "center", "depth_window": 0.04})
+    assert old.crop_distance == "fixed" and old.fixed_crop((100.0, 100.0), (0.02, 0.03)) == 45
+    with pytest.raises(TnfError, match="crop_distance"):
+        Framing(crop_distance="median")
+    with pytest.raises(TnfError, match="footprint distance"):
+        Framing(footprint_distance=0.0)
 
 
 def test_novel_objects_by_config_and_seed():

@@ -19,7 +19,7 @@ from tnf.errors import TnfError
 SIZE = 128
 """Side of every stored image, in pixels (the paper's cGAN input and output size)."""
 
-DepthNorm = Literal["center", "minmax"]
+DepthNorm = Literal["contact", "center", "minmax"]
 
 
 def preprocess_rgbd(
@@ -32,6 +32,7 @@ def preprocess_rgbd(
     depth_window: float = 0.04,
     center: tuple[float, float] | None = None,
     min_opacity: float = 0.5,
+    contact: torch.Tensor | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Crop around the centre ray, normalise depth, resize.
 
@@ -40,15 +41,17 @@ def preprocess_rgbd(
         depth: [B, H, W] z-depth in metres, 0 where no surface was hit.
         opacity: [B, H, W] in [0, 1] (accumulated opacity), or None to treat depth > 0 as a hit.
         crop_px: side of the square crop in pixels, centred on the centre ray; must fit in the image.
-        depth_norm: ``center``: ``0.5 + (d - d_c) / depth_window`` clipped to [0, 1], where ``d_c`` is the
-            depth of the centre pixel (the nearest hit in the crop when the centre ray misses), so the
-            touch point is 0.5 and a fixed window of ``depth_window`` metres spans [0, 1];
+        depth_norm: ``contact``: ``0.5 + (d - contact) / depth_window`` clipped to [0, 1], so the surface
+            point the gel reaches first is 0.5 and a fixed window of ``depth_window`` metres spans [0, 1];
+            ``center``: the same with the depth of the centre pixel (the nearest hit in the crop when the
+            centre ray misses) in place of ``contact``;
             ``minmax``: ``(d - min) / (max - min)`` over the hit pixels of the crop.
             In both, pixels with no surface (opacity < ``min_opacity`` or depth 0) are 1 (far).
         out: output side in pixels.
         depth_window: metres of depth mapped onto [0, 1] by the ``center`` normalisation.
         center: pixel coordinates ``(cx, cy)`` of the centre ray; default the image centre.
         min_opacity: opacity below which a pixel counts as empty.
+        contact: [B] metres, the depth that ``contact`` normalisation maps to 0.5 (see ``contact_depth``).
 
     Returns:
         ``(rgb uint8 [B, out, out, 3], depth float16 [B, out, out] in [0, 1])`` as NumPy arrays.
@@ -58,8 +61,10 @@ def preprocess_rgbd(
     b, h, w, _ = rgb.shape
     if tuple(depth.shape) != (b, h, w):
         raise ValueError(f"depth must be [B, H, W] = {(b, h, w)}, got {tuple(depth.shape)}")
-    if depth_norm not in ("center", "minmax"):
-        raise TnfError(f"depth_norm must be 'center' or 'minmax', got {depth_norm!r}")
+    if depth_norm not in ("contact", "center", "minmax"):
+        raise TnfError(f"depth_norm must be 'contact', 'center' or 'minmax', got {depth_norm!r}")
+    if depth_norm == "contact" and (contact is None or tuple(contact.shape) != (b,)):
+        raise ValueError(f"depth_norm='contact' needs contact depths of shape [{b}]")
     if depth_window <= 0:
         raise TnfError(f"depth_window must be > 0 metres, got {depth_window}")
     x0, y0 = crop_origin(w, h, crop_px, center)
@@ -70,7 +75,7 @@ def preprocess_rgbd(
     if opacity is not None:
         hit &= opacity[:, y0 : y0 + crop_px, x0 : x0 + crop_px] >= min_opacity
 
-    nd = _normalise_depth(depth, hit, depth_norm, depth_window)
+    nd = _normalise_depth(depth, hit, depth_norm, depth_window, contact)
     rgb_o = resize(rgb.permute(0, 3, 1, 2), out)
     nd_o = resize(nd[:, None], out)[:, 0]
     rgb8 = (rgb_o.clamp(0, 1) * 255).round().to(torch.uint8).permute(0, 2, 3, 1)
@@ -93,11 +98,16 @@ def crop_origin(width: int, height: int, crop_px: int, center: tuple[float, floa
     return x0, y0
 
 
-def _normalise_depth(depth: torch.Tensor, hit: torch.Tensor, mode: str, window: float) -> torch.Tensor:
+def _normalise_depth(
+    depth: torch.Tensor, hit: torch.Tensor, mode: str, window: float, contact: torch.Tensor | None = None
+) -> torch.Tensor:
     """[B, S, S] metres -> [B, S, S] in [0, 1]; empty pixels 1."""
     b, s, _ = depth.shape
     big = torch.finfo(depth.dtype).max
-    if mode == "center":
+    if mode == "contact":
+        assert contact is not None
+        nd = 0.5 + (depth - contact.to(depth)[:, None, None]) / window
+    elif mode == "center":
         c = s // 2
         # The centre "pixel" of an even crop is the 2x2 block around the ray; use its nearest hit.
         lo, hi = (c - 1, c + 1) if s % 2 == 0 else (c, c + 1)
@@ -173,3 +183,31 @@ def crop_for_sensor(
     fx, fy = float(intrinsics[0]), float(intrinsics[1])
     gw, gh = gel_size_m(sensor)
     return max(1, int(math.ceil(margin * max(fx * gw, fy * gh) / distance)))
+
+
+def contact_depth(
+    depth: torch.Tensor, intrinsics: torch.Tensor, gel_size: tuple[float, float], min_depth: float = 0.0
+) -> torch.Tensor:
+    """Depth along the view axis of the nearest surface inside the gel's footprint, per view: where the gel
+    first meets the object as the sensor advances along its axis.
+
+    Args:
+        depth: [B, H, W] z-depth in metres, 0 (or less than ``min_depth``) where no surface was hit.
+        intrinsics: [B, 4] or [4] ``(fx, fy, cx, cy)`` in pixels of the camera that rendered ``depth``.
+        gel_size: the gel's (width, height) in metres, along the image's x and y.
+        min_depth: hits nearer than this are ignored.
+
+    Returns:
+        [B] metres; NaN where no surface lies inside the footprint.
+    """
+    b, h, w = depth.shape
+    k = intrinsics.to(depth.device, torch.float32).reshape(-1, 4).expand(b, 4)
+    u = torch.arange(w, device=depth.device, dtype=torch.float32) + 0.5
+    v = torch.arange(h, device=depth.device, dtype=torch.float32) + 0.5
+    # Lateral offset of each pixel's surface point from the axis, in metres: (u - cx) / fx * z.
+    x = (u[None, None, :] - k[:, 2, None, None]) / k[:, 0, None, None] * depth
+    y = (v[None, :, None] - k[:, 3, None, None]) / k[:, 1, None, None] * depth
+    inside = (depth > max(min_depth, 0.0)) & (x.abs() <= gel_size[0] / 2) & (y.abs() <= gel_size[1] / 2)
+    nearest = torch.where(inside, depth.float(), torch.full_like(depth, math.inf, dtype=torch.float32))
+    nearest = nearest.flatten(1).amin(1)
+    return torch.where(torch.isfinite(nearest), nearest, torch.full_like(nearest, math.nan))

@@ -3,10 +3,15 @@
 The paper's matching criterion: the camera has the sensor's orientation and the sensor sits on the camera's
 centre ray. A touch's ``start_c2w`` is the sensor's pose before it advances (OpenGL convention: the sensor
 looks along its -z axis), so it is used as the camera pose as it is.
+
+The crop (``Framing``) shows the gel's footprint where the gel first meets the surface, so an RGB-D pixel
+covers the same patch of gel in every pair, however far the start pose is from the object; depth is measured
+from that first contact, which the generator then sees as 0.5.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -17,7 +22,7 @@ import numpy as np
 import torch
 
 from tnf.artifacts import MANIFEST, read_json
-from tnf.data.preprocess import SIZE, crop_for_sensor, preprocess_rgbd, resize_uint8
+from tnf.data.preprocess import SIZE, contact_depth, gel_size_m, preprocess_rgbd, resize_uint8
 from tnf.errors import TnfError
 
 
@@ -104,8 +109,77 @@ def _read_png(path: Path) -> np.ndarray:
         raise TnfError(f"image not found: {path}; rerun `tnf touch` for this object") from None
 
 
+CROP_DISTANCES = ("contact", "fixed")
+"""How far away the gel footprint that sizes each RGB-D crop is measured (``pair.crop_distance``)."""
+PROBE_PX = 64
+"""Side of the low-resolution depth render that finds where the gel would first meet the surface."""
+PROBE_NEAR = 0.5
+"""The probe sees the whole footprint of contacts down to this fraction of the reference distance."""
+
+
+@dataclass(frozen=True)
+class Framing:
+    """How the RGB-D side of a pair is framed and normalised: the ``pair`` settings, stored in each dataset's
+    manifest so that ``tnf generate`` frames novel poses exactly as the model's training data.
+
+    ``crop_distance``:
+      - ``contact``: each view's crop shows the gel footprint (times ``crop_margin``) at the depth where the
+        gel first meets the surface, found from the scene's own depth: every image has the tactile image's
+        physical scale, whatever the distance from the start pose to the object.
+      - ``fixed``: one crop for every view, the footprint at ``footprint_distance`` (or ``crop_px`` pixels of
+        the capture camera): the scale then varies with each touch's distance.
+    """
+
+    crop_distance: str = "contact"
+    footprint_distance: float = 0.1
+    """Reference distance in metres: the fixed crop's, and the contact crop's when no surface is in the
+    footprint."""
+    crop_margin: float = 1.5
+    crop_px: int | None = None
+    """A fixed crop side in capture-camera pixels (overrides ``crop_distance``)."""
+    depth_norm: str = "contact"
+    depth_window: float = 0.04
+    render_px: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.crop_distance not in CROP_DISTANCES:
+            raise TnfError(f"crop_distance must be one of {', '.join(CROP_DISTANCES)}, got {self.crop_distance!r}")
+        if not (self.footprint_distance > 0 and math.isfinite(self.footprint_distance)):
+            raise TnfError(f"footprint distance must be > 0 metres, got {self.footprint_distance}")
+        if self.crop_margin <= 0:
+            raise TnfError(f"crop_margin must be > 0, got {self.crop_margin}")
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, Any], **override: Any) -> Framing:
+        """From a ``pair`` config section or a dataset manifest's ``preprocess`` (datasets written before
+        ``crop_distance`` existed used the fixed crop and centre-pixel depth)."""
+        keys = {f: settings[f] for f in cls.__dataclass_fields__ if settings.get(f) is not None}
+        if "crop_distance" not in settings:  # a dataset written before per-view crops
+            keys["crop_distance"] = "fixed"
+        keys.update({k: v for k, v in override.items() if v is not None})
+        for k in ("footprint_distance", "crop_margin", "depth_window"):
+            if k in keys:
+                keys[k] = float(keys[k])
+        for k in ("crop_px", "render_px"):
+            if keys.get(k) is not None:
+                keys[k] = int(keys[k])
+        return cls(**keys)
+
+    @property
+    def per_view(self) -> bool:
+        """True when every view gets its own crop (``contact`` without a fixed ``crop_px``)."""
+        return self.crop_distance == "contact" and self.crop_px is None
+
+    def fixed_crop(self, focal: tuple[float, float], gel_size: tuple[float, float]) -> int:
+        """The one crop side in capture-camera pixels when not ``per_view``."""
+        if self.crop_px is not None:
+            return int(self.crop_px)
+        side = self.crop_margin * max(focal[0] * gel_size[0], focal[1] * gel_size[1]) / self.footprint_distance
+        return max(1, int(math.ceil(side)))
+
+
 def render_intrinsics(
-    fx: float, fy: float, crop_px: int, out: int = SIZE, render_px: int | None = None
+    fx: float, fy: float, crop_px: float, out: int = SIZE, render_px: int | None = None
 ) -> tuple[int, tuple[float, float, float, float]]:
     """Render size and intrinsics that show exactly the ``crop_px`` centre crop of a camera with focal
     lengths ``fx, fy`` (pixels), rendered directly at ``render_px`` pixels (default ``max(out, crop_px)``).
@@ -114,21 +188,77 @@ def render_intrinsics(
     Rendering only the crop (rather than the full image, then cropping) costs ``crop^2`` rays instead of
     ``W * H``; rendering a small crop at the output size keeps it sharp instead of upsampling it.
     """
-    size = int(render_px) if render_px else max(out, crop_px)
+    size = int(render_px) if render_px else max(out, int(math.ceil(crop_px)))
     s = size / crop_px
     return size, (fx * s, fy * s, size / 2, size / 2)
+
+
+def render_rgbd_crops(
+    scene: Any,
+    c2w: torch.Tensor,
+    focal: tuple[float, float],
+    gel_size: tuple[float, float],
+    framing: Framing,
+    chunk: int | None = None,
+    measure_contact: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render and preprocess the RGB-D crops of B sensor poses, framed by ``framing``.
+
+    Args:
+        scene: a ``tnf.scenes.Scene`` of the object.
+        c2w: [B, 4, 4] sensor (= camera) poses on the scene's device, looking along -z.
+        focal: ``(fx, fy)`` of the capture camera, in pixels: crops are measured in its pixels.
+        gel_size: the sensor's gel (width, height) in metres.
+        framing: the crop and depth settings.
+        chunk: rays per chunk inside the scene renderer.
+        measure_contact: find the first-contact depth even when the framing does not need it.
+
+    Returns:
+        ``rgb`` uint8 [B, 128, 128, 3], ``depth`` float16 [B, 128, 128] in [0, 1], and ``contact`` float64
+        [B]: the depth in metres at which the gel first meets the surface (NaN where no surface lies in the
+        footprint; all NaN unless the crop, the depth normalisation or ``measure_contact`` needs it).
+    """
+    b, dev = len(c2w), c2w.device
+    fx, fy = focal
+    contact = torch.full((b,), math.nan, device=dev)
+    if framing.per_view or framing.depth_norm == "contact" or measure_contact:
+        # Where the gel would first meet the surface: the nearest hit inside the footprint, on a coarse render
+        # wide enough for contacts down to PROBE_NEAR of the reference distance.
+        side = max(fx * gel_size[0], fy * gel_size[1]) / (PROBE_NEAR * framing.footprint_distance)
+        k = torch.tensor([fx * PROBE_PX / side, fy * PROBE_PX / side, PROBE_PX / 2, PROBE_PX / 2], device=dev)
+        probe = scene.render_rgbd(c2w, k.expand(b, 4), PROBE_PX, PROBE_PX, chunk=chunk)
+        depth = probe["depth"]
+        if probe.get("opacity") is not None:
+            depth = torch.where(probe["opacity"] >= 0.5, depth, torch.zeros_like(depth))
+        contact = contact_depth(depth, k, gel_size)
+    ref = torch.where(torch.isfinite(contact), contact, torch.full_like(contact, framing.footprint_distance))
+    if framing.per_view:
+        size = int(framing.render_px or SIZE)
+        crop = framing.crop_margin * max(fx * gel_size[0], fy * gel_size[1]) / ref  # [B] capture pixels
+        s = size / crop
+        intr = torch.stack([fx * s, fy * s, torch.full_like(s, size / 2), torch.full_like(s, size / 2)], 1)
+    else:
+        size, k4 = render_intrinsics(fx, fy, framing.fixed_crop(focal, gel_size), render_px=framing.render_px)
+        intr = torch.tensor(k4, dtype=torch.float32, device=dev).expand(b, 4)
+    r = scene.render_rgbd(c2w, intr.float(), size, size, chunk=chunk)
+    rgb8, depth01 = preprocess_rgbd(
+        r["rgb"], r["depth"], r.get("opacity"), crop_px=size,
+        depth_norm=framing.depth_norm, depth_window=framing.depth_window, contact=ref,  # type: ignore[arg-type]
+    )  # fmt: skip
+    return rgb8, depth01, contact.double().cpu().numpy()
 
 
 def render_pairs_for_touches(
     scene: Any,
     touch_item: TouchItem | str | os.PathLike[str],
     sensor: Any,
-    cfg: Mapping[str, Any],
+    framing: Framing,
     *,
     focal: tuple[float, float],
-    crop_px: int | None = None,
     rows: Sequence[int] | None = None,
     device: str = "cpu",
+    render_batch: int = 64,
+    render_chunk: int | None = None,
     on_batch: Callable[[int], None] | None = None,
 ) -> dict[str, np.ndarray]:
     """Render and preprocess the RGB-D image of each touch of one object, and load its tactile images.
@@ -136,46 +266,33 @@ def render_pairs_for_touches(
     Args:
         scene: a ``tnf.scenes.Scene`` of the object (fitted, or the ground-truth mesh).
         touch_item: the object's touch folder or a loaded ``TouchItem``.
-        sensor: the sensor (sizes the crop when ``crop_px`` and ``cfg["crop_px"]`` are None).
-        cfg: the pair settings: ``depth_norm``, ``depth_window`` (m), ``render_batch``, ``render_chunk``,
-            ``crop_px``, ``crop_margin``.
+        sensor: the sensor (its gel size frames the crops).
+        framing: crop and depth settings (see ``Framing``).
         focal: ``(fx, fy)`` in pixels of the camera the crop is measured in (the capture camera).
-        crop_px: crop side in that camera's pixels; default ``cfg["crop_px"]``, else the sensor's gel
-            footprint at the median start-to-contact distance of these touches.
         rows: which touches (positions in the manifest's list); default all.
         device: torch device to render on.
+        render_batch: touches rendered per batch (bounds renderer memory).
+        render_chunk: rays per chunk inside the scene renderer.
         on_batch: called with the number of touches after each rendered batch (progress).
 
     Returns:
         ``rgb`` uint8 [N, 128, 128, 3], ``depth`` float16 [N, 128, 128] in [0, 1], ``tactile`` uint8
-        [N, 128, 128, 3], ``background`` uint8 [128, 128, 3], ``touch_index`` int32 [N], ``crop_px`` int.
+        [N, 128, 128, 3], ``background`` uint8 [128, 128, 3], ``touch_index`` int32 [N], ``contact`` float64
+        [N] (see ``render_rgbd_crops``).
     """
     item = touch_item if isinstance(touch_item, TouchItem) else TouchItem.load(touch_item)
     rows = list(range(len(item.touches))) if rows is None else list(rows)
-    if crop_px is None:
-        crop_px = cfg.get("crop_px")
-    if crop_px is None:
-        dist = float(np.median(item.contact_distances()[rows])) if rows else 0.05
-        crop_px = crop_for_sensor(sensor, (*focal, 0, 0), distance=dist, margin=float(cfg.get("crop_margin", 1.0)))
-    size, intr = render_intrinsics(focal[0], focal[1], int(crop_px), render_px=cfg.get("render_px"))
+    gel = gel_size_m(sensor)
     poses = item.start_poses()
-    batch = int(cfg.get("render_batch", 64))
     rgb_out = np.empty((len(rows), SIZE, SIZE, 3), np.uint8)
     depth_out = np.empty((len(rows), SIZE, SIZE), np.float16)
-    intr_t = torch.tensor(intr, dtype=torch.float32, device=device)
-    for s in range(0, len(rows), batch):
-        sel = rows[s : s + batch]
+    contact_out = np.empty(len(rows), np.float64)
+    for s in range(0, len(rows), render_batch):
+        sel = rows[s : s + render_batch]
         c2w = torch.as_tensor(poses[sel], dtype=torch.float32, device=device)
         with torch.no_grad():
-            r = scene.render_rgbd(c2w, intr_t.expand(len(sel), 4), size, size, chunk=cfg.get("render_chunk"))
-        rgb_out[s : s + len(sel)], depth_out[s : s + len(sel)] = preprocess_rgbd(
-            r["rgb"],
-            r["depth"],
-            r.get("opacity"),
-            crop_px=size,
-            depth_norm=cfg.get("depth_norm", "center"),
-            depth_window=float(cfg.get("depth_window", 0.04)),
-        )
+            out = render_rgbd_crops(scene, c2w, focal, gel, framing, chunk=render_chunk)
+        rgb_out[s : s + len(sel)], depth_out[s : s + len(sel)], contact_out[s : s + len(sel)] = out
         if on_batch is not None:
             on_batch(len(sel))
     return {
@@ -184,5 +301,5 @@ def render_pairs_for_touches(
         "tactile": item.tactile(rows) if rows else np.empty((0, SIZE, SIZE, 3), np.uint8),
         "background": item.background(),
         "touch_index": np.asarray([item.touches[i]["index"] for i in rows], dtype=np.int32),
-        "crop_px": np.int64(crop_px),
+        "contact": contact_out,
     }

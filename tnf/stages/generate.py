@@ -5,11 +5,13 @@ For each selected object: sample ``generate.n_poses`` camera poses on a sphere a
 depth normalisation of the model's training dataset), run the trained generator with the sensor's background
 image as condition, and write ``<data_root>/generated/<run_name>/<source>/<object>/`` in the format of
 ``tnf touch``: ``images/00000.png`` (128 x 128 generated tactile images), ``background.png`` and a manifest
-whose ``touches`` hold each pose (``start_c2w``) and the surface point on its centre ray (``contact_point``).
+whose ``touches`` hold each pose (``start_c2w``) and the point on its axis where the gel first meets the surface
+(``contact_point``, from the scene's depth; null where no surface lies in the gel's footprint).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -58,8 +60,8 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     from tnf.artifacts import ArtifactStore, read_json
-    from tnf.data.preprocess import SIZE, crop_for_sensor, preprocess_rgbd, resize_uint8
-    from tnf.data.render import render_intrinsics
+    from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
+    from tnf.data.render import Framing, render_rgbd_crops
     from tnf.data.splits import TOUCH_SPLITS
     from tnf.generators import load_generator
     from tnf.objects import select
@@ -87,6 +89,7 @@ def run(cfg: Any) -> dict[str, Any]:
     source, names = select(cfg)
     src = source.name
     sensor = SENSORS.build(cfg.sensor)
+    gel = gel_size_m(sensor)
     background_full = sensor.background()
     background = resize_uint8(background_full, SIZE)
     prep = _preprocessing(cfg, store, model_dir)
@@ -110,10 +113,9 @@ def run(cfg: Any) -> dict[str, Any]:
         except (KeyError, TypeError, ValueError):
             raise TnfError(f"{transforms}: camera intrinsics missing; rerun `tnf capture object={obj}`") from None
         crop = g.crop_px or prep["crop_px"].get(obj)
-        if crop is None:
-            if prep["footprint_distance"] is None:
-                raise TnfError(f"no crop size for {obj!r}: set generate.crop_px or generate.dataset")
-            crop = crop_for_sensor(sensor, (*focal, 0, 0), prep["footprint_distance"], prep["crop_margin"])
+        if crop is None and prep["footprint_distance"] is None:
+            raise TnfError(f"no crop size for {obj!r}: set generate.crop_px or generate.dataset")
+        framing = Framing.from_settings(prep["framing"], crop_px=crop, footprint_distance=prep["footprint_distance"])
         seed = (int(cfg.seed) * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
         poses = (
             file_poses
@@ -128,10 +130,7 @@ def run(cfg: Any) -> dict[str, Any]:
             "scene": scene_name,
             "scene_hash": (store.manifest("scenes", scene_name, src, obj) or {}).get("config_hash"),
             "sensor": sensor.describe(),
-            "crop_px": int(crop),
-            "depth_norm": prep["depth_norm"],
-            "depth_window": prep["depth_window"],
-            "render_px": prep["render_px"],
+            "framing": dataclasses.asdict(framing),
             "poses": poses.round(9).tolist() if file_poses is not None else None,
             "settings": {
                 k: v for k, v in settings.items() if k not in ("force", "batch_size", "render_chunk", "run_name")
@@ -141,21 +140,19 @@ def run(cfg: Any) -> dict[str, Any]:
         if not g.force and store.is_done("generated", run_name, src, obj, config=config):
             console.print(f"generate: {run_name}/{src}/{obj} is up to date")
             continue
-        jobs.append((obj, scene_dir, focal, int(crop), poses, config, seed))
+        jobs.append((obj, scene_dir, focal, framing, poses, config, seed))
 
     bg_t = torch.from_numpy(background).to(device).permute(2, 0, 1).float().div(127.5).sub(1)
     batch_size = int(g.batch_size)
     written = {}
     with progress(bool(cfg.progress)) as bar:
         task = bar.add_task("generate", total=sum(len(j[4]) for j in jobs))
-        for obj, scene_dir, focal, crop, poses, config, seed in jobs:
+        for obj, scene_dir, focal, framing, poses, config, seed in jobs:
             # The generator's noise (dropout kept on when generating, as in pix2pix) comes from torch's RNG: seed
             # it per object, so that an object's images depend on the seed only and not on which objects this
             # process generated before (a resumed run generates only the missing ones).
             torch.manual_seed(seed)
             scene = load_scene(scene_dir, device)
-            rsize, intr = render_intrinsics(focal[0], focal[1], crop, render_px=prep["render_px"])
-            intr_t = torch.tensor(intr, dtype=torch.float32, device=device)
             touches = []
             # PNG encoding on a few threads (PIL releases the GIL), overlapping the next batch's rendering.
             with (
@@ -169,11 +166,9 @@ def run(cfg: Any) -> dict[str, Any]:
                     c2w = torch.as_tensor(poses[s : s + batch_size], dtype=torch.float32, device=device)
                     b = len(c2w)
                     with torch.no_grad():
-                        r = scene.render_rgbd(c2w, intr_t.expand(b, 4), rsize, rsize, chunk=g.render_chunk)
-                    rgb8, depth01 = preprocess_rgbd(
-                        r["rgb"], r["depth"], r.get("opacity"), crop_px=rsize,
-                        depth_norm=prep["depth_norm"], depth_window=prep["depth_window"],
-                    )  # fmt: skip
+                        rgb8, depth01, contact = render_rgbd_crops(
+                            scene, c2w, focal, gel, framing, chunk=g.render_chunk, measure_contact=True
+                        )
                     batch = {
                         "rgb": torch.from_numpy(rgb8).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1),
                         "depth": torch.from_numpy(depth01.astype(np.float32)).to(device)[:, None].mul(2).sub(1),
@@ -182,21 +177,20 @@ def run(cfg: Any) -> dict[str, Any]:
                     tactile = system.generate(batch)
                     images = ((tactile.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
                     images = images.permute(0, 2, 3, 1).cpu().numpy()
-                    centre = r["depth"][:, rsize // 2, rsize // 2].float().cpu().numpy()
                     for i in range(b):
                         index = s + i
                         rel = f"images/{index:05d}.png"
                         saves.append(pool.submit(Image.fromarray(images[i]).save, tmp / rel))
                         pose = poses[index]
-                        hit = centre[i] > 0
+                        hit = bool(np.isfinite(contact[i]))
                         touches.append(
                             {
                                 "index": index,
                                 "split": str(g.split),
                                 "image": rel,
                                 "start_c2w": pose.tolist(),
-                                # The surface point on the centre ray (z-depth along the view axis -z).
-                                "contact_point": (pose[:3, 3] - centre[i] * pose[:3, 2]).tolist() if hit else None,
+                                # Where the gel first meets the surface, on the sensor's axis (-z).
+                                "contact_point": (pose[:3, 3] - contact[i] * pose[:3, 2]).tolist() if hit else None,
                                 "force": None,
                                 "penetration": None,
                             }
@@ -235,6 +229,8 @@ def run(cfg: Any) -> dict[str, Any]:
 def _preprocessing(cfg: Any, store: Any, model_dir: Path) -> dict[str, Any]:
     """Crop and depth settings of the dataset the model was trained on (``generate.dataset`` overrides);
     falls back to the ``pair`` section when no dataset manifest is found."""
+    from omegaconf import OmegaConf
+
     from tnf.artifacts import MANIFEST, read_json
 
     name = cfg.generate.dataset
@@ -252,11 +248,14 @@ def _preprocessing(cfg: Any, store: Any, model_dir: Path) -> dict[str, Any]:
         elif cfg.generate.dataset is not None:
             raise TnfError(f"generate.dataset: no paired dataset {name!r} (looked in {folder})")
     crop = pre.get("crop_px", {})
+    # Without a dataset manifest, the pair section's settings; otherwise the dataset's (older datasets lack
+    # crop_distance and crop_margin: they used fixed crops, with pair's margin).
+    pair = OmegaConf.to_container(cfg.pair, resolve=True)
+    assert isinstance(pair, dict)
+    framing = {k: v for k, v in (pre or pair).items() if k != "crop_px"}
+    framing.setdefault("crop_margin", pair.get("crop_margin"))
     return {
         "crop_px": crop if isinstance(crop, dict) else {},
-        "footprint_distance": pre.get("footprint_distance", cfg.pair.get("footprint_distance")),
-        "crop_margin": float(cfg.pair.get("crop_margin", 1.0)),
-        "depth_norm": pre.get("depth_norm", cfg.pair.depth_norm),
-        "depth_window": float(pre.get("depth_window", cfg.pair.depth_window)),
-        "render_px": pre.get("render_px", cfg.pair.get("render_px")),
+        "footprint_distance": pre.get("footprint_distance", pair.get("footprint_distance")),
+        "framing": framing,
     }

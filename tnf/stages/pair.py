@@ -28,8 +28,8 @@ def run(cfg: Any) -> None:
     from rich.console import Console
 
     from tnf.artifacts import ArtifactStore, read_json
-    from tnf.data.preprocess import SIZE, crop_for_sensor, crop_origin
-    from tnf.data.render import TouchItem, render_pairs_for_touches
+    from tnf.data.preprocess import SIZE, crop_origin, gel_size_m
+    from tnf.data.render import Framing, TouchItem, render_pairs_for_touches
     from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
     from tnf.data.store import PairWriter, dataset_name, write_manifest
     from tnf.objects import select
@@ -77,27 +77,27 @@ def run(cfg: Any) -> None:
             scene_hash = (store.manifest("scenes", scene_name, src, obj) or {}).get("config_hash")
         inputs[obj] = {"item": item, "focal": focal, "size": (w, h), "scene_dir": scene_dir, "scene_hash": scene_hash}
 
-    # -- crop: one physical field of view (the gel footprint at one distance) for every object ----------
+    # -- framing: the crop and depth settings; the reference distance is the touches' median ------------
     distance = p.get("footprint_distance")
-    if p["crop_px"] is None and distance is None:
+    if distance is None:
         all_d = np.concatenate([i["item"].contact_distances() for i in inputs.values()])
         all_d = all_d[np.isfinite(all_d) & (all_d > 0)]
-        if len(all_d) == 0:
+        if len(all_d):
+            distance = float(np.median(all_d))
+        elif p["crop_px"] is None:
             raise TnfError(
                 "no touch records a contact in front of its start pose; cannot size the crop (set pair.crop_px)"
             )
-        distance = float(np.median(all_d))
+    framing = Framing.from_settings(p, footprint_distance=distance)
+    gel = gel_size_m(sensor)
     for obj, i in inputs.items():
-        if p["crop_px"] is not None:
-            i["crop_px"] = int(p["crop_px"])
-        else:
-            assert distance is not None  # set above whenever crop_px is None
-            i["crop_px"] = crop_for_sensor(sensor, (*i["focal"], 0, 0), distance=distance, margin=p["crop_margin"])
-        try:
-            width, height = i["size"]
-            crop_origin(width, height, i["crop_px"])
-        except TnfError as e:
-            raise TnfError(f"object {obj!r}: {e} (the capture camera's image)") from None
+        i["crop_px"] = None if framing.per_view else framing.fixed_crop(i["focal"], gel)
+        if i["crop_px"] is not None:
+            try:
+                width, height = i["size"]
+                crop_origin(width, height, i["crop_px"])
+            except TnfError as e:
+                raise TnfError(f"object {obj!r}: {e} (the capture camera's image)") from None
 
     # -- step 1: per-object render caches -----------------------------------------------------------------
     cache_keys: dict[str, dict[str, Any]] = {}
@@ -110,9 +110,7 @@ def run(cfg: Any) -> None:
             "touches": len(i["item"].touches),
             "crop_px": i["crop_px"],
             "focal": list(i["focal"]),
-            "depth_norm": p["depth_norm"],
-            "depth_window": p["depth_window"],
-            "render_px": p.get("render_px"),
+            **_framing_record(framing),
             "size": SIZE,
         }
         cache_keys[obj] = key
@@ -135,10 +133,11 @@ def run(cfg: Any) -> None:
                 scene,
                 i["item"],
                 sensor,
-                p,
+                framing,
                 focal=i["focal"],
-                crop_px=i["crop_px"],
                 device=device,
+                render_batch=int(p["render_batch"]),
+                render_chunk=p.get("render_chunk"),
                 on_batch=lambda k: bar.advance(task, k),
             )
             del scene
@@ -216,11 +215,8 @@ def run(cfg: Any) -> None:
                 },
                 "scene_config_hashes": {o: inputs[o]["scene_hash"] for o in names},
                 "preprocess": {
-                    "crop_px": {o: inputs[o]["crop_px"] for o in names},
-                    "footprint_distance": distance,
-                    "depth_norm": p["depth_norm"],
-                    "depth_window": p["depth_window"],
-                    "render_px": p.get("render_px"),
+                    "crop_px": {o: inputs[o]["crop_px"] for o in names if inputs[o]["crop_px"] is not None},
+                    **_framing_record(framing),
                     "size": SIZE,
                 },
             },
@@ -229,6 +225,18 @@ def run(cfg: Any) -> None:
     if not p["keep_cache"]:
         shutil.rmtree(store.path("pairs", ".cache", name), ignore_errors=True)
     _summary(console, store.path("pairs", name), n, split_counts, names, novel)
+
+
+def _framing_record(framing: Any) -> dict[str, Any]:
+    """The framing settings as a dataset manifest (and its cache keys) records them."""
+    return {
+        "crop_distance": framing.crop_distance,
+        "footprint_distance": framing.footprint_distance,
+        "crop_margin": framing.crop_margin,
+        "depth_norm": framing.depth_norm,
+        "depth_window": framing.depth_window,
+        "render_px": framing.render_px,
+    }
 
 
 def _focal(cam: dict[str, Any], path: Path) -> tuple[tuple[float, float], int, int]:
