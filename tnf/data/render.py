@@ -112,7 +112,8 @@ def _read_png(path: Path) -> np.ndarray:
 CROP_DISTANCES = ("contact", "fixed")
 """How far away the gel footprint that sizes each RGB-D crop is measured (``pair.crop_distance``)."""
 PROBE_PX = 64
-"""Side of the low-resolution depth render that finds where the gel would first meet the surface."""
+"""Side of the low-resolution depth render that finds where the gel would first meet the surface (at most the
+crop's own render size, so that a small ``render_px`` on a CPU also makes the probe cheaper)."""
 PROBE_NEAR = 0.5
 """The probe sees the whole footprint of contacts down to this fraction of the reference distance."""
 
@@ -224,9 +225,10 @@ def render_rgbd_crops(
     if framing.per_view or framing.depth_norm == "contact" or measure_contact:
         # Where the gel would first meet the surface: the nearest hit inside the footprint, on a coarse render
         # wide enough for contacts down to PROBE_NEAR of the reference distance.
+        n = min(PROBE_PX, int(framing.render_px or PROBE_PX))
         side = max(fx * gel_size[0], fy * gel_size[1]) / (PROBE_NEAR * framing.footprint_distance)
-        k = torch.tensor([fx * PROBE_PX / side, fy * PROBE_PX / side, PROBE_PX / 2, PROBE_PX / 2], device=dev)
-        probe = scene.render_rgbd(c2w, k.expand(b, 4), PROBE_PX, PROBE_PX, chunk=chunk)
+        k = torch.tensor([fx * n / side, fy * n / side, n / 2, n / 2], device=dev)
+        probe = scene.render_rgbd(c2w, k.expand(b, 4), n, n, chunk=chunk)
         depth = probe["depth"]
         if probe.get("opacity") is not None:
             depth = torch.where(probe["opacity"] >= 0.5, depth, torch.zeros_like(depth))
