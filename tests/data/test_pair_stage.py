@@ -108,6 +108,23 @@ def test_crop_larger_than_image(data_root):
         build(["pair.crop_px=100"])
 
 
+@pytest.mark.parametrize(
+    "override,expected",
+    [
+        ("pair.crop_distance=median", "crop_distance must be one of contact, fixed, got 'median'"),
+        ("pair.depth_norm=mean", "depth_norm must be one of contact, center, minmax, got 'mean'"),
+        ("pair.depth_window=0", "depth_window must be > 0 metres"),
+        ("pair.crop_margin=-1", "crop_margin must be > 0"),
+        ("pair.render_px=0", "render_px must be at least 1 pixel"),
+    ],
+)
+def test_bad_framing_is_refused_before_anything_is_written(data_root, override, expected):
+    make_inputs(data_root)
+    with pytest.raises(TnfError, match=expected):
+        build([override])
+    assert not (data_root / "pairs").exists()
+
+
 def test_too_many_novel_objects(data_root):
     make_inputs(data_root)
     with pytest.raises(TnfError, match="num_novel_objects=3"):

@@ -48,7 +48,7 @@ def preprocess_rgbd(
             ``minmax``: ``(d - min) / (max - min)`` over the hit pixels of the crop.
             In both, pixels with no surface (opacity < ``min_opacity`` or depth 0) are 1 (far).
         out: output side in pixels.
-        depth_window: metres of depth mapped onto [0, 1] by the ``center`` normalisation.
+        depth_window: metres of depth mapped onto [0, 1] by the ``contact`` and ``center`` normalisations.
         center: pixel coordinates ``(cx, cy)`` of the centre ray; default the image centre.
         min_opacity: opacity below which a pixel counts as empty.
         contact: [B] metres, the depth that ``contact`` normalisation maps to 0.5 (see ``contact_depth``).
@@ -167,10 +167,20 @@ def gel_size_m(sensor: Any) -> tuple[float, float]:
     raise TnfError(f"sensor {type(sensor).__name__} does not state its gel size; set pair.crop_px explicitly")
 
 
+def footprint_px(
+    focal: tuple[float, float], gel_size: tuple[float, float], distance: float, margin: float = 1.0
+) -> float:
+    """Side in pixels of a camera with focal lengths ``focal`` that covers the gel's footprint (its larger side
+    times ``margin``) on a surface ``distance`` metres away."""
+    if distance <= 0:
+        raise TnfError(f"distance to the surface must be > 0 metres, got {distance}")
+    return margin * max(focal[0] * gel_size[0], focal[1] * gel_size[1]) / distance
+
+
 def crop_for_sensor(
     sensor: Any, intrinsics: Sequence[float] | torch.Tensor, distance: float = 0.05, margin: float = 1.0
 ) -> int:
-    """Crop side in pixels that covers the sensor's gel footprint seen from ``distance`` metres.
+    """Crop side in whole pixels that covers the sensor's gel footprint seen from ``distance`` metres.
 
     Args:
         sensor: a sensor (or its config) stating its gel size (see ``gel_size_m``).
@@ -178,24 +188,18 @@ def crop_for_sensor(
         distance: metres from the camera to the touched surface along the centre ray.
         margin: factor applied to the footprint (1 = exactly the gel's larger side).
     """
-    if distance <= 0:
-        raise TnfError(f"distance to the surface must be > 0 metres, got {distance}")
-    fx, fy = float(intrinsics[0]), float(intrinsics[1])
-    gw, gh = gel_size_m(sensor)
-    return max(1, int(math.ceil(margin * max(fx * gw, fy * gh) / distance)))
+    focal = (float(intrinsics[0]), float(intrinsics[1]))
+    return max(1, int(math.ceil(footprint_px(focal, gel_size_m(sensor), distance, margin))))
 
 
-def contact_depth(
-    depth: torch.Tensor, intrinsics: torch.Tensor, gel_size: tuple[float, float], min_depth: float = 0.0
-) -> torch.Tensor:
+def contact_depth(depth: torch.Tensor, intrinsics: torch.Tensor, gel_size: tuple[float, float]) -> torch.Tensor:
     """Depth along the view axis of the nearest surface inside the gel's footprint, per view: where the gel
     first meets the object as the sensor advances along its axis.
 
     Args:
-        depth: [B, H, W] z-depth in metres, 0 (or less than ``min_depth``) where no surface was hit.
+        depth: [B, H, W] z-depth in metres, 0 where no surface was hit.
         intrinsics: [B, 4] or [4] ``(fx, fy, cx, cy)`` in pixels of the camera that rendered ``depth``.
         gel_size: the gel's (width, height) in metres, along the image's x and y.
-        min_depth: hits nearer than this are ignored.
 
     Returns:
         [B] metres; NaN where no surface lies inside the footprint.
@@ -207,7 +211,7 @@ def contact_depth(
     # Lateral offset of each pixel's surface point from the axis, in metres: (u - cx) / fx * z.
     x = (u[None, None, :] - k[:, 2, None, None]) / k[:, 0, None, None] * depth
     y = (v[None, :, None] - k[:, 3, None, None]) / k[:, 1, None, None] * depth
-    inside = (depth > max(min_depth, 0.0)) & (x.abs() <= gel_size[0] / 2) & (y.abs() <= gel_size[1] / 2)
+    inside = (depth > 0) & (x.abs() <= gel_size[0] / 2) & (y.abs() <= gel_size[1] / 2)
     nearest = torch.where(inside, depth.float(), torch.full_like(depth, math.inf, dtype=torch.float32))
     nearest = nearest.flatten(1).amin(1)
     return torch.where(torch.isfinite(nearest), nearest, torch.full_like(nearest, math.nan))

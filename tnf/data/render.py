@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from tnf.artifacts import MANIFEST, read_json
-from tnf.data.preprocess import SIZE, contact_depth, gel_size_m, preprocess_rgbd, resize_uint8
+from tnf.data.preprocess import SIZE, contact_depth, footprint_px, gel_size_m, preprocess_rgbd, resize_uint8
 from tnf.errors import TnfError
 
 
@@ -111,6 +111,8 @@ def _read_png(path: Path) -> np.ndarray:
 
 CROP_DISTANCES = ("contact", "fixed")
 """How far away the gel footprint that sizes each RGB-D crop is measured (``pair.crop_distance``)."""
+DEPTH_NORMS = ("contact", "center", "minmax")
+"""Depth normalisations (``pair.depth_norm``; see ``preprocess_rgbd``)."""
 PROBE_PX = 64
 """Side of the low-resolution depth render that finds where the gel would first meet the surface (at most the
 crop's own render size, so that a small ``render_px`` on a CPU also makes the probe cheaper)."""
@@ -134,7 +136,8 @@ class Framing:
     crop_distance: str = "contact"
     footprint_distance: float = 0.1
     """Reference distance in metres: the fixed crop's, and the contact crop's when no surface is in the
-    footprint."""
+    footprint (the pair stage uses the touches' median; 0.1 m only when a fixed ``crop_px`` is set and no
+    touch records its contact)."""
     crop_margin: float = 1.5
     crop_px: int | None = None
     """A fixed crop side in capture-camera pixels (overrides ``crop_distance``)."""
@@ -149,6 +152,14 @@ class Framing:
             raise TnfError(f"footprint distance must be > 0 metres, got {self.footprint_distance}")
         if self.crop_margin <= 0:
             raise TnfError(f"crop_margin must be > 0, got {self.crop_margin}")
+        if self.depth_norm not in DEPTH_NORMS:
+            raise TnfError(f"depth_norm must be one of {', '.join(DEPTH_NORMS)}, got {self.depth_norm!r}")
+        if self.depth_window <= 0:
+            raise TnfError(f"depth_window must be > 0 metres, got {self.depth_window}")
+        for name in ("crop_px", "render_px"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise TnfError(f"{name} must be at least 1 pixel or null, got {value}")
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any], **override: Any) -> Framing:
@@ -175,8 +186,7 @@ class Framing:
         """The one crop side in capture-camera pixels when not ``per_view``."""
         if self.crop_px is not None:
             return int(self.crop_px)
-        side = self.crop_margin * max(focal[0] * gel_size[0], focal[1] * gel_size[1]) / self.footprint_distance
-        return max(1, int(math.ceil(side)))
+        return max(1, int(math.ceil(footprint_px(focal, gel_size, self.footprint_distance, self.crop_margin))))
 
 
 def render_intrinsics(
@@ -226,7 +236,7 @@ def render_rgbd_crops(
         # Where the gel would first meet the surface: the nearest hit inside the footprint, on a coarse render
         # wide enough for contacts down to PROBE_NEAR of the reference distance.
         n = min(PROBE_PX, int(framing.render_px or PROBE_PX))
-        side = max(fx * gel_size[0], fy * gel_size[1]) / (PROBE_NEAR * framing.footprint_distance)
+        side = footprint_px(focal, gel_size, PROBE_NEAR * framing.footprint_distance)
         k = torch.tensor([fx * n / side, fy * n / side, n / 2, n / 2], device=dev)
         probe = scene.render_rgbd(c2w, k.expand(b, 4), n, n, chunk=chunk)
         depth = probe["depth"]
@@ -236,7 +246,7 @@ def render_rgbd_crops(
     ref = torch.where(torch.isfinite(contact), contact, torch.full_like(contact, framing.footprint_distance))
     if framing.per_view:
         size = int(framing.render_px or SIZE)
-        crop = framing.crop_margin * max(fx * gel_size[0], fy * gel_size[1]) / ref  # [B] capture pixels
+        crop = footprint_px(focal, gel_size, 1.0, framing.crop_margin) / ref  # [B] capture-camera pixels
         s = size / crop
         intr = torch.stack([fx * s, fy * s, torch.full_like(s, size / 2), torch.full_like(s, size / 2)], 1)
     else:
@@ -279,8 +289,7 @@ def render_pairs_for_touches(
 
     Returns:
         ``rgb`` uint8 [N, 128, 128, 3], ``depth`` float16 [N, 128, 128] in [0, 1], ``tactile`` uint8
-        [N, 128, 128, 3], ``background`` uint8 [128, 128, 3], ``touch_index`` int32 [N], ``contact`` float64
-        [N] (see ``render_rgbd_crops``).
+        [N, 128, 128, 3], ``background`` uint8 [128, 128, 3], ``touch_index`` int32 [N].
     """
     item = touch_item if isinstance(touch_item, TouchItem) else TouchItem.load(touch_item)
     rows = list(range(len(item.touches))) if rows is None else list(rows)
@@ -288,13 +297,12 @@ def render_pairs_for_touches(
     poses = item.start_poses()
     rgb_out = np.empty((len(rows), SIZE, SIZE, 3), np.uint8)
     depth_out = np.empty((len(rows), SIZE, SIZE), np.float16)
-    contact_out = np.empty(len(rows), np.float64)
     for s in range(0, len(rows), render_batch):
         sel = rows[s : s + render_batch]
         c2w = torch.as_tensor(poses[sel], dtype=torch.float32, device=device)
         with torch.no_grad():
-            out = render_rgbd_crops(scene, c2w, focal, gel, framing, chunk=render_chunk)
-        rgb_out[s : s + len(sel)], depth_out[s : s + len(sel)], contact_out[s : s + len(sel)] = out
+            rgb, depth, _ = render_rgbd_crops(scene, c2w, focal, gel, framing, chunk=render_chunk)
+        rgb_out[s : s + len(sel)], depth_out[s : s + len(sel)] = rgb, depth
         if on_batch is not None:
             on_batch(len(sel))
     return {
@@ -303,5 +311,4 @@ def render_pairs_for_touches(
         "tactile": item.tactile(rows) if rows else np.empty((0, SIZE, SIZE, 3), np.uint8),
         "background": item.background(),
         "touch_index": np.asarray([item.touches[i]["index"] for i in rows], dtype=np.int32),
-        "contact": contact_out,
     }

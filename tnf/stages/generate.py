@@ -114,7 +114,10 @@ def run(cfg: Any) -> dict[str, Any]:
             raise TnfError(f"{transforms}: camera intrinsics missing; rerun `tnf capture object={obj}`") from None
         crop = g.crop_px or prep["crop_px"].get(obj)
         if crop is None and prep["footprint_distance"] is None:
-            raise TnfError(f"no crop size for {obj!r}: set generate.crop_px or generate.dataset")
+            raise TnfError(
+                f"no framing for {obj!r}: name the paired dataset (generate.dataset), or set pair.footprint_distance "
+                "or generate.crop_px"
+            )
         framing = Framing.from_settings(prep["framing"], crop_px=crop, footprint_distance=prep["footprint_distance"])
         seed = (int(cfg.seed) * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
         poses = (

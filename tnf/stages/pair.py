@@ -12,6 +12,7 @@ assembled into the dataset's memory-mapped arrays, chunk by chunk, with the spli
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -108,9 +109,9 @@ def run(cfg: Any) -> None:
             "scene_hash": i["scene_hash"],
             "touch_hash": i["item"].manifest.get("config_hash"),
             "touches": len(i["item"].touches),
+            **dataclasses.asdict(framing),
             "crop_px": i["crop_px"],
             "focal": list(i["focal"]),
-            **_framing_record(framing),
             "size": SIZE,
         }
         cache_keys[obj] = key
@@ -215,8 +216,8 @@ def run(cfg: Any) -> None:
                 },
                 "scene_config_hashes": {o: inputs[o]["scene_hash"] for o in names},
                 "preprocess": {
+                    **dataclasses.asdict(framing),
                     "crop_px": {o: inputs[o]["crop_px"] for o in names if inputs[o]["crop_px"] is not None},
-                    **_framing_record(framing),
                     "size": SIZE,
                 },
             },
@@ -225,18 +226,6 @@ def run(cfg: Any) -> None:
     if not p["keep_cache"]:
         shutil.rmtree(store.path("pairs", ".cache", name), ignore_errors=True)
     _summary(console, store.path("pairs", name), n, split_counts, names, novel)
-
-
-def _framing_record(framing: Any) -> dict[str, Any]:
-    """The framing settings as a dataset manifest (and its cache keys) records them."""
-    return {
-        "crop_distance": framing.crop_distance,
-        "footprint_distance": framing.footprint_distance,
-        "crop_margin": framing.crop_margin,
-        "depth_norm": framing.depth_norm,
-        "depth_window": framing.depth_window,
-        "render_px": framing.render_px,
-    }
 
 
 def _focal(cam: dict[str, Any], path: Path) -> tuple[tuple[float, float], int, int]:
