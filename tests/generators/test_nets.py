@@ -191,3 +191,36 @@ def test_tn_cgan_overfits_a_handful_of_pairs():
     # Far better than the untrained network and than predicting the background: the blobs were learnt.
     bg = metrics.ssim(batch["background"], batch["tactile"]).mean().item()
     assert s > 0.98 and s > start + 0.2 and s > bg + 0.02, (start, bg, s)
+
+
+def test_tn_cgan_full_res_head_sees_the_skip_images():
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=32, full_res_head=True).eval()
+    assert g.net_g.head is not None
+    # The head's first convolution takes the decoder's ngf features and the background and depth images.
+    conv = next(m for m in g.net_g.head if isinstance(m, torch.nn.Conv2d))
+    assert conv.in_channels == 4 + 3 + 1
+    batch = make_pairs(2, 32)
+    with torch.no_grad():
+        out = g.generate(batch)
+        # One changed depth pixel changes that output pixel through the head, not only through the encoder.
+        moved = {**batch, "depth": batch["depth"].clone()}
+        moved["depth"][:, :, 5, 5] += 1.0
+        diff = (g.generate(moved) - out).abs()
+    assert out.shape == (2, 3, 32, 32) and out.abs().max() <= 1
+    assert diff[:, :, 5, 5].max() > 0
+    assert build("tn_cgan", image_size=32).net_g.head is None
+
+
+def test_tn_cgan_ssim_loss_term():
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=32, lambda_ssim=10.0)
+    batch = make_pairs(4, 32)
+    losses = g.training_step(batch, PlainOptimisation(g))
+    assert 0 < losses["loss_ssim"] < 1
+    # The unquantised SSIM the loss uses is the evaluation's SSIM (128 px) once the images are 8-bit values.
+    a, b = (torch.randint(0, 256, (2, 3, 128, 128)).float() / 127.5 - 1 for _ in range(2))
+    b = (a + 0.3 * b).clamp(-1, 1).mul(127.5).round().div(127.5)
+    assert torch.allclose(metrics.ssim_unquantised(a, b), metrics.ssim(a, b), atol=1e-4)
+    with pytest.raises(TnfError, match="loss weights"):
+        build("tn_cgan", lambda_ssim=-1.0)

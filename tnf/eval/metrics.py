@@ -47,6 +47,20 @@ def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return cast(torch.Tensor, out)  # a tuple only with return_full_image=True
 
 
+def ssim_unquantised(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-image SSIM, [B], of [-1, 1] float images as :func:`ssim` computes it but without the 8-bit
+    rounding, so it has gradients (a training loss). Equal to :func:`ssim` on images that are already 8-bit
+    values."""
+    from torchmetrics.functional.image import structural_similarity_index_measure
+
+    with torch.autocast(pred.device.type, enabled=False):
+        p, t = (pred.float() + 1) / 2, (target.float() + 1) / 2  # SSIM is unchanged by scaling x and its range
+        out = structural_similarity_index_measure(
+            p, t, gaussian_kernel=True, kernel_size=11, sigma=1.5, data_range=1.0, reduction="none"
+        )
+    return cast(torch.Tensor, out)
+
+
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per-image MSE on the 0-255 scale, [B], of [B, 3, H, W] images (uint8 or [-1, 1] floats)."""
     with torch.autocast(pred.device.type, enabled=False):

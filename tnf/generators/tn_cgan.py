@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tnf.eval import metrics
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
 from tnf.registry import GENERATORS
@@ -68,6 +69,8 @@ class UNetDecoder(nn.Module):
     """U-Net decoder from a concatenated bottleneck, with skip features concatenated at every level.
 
     Args:
+        image_out: the last block ends in tanh (an image with ``out_ch`` channels); false ends it in a norm
+            layer (features for a further head).
         bottleneck_ch: channels of the 1 x 1 (or 2**-num_downs) bottleneck.
         skip_ch: channels concatenated at each level 0..num_downs-2 (0 for no skip).
         dropout_blocks: how many of the innermost up-blocks apply ``NoiseDropout(dropout)``.
@@ -84,6 +87,7 @@ class UNetDecoder(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
+        image_out: bool = True,
     ):
         super().__init__()
         nl = norm_layer(norm)
@@ -98,8 +102,10 @@ class UNetDecoder(nn.Module):
                 nn.ReLU(True),
                 nn.ConvTranspose2d(cin, cout, kernel, 2, pad, output_padding=out_pad, bias=use_bias or last),
             ]
-            if last:
+            if last and image_out:
                 layers.append(nn.Tanh())
+            elif last:
+                layers.append(nl(cout))
             else:
                 layers.append(nl(cout))
                 if k < dropout_blocks and dropout > 0:
@@ -127,6 +133,11 @@ class MultiEncoderUNet(nn.Module):
 
     ``forward(inputs)`` takes a dict with the input keys ([B, C_k, H, W] each) and returns [B, 3, H, W] in
     [-1, 1]; H = W = 2**num_downs.
+
+    With ``full_res_head`` the decoder ends in ``ngf`` feature channels at full resolution; the skip inputs'
+    images themselves (the full-resolution depth, say) are concatenated to them, and two 3 x 3 convolutions
+    make the image. Without it the decoder's last transposed convolution makes the image, and the inputs'
+    full-resolution pixels reach it only through the encoders' first stride-2 convolutions.
     """
 
     def __init__(
@@ -139,6 +150,7 @@ class MultiEncoderUNet(nn.Module):
         dropout: float,
         dropout_blocks: int,
         kernel: int = 4,
+        full_res_head: bool = False,
     ):
         super().__init__()
         self.inputs = tuple(inputs)
@@ -147,14 +159,31 @@ class MultiEncoderUNet(nn.Module):
         self.encoders = nn.ModuleDict({k: Encoder(CHANNELS[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
-        self.decoder = UNetDecoder(bottleneck, skip_ch, ngf, n, 3, norm, dropout, dropout_blocks, kernel)
+        dec_out = ngf if full_res_head else 3
+        self.decoder = UNetDecoder(
+            bottleneck, skip_ch, ngf, n, dec_out, norm, dropout, dropout_blocks, kernel, image_out=not full_res_head
+        )
+        self.head: nn.Module | None = None
+        if full_res_head:
+            cin = ngf + sum(CHANNELS[k] for k in self.skips)
+            self.head = nn.Sequential(
+                nn.ReLU(True),
+                nn.Conv2d(cin, ngf, 3, 1, 1, bias=norm != "batch"),
+                norm_layer(norm)(ngf),
+                nn.ReLU(True),
+                nn.Conv2d(ngf, 3, 3, 1, 1),
+                nn.Tanh(),
+            )
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         feats = {k: self.encoders[k](inputs[k]) for k in self.inputs}
         bottleneck = torch.cat([feats[k][-1] for k in self.inputs], 1)
         n = len(next(iter(feats.values())))
         skips = [[feats[k][lv] for k in self.skips] for lv in range(n - 1)]
-        return self.decoder(bottleneck, skips)
+        out = self.decoder(bottleneck, skips)
+        if self.head is None:
+            return out
+        return self.head(torch.cat([out, *(inputs[k] for k in self.skips)], 1))
 
 
 def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
@@ -197,6 +226,12 @@ class TNcGAN(Generator):
         """Adversarial loss: vanilla (sigmoid cross-entropy, the paper's Eq. 3) or lsgan."""
         lambda_l1: float = 100.0
         """Weight lambda of the L1 loss (Eq. 2)."""
+        lambda_ssim: float = 0.0
+        """Weight of an SSIM loss, 1 - SSIM (the evaluation's window and constants), added to the generator's
+        loss (0: the paper's cGAN + L1 loss only)."""
+        full_res_head: bool = False
+        """End the decoder in two 3 x 3 convolutions at full resolution that also see the skip inputs' own
+        images (the 128 px depth, say); false: the decoder's last transposed convolution makes the image."""
         lr: float = 2e-4
         """Adam learning rate of generator and discriminator."""
         beta1: float = 0.5
@@ -227,6 +262,8 @@ class TNcGAN(Generator):
                 raise ValueError(f"gan_mode must be vanilla or lsgan, got {self.gan_mode!r}")
             if not 0 <= self.dropout < 1:
                 raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+            if self.lambda_l1 < 0 or self.lambda_ssim < 0:
+                raise ValueError(f"loss weights must be >= 0, got {self.lambda_l1}, {self.lambda_ssim}")
             if self.ngf < 1 or self.ndf < 1:
                 raise ValueError(f"ngf and ndf must be >= 1, got {self.ngf}, {self.ndf}")
 
@@ -235,7 +272,14 @@ class TNcGAN(Generator):
         self.cfg = cfg
         self.inputs = tuple(cfg.inputs)
         self.net_g = MultiEncoderUNet(
-            cfg.inputs, cfg.skips, cfg.ngf, cfg.num_downs, cfg.norm, cfg.dropout, cfg.dropout_blocks
+            cfg.inputs,
+            cfg.skips,
+            cfg.ngf,
+            cfg.num_downs,
+            cfg.norm,
+            cfg.dropout,
+            cfg.dropout_blocks,
+            full_res_head=cfg.full_res_head,
         )
         cond_ch = sum(CHANNELS[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
@@ -284,6 +328,11 @@ class TNcGAN(Generator):
         loss_g_gan = gan_loss(logits_g, True, self.cfg.gan_mode)
         loss_l1 = F.l1_loss(fake.float(), real.float())
         loss_g = loss_g_gan + self.cfg.lambda_l1 * loss_l1
+        losses: dict[str, torch.Tensor] = {}
+        if self.cfg.lambda_ssim > 0:
+            loss_ssim = 1 - metrics.ssim_unquantised(fake, real).mean()
+            loss_g = loss_g + self.cfg.lambda_ssim * loss_ssim
+            losses["loss_ssim"] = loss_ssim.detach()
         opt_g.zero_grad(set_to_none=True)
         opt.backward(loss_g)
         opt_g.step()
@@ -297,4 +346,5 @@ class TNcGAN(Generator):
             # Mean D outputs: d_real -> 1 and d_fake -> 0 together means the discriminator has won.
             "d_real": torch.sigmoid(logits_real.detach().float()).mean(),
             "d_fake": torch.sigmoid(logits_fake.detach().float()).mean(),
+            **losses,
         }
