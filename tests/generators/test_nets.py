@@ -55,6 +55,8 @@ def test_tn_cgan_default_architecture():
     assert g.net_d.net[0].in_channels == 10
     assert g.net_d(torch.zeros(1, 10, 128, 128)).shape == (1, 1, 14, 14)
     assert g.cfg.lambda_l1 == 100 and g.cfg.lr == 2e-4 and g.cfg.beta1 == 0.5
+    # A full-resolution head and an SSIM loss term (the paper: neither).
+    assert g.net_g.head is not None and g.cfg.lambda_ssim == 60
 
 
 @pytest.mark.parametrize("skips", [["background"], ["background", "depth"]])
@@ -209,7 +211,7 @@ def test_tn_cgan_full_res_head_sees_the_skip_images():
         diff = (g.generate(moved) - out).abs()
     assert out.shape == (2, 3, 32, 32) and out.abs().max() <= 1
     assert diff[:, :, 5, 5].max() > 0
-    assert build("tn_cgan", image_size=32).net_g.head is None
+    assert build("tn_cgan", image_size=32, full_res_head=False).net_g.head is None
 
 
 def test_tn_cgan_ssim_loss_term():
