@@ -91,3 +91,23 @@ def test_metrics_inside_bf16_autocast_equal_float32_metrics():
         s, m = ssim(fake, real), mse(fake, real)
     assert s.dtype == torch.float32 and torch.equal(s, ref_ssim)
     assert torch.equal(m, ref_mse)
+
+
+def test_ssim_equals_torchmetrics_which_scored_the_committed_results():
+    # tnf's reports up to the separable implementation were scored with torchmetrics' SSIM (same window,
+    # constants and mirrored borders): both must give the same figures.
+    from torchmetrics.functional.image import structural_similarity_index_measure
+
+    a, b = _images(7, n=4), _images(8, n=4)
+    b = ((a.float() * 3 + b.float()) / 4).round().byte()
+    ref = structural_similarity_index_measure(
+        a.float(), b.float(), gaussian_kernel=True, kernel_size=11, sigma=1.5, data_range=255.0, reduction="none"
+    )
+    assert torch.allclose(ssim(a, b), ref, atol=1e-5)
+
+
+def test_ssim_refuses_images_smaller_than_its_window():
+    from tnf.eval.metrics import ssim_unquantised
+
+    with pytest.raises(ValueError, match="larger than 5 px"):
+        ssim_unquantised(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))

@@ -56,6 +56,9 @@ class Generator(nn.Module):
     inputs: tuple[str, ...] = ("rgb",)
     #: Names of the optimisers ``configure_optimizers`` returns, in order (used for learning-rate logging).
     optimizer_names: ClassVar[tuple[str, ...]] = ("g", "d")
+    #: Config fields added after checkpoints were first written, with the values that rebuild the network an
+    #: older checkpoint (one whose saved config lacks the field) holds. Loading fills them in.
+    added_fields: ClassVar[dict[str, Any]] = {}
 
     def __init__(self) -> None:
         super().__init__()

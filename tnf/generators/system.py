@@ -250,7 +250,9 @@ class GeneratorSystem(L.LightningModule):
         """
         ckpt = read_checkpoint(path)
         meta = ckpt["tnf"]
-        spec = {**meta["generator"], **dict(generator_overrides or {})}
+        saved = dict(meta["generator"])
+        known = GENERATORS.get(saved["name"]) if saved.get("name") in GENERATORS else None
+        spec = {**getattr(known, "added_fields", {}), **saved, **dict(generator_overrides or {})}
         if expected is not None and spec.get("name") != expected:
             raise TnfError(f"checkpoint {path} holds generator {spec.get('name')!r}, expected {expected!r}")
         hp = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k != "generator"}

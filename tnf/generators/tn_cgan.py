@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -200,6 +201,9 @@ def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
 @GENERATORS.register("tn_cgan")
 class TNcGAN(Generator):
     """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, L1 + cGAN loss."""
+
+    # Checkpoints written before these options existed hold the network without the head, trained without SSIM.
+    added_fields: ClassVar[dict[str, Any]] = {"full_res_head": False, "lambda_ssim": 0.0}
 
     @dataclass
     class Config:
