@@ -72,11 +72,11 @@ class UNetDecoder(nn.Module):
     """U-Net decoder from a concatenated bottleneck, with skip features concatenated at every level.
 
     Args:
-        image_out: the last block ends in tanh (an image with ``out_ch`` channels); false ends it in a norm
-            layer (features for a further head).
         bottleneck_ch: channels of the 1 x 1 (or 2**-num_downs) bottleneck.
         skip_ch: channels concatenated at each level 0..num_downs-2 (0 for no skip).
         dropout_blocks: how many of the innermost up-blocks apply ``NoiseDropout(dropout)``.
+        image_out: the last block ends in tanh (an image with ``out_ch`` channels); false ends it in a norm
+            layer (features for a further head).
     """
 
     def __init__(
@@ -100,18 +100,17 @@ class UNetDecoder(nn.Module):
         cin = bottleneck_ch
         for k, level in enumerate(reversed(range(num_downs))):  # level of the input's resolution
             last = level == 0
+            to_image = last and image_out
             cout = out_ch if last else level_channels(ngf, level - 1)
             layers: list[nn.Module] = [
                 nn.ReLU(True),
                 nn.ConvTranspose2d(cin, cout, kernel, 2, pad, output_padding=out_pad, bias=use_bias or last),
             ]
-            if last and image_out:
+            if to_image:
                 layers.append(nn.Tanh())
-            elif last:
-                layers.append(nl(cout))
             else:
                 layers.append(nl(cout))
-                if k < dropout_blocks and dropout > 0:
+                if not last and k < dropout_blocks and dropout > 0:
                     layers.append(NoiseDropout(dropout))
             blocks.append(nn.Sequential(*layers))
             if not last:
