@@ -161,6 +161,16 @@ def test_mesh_dir_errors(tmp_path):
         src.load("flat")
 
 
+@pytest.mark.parametrize("content", ["v 0\nf 0\n", "v 0\x1f0\nf 0\n", "v \nf 0\n"])
+def test_mesh_files_with_malformed_vertices_are_clear_errors(tmp_path, content):
+    # Found by the fuzz test: vertices without three coordinates crashed trimesh's processing or centring
+    # (ValueError, OverflowError) in some trimesh versions instead of giving tnf's error.
+    (tmp_path / "bad.obj").write_bytes(content.encode())
+    src = OBJECTS.build({"name": "mesh_dir", "path": str(tmp_path), "skip_invalid": False})
+    with pytest.raises(TnfError, match=r"bad\.obj"):
+        src.load("bad")
+
+
 def test_pybullet_source():
     pytest.importorskip("pybullet_data")
     src = OBJECTS.build({"name": "pybullet"})

@@ -72,8 +72,14 @@ def load_mesh_file(path: str | os.PathLike[str], scale: float = 1.0, up_axis: st
         mesh = loaded
     else:
         raise TnfError(f"{path}: empty mesh (a {type(loaded).__name__}, not triangles)")
-    if len(mesh.vertices) and np.isfinite(mesh.vertices).all():
-        mesh.process()
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if (len(v) and (v.ndim != 2 or v.shape[1] != 3)) or (len(f) and (f.ndim != 2 or f.shape[1] != 3)):
+        raise TnfError(f"{path}: malformed mesh (vertices {v.shape}, faces {f.shape}; both need 3 columns)")
+    if len(v) and np.isfinite(v).all():
+        try:
+            mesh.process()
+        except Exception as e:  # degenerate input trips trimesh's vertex merging in some versions
+            raise TnfError(f"cannot process mesh {path}: {type(e).__name__}: {e}") from None
     if scale != 1.0:
         mesh.apply_scale(scale)
     if up_axis != "z":
