@@ -94,7 +94,7 @@ def test_metrics_inside_bf16_autocast_equal_float32_metrics():
 
 
 def test_ssim_equals_torchmetrics_which_scored_the_committed_results():
-    # tnf's reports up to the separable implementation were scored with torchmetrics' SSIM (same window,
+    # tnf's reports before its own implementation were scored with torchmetrics' SSIM (same window,
     # constants and mirrored borders): both must give the same figures.
     from torchmetrics.functional.image import structural_similarity_index_measure
 

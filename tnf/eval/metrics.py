@@ -4,8 +4,9 @@ Following the paper: images are compared as 8-bit RGB at 128 x 128; SSIM uses a 
 pixels with sigma 1.5 and data range 255, averaged over the RGB channels; MSE is on the 0-255 scale
 (range 0-65025).
 
-Both compute in float32 even inside an autocast region (a bf16-mixed trainer's validation): SSIM's local
-variances E[x^2] - E[x]^2 of values near 255 cancel to noise in bfloat16.
+Both ignore autocast (a bf16-mixed trainer's validation). SSIM's local statistics are computed in float64:
+its variances E[x^2] - E[x]^2 of values near 255 cancel to noise in bfloat16, and would lose most of their
+digits in the TF32 matrix products that GPU training switches on for float32.
 """
 
 from __future__ import annotations
@@ -50,22 +51,23 @@ def _blur_matrix(n: int, device: torch.device) -> torch.Tensor:
     j = (torch.arange(n)[:, None] + r[None, :]).flatten().abs()  # mirror at 0
     j = torch.where(j > n - 1, 2 * (n - 1) - j, j)  # mirror at n - 1
     m = torch.zeros(n, n, dtype=torch.float64).index_put_((i, j), w.repeat(n), accumulate=True)
-    return m.float().to(device)
+    return m.to(device)
 
 
 def _ssim(p: torch.Tensor, t: torch.Tensor, data_range: float) -> torch.Tensor:
-    """Per-image SSIM, [B], of float [B, C, H, W] images: local statistics under the Gaussian window over
-    mirrored borders, every pixel's SSIM averaged over pixels and channels."""
+    """Per-image SSIM, [B] float32, of float [B, C, H, W] images: local statistics under the Gaussian window
+    over mirrored borders (in float64), every pixel's SSIM averaged over pixels and channels."""
     b, _, h, w = p.shape
     if min(h, w) <= WINDOW // 2:
         raise ValueError(f"SSIM needs images larger than {WINDOW // 2} px, got {h} x {w}")
+    p, t = p.double(), t.double()
     x = torch.cat([p, t, p * p, t * t, p * t])
     x = _blur_matrix(h, p.device) @ x @ _blur_matrix(w, p.device).T
     mp, mt, epp, ett, ept = x.split(b)
     vp, vt, cov = (epp - mp * mp).clamp_min(0), (ett - mt * mt).clamp_min(0), ept - mp * mt
     c1, c2 = (K1 * data_range) ** 2, (K2 * data_range) ** 2
     s = ((2 * mp * mt + c1) * (2 * cov + c2)) / ((mp * mp + mt * mt + c1) * (vp + vt + c2))
-    return s.flatten(1).mean(1)
+    return s.flatten(1).mean(1).float()
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,7 @@ The RGB image, the depth image and the sensor's background image go through sepa
 their innermost features are concatenated and decoded by a U-Net decoder into the tactile image, with skip
 connections from the background and depth encoders (configurable) at every scale. A PatchGAN discriminator
 judges (condition, tactile) pairs; the generator minimises the cGAN loss plus lambda_L1 times the L1 distance
-to the real image.
+to the real image, plus lambda_SSIM times (1 - SSIM).
 
 Four defaults depart from the paper's figure, chosen on the validation split of ``sim_digit`` (seed 0, 30
 epochs, results/generators/tn_cgan_variants.md): the paper's layout (skips from the background encoder only,
@@ -199,7 +199,7 @@ def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
 
 @GENERATORS.register("tn_cgan")
 class TNcGAN(Generator):
-    """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, L1 + cGAN loss."""
+    """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, cGAN + L1 + SSIM loss."""
 
     # Checkpoints written before these options existed hold the network without the head, trained without SSIM.
     added_fields: ClassVar[dict[str, Any]] = {"full_res_head": False, "lambda_ssim": 0.0}
