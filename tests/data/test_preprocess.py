@@ -10,7 +10,7 @@ import torch
 
 from tests.data.pair_inputs import SphereScene, look_at
 from tnf.data import SPLITS, assign_splits, choose_novel_objects, crop_for_sensor, preprocess_rgbd
-from tnf.data.preprocess import contact_depth
+from tnf.data.preprocess import contact_depth, gel_size_m
 from tnf.data.render import Framing, render_rgbd_crops
 from tnf.errors import TnfError
 from tnf.registry import SENSORS
@@ -135,6 +135,44 @@ def test_contact_crops_keep_the_gel_scale_at_any_start_distance(crop_distance):
         assert hit[1].mean() < 0.85 * hit[0].mean() and colour_change > 15
 
 
+@pytest.mark.parametrize("extent", ["sensor", "footprint"])
+def test_sensor_extent_crops_are_pixel_aligned_with_the_tactile_image(extent):
+    # A 10 mm sphere pressed by a flat Digit whose axis passes 4 mm right of and 6 mm below its top: the
+    # imprint lies off the tactile image's centre. Framed with crop_extent=sensor, the RGB-D crop shows the
+    # sphere's top (where the gel presses in) at the same place as the imprint; the square footprint crop
+    # (45 mm across, against the image's 19 x 25 mm) draws it nearer the centre.
+    import trimesh
+
+    from tnf.registry import SIMULATORS
+
+    sensor = SENSORS.build({"name": "digit", "sag": 0.0, "noise_std": 0.0})
+    sim = SIMULATORS.build({"name": "warp_gel"}, sensor=sensor, device="cpu")
+    c2w = np.eye(4)
+    c2w[:3, 3] = (-0.004, 0.006, 0.01 + 0.05)  # the sphere's top is at x = +4 mm, y = -6 mm in the sensor frame
+    out = sim.press(trimesh.creation.icosphere(subdivisions=5, radius=0.01), c2w[None], 3.0)
+    assert out.hit[0]
+    rows, cols = np.nonzero(out.contact[0])
+    imprint = ((cols.mean() + 0.5) / sensor.width, (rows.mean() + 0.5) / sensor.height)
+    assert imprint[0] > 0.6 and imprint[1] > 0.6  # right of and below the centre
+
+    framing = Framing(crop_distance="contact", footprint_distance=0.05, crop_extent=extent).with_sensor(sensor)
+    assert (framing.view_size is not None) == (extent == "sensor")
+    scene = SphereScene(SphereScene.Config(0.01))
+    _, depth, contact = render_rgbd_crops(
+        scene, torch.tensor(c2w[None], dtype=torch.float32), (60.0, 60.0), gel_size_m(sensor), framing
+    )
+    assert contact[0] == pytest.approx(0.05, abs=1e-4)  # first contact: the sphere's top, 50 mm below
+    # The sphere above the depth the gel was pushed to: the rigid-gel contact patch, centred on the same point.
+    top = depth[0].astype(np.float32) < 0.5 + float(out.penetration[0]) / framing.depth_window
+    r, c = np.nonzero(top)
+    seen = ((c.mean() + 0.5) / 128, (r.mean() + 0.5) / 128)
+    error_px = 128 * np.abs(np.subtract(seen, imprint)).max()
+    if extent == "sensor":
+        assert error_px < 1.5
+    else:
+        assert error_px > 10
+
+
 def test_framing_settings_and_older_datasets():
     f = Framing.from_settings(
         {"crop_distance": "contact", "crop_px": None, "depth_norm": "contact"}, footprint_distance=0.1
@@ -148,6 +186,13 @@ def test_framing_settings_and_older_datasets():
         Framing(crop_distance="median")
     with pytest.raises(TnfError, match="footprint distance"):
         Framing(footprint_distance=0.0)
+    with pytest.raises(TnfError, match="crop_extent must be"):
+        Framing(crop_extent="gel")
+    with pytest.raises(TnfError, match="crop_distance=contact"):
+        Framing(crop_distance="fixed", crop_extent="sensor")
+    # A dataset's stored view size (a JSON list) comes back as the tuple it was, and the sensor does not replace it.
+    f = Framing.from_settings({"crop_distance": "contact", "crop_extent": "sensor", "view_size": [0.02, 0.03]})
+    assert f.view_size == (0.02, 0.03) and f.with_sensor(SENSORS.build({"name": "digit"})).view_size == (0.02, 0.03)
 
 
 def test_novel_objects_by_config_and_seed():

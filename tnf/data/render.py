@@ -6,7 +6,8 @@ looks along its -z axis), so it is used as the camera pose as it is.
 
 The crop (``Framing``) shows the gel's footprint where the gel first meets the surface, so an RGB-D pixel
 covers the same patch of gel in every pair, however far the start pose is from the object; depth is measured
-from that first contact, which the generator then sees as 0.5.
+from that first contact, which the generator then sees as 0.5. With ``crop_extent="sensor"`` the crop is the
+patch the tactile image itself shows, so that the two images are pixel-aligned.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -111,6 +112,8 @@ def _read_png(path: Path) -> np.ndarray:
 
 CROP_DISTANCES = ("contact", "fixed")
 """How far away the gel footprint that sizes each RGB-D crop is measured (``pair.crop_distance``)."""
+CROP_EXTENTS = ("footprint", "sensor")
+"""What each per-view crop shows (``pair.crop_extent``; see ``Framing``)."""
 DEPTH_NORMS = ("contact", "center", "minmax")
 """Depth normalisations (``pair.depth_norm``; see ``preprocess_rgbd``)."""
 PROBE_PX = 64
@@ -131,6 +134,12 @@ class Framing:
         physical scale, whatever the distance from the start pose to the object.
       - ``fixed``: one crop for every view, the footprint at ``footprint_distance`` (or ``crop_px`` pixels of
         the capture camera): the scale then varies with each touch's distance.
+
+    ``crop_extent`` (per-view crops only):
+      - ``footprint``: a square of ``crop_margin`` times the gel's larger side.
+      - ``sensor``: exactly the gel patch the tactile image shows (``view_size``, from ``Sensor.view_size``),
+        stretched to the square output like the tactile image: RGB-D pixel ``(i, j)`` and tactile pixel
+        ``(i, j)`` then see the same point of the surface, which suits generators built on skip connections.
     """
 
     crop_distance: str = "contact"
@@ -144,6 +153,10 @@ class Framing:
     depth_norm: str = "contact"
     depth_window: float = 0.04
     render_px: int | None = None
+    crop_extent: str = "footprint"
+    view_size: tuple[float, float] | None = None
+    """The tactile image's gel patch ``(width, height)`` in metres, for ``crop_extent="sensor"`` (``with_sensor``
+    fills it in; a dataset manifest stores it, so generation frames novel poses as the training data)."""
 
     def __post_init__(self) -> None:
         if self.crop_distance not in CROP_DISTANCES:
@@ -160,6 +173,14 @@ class Framing:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise TnfError(f"{name} must be at least 1 pixel or null, got {value}")
+        if self.crop_extent not in CROP_EXTENTS:
+            raise TnfError(f"crop_extent must be one of {', '.join(CROP_EXTENTS)}, got {self.crop_extent!r}")
+        if self.crop_extent == "sensor" and not self.per_view:
+            raise TnfError(
+                "crop_extent=sensor frames each view at its contact: it needs crop_distance=contact and no crop_px"
+            )
+        if self.view_size is not None and not (len(self.view_size) == 2 and min(self.view_size) > 0):
+            raise TnfError(f"view_size must be (width, height) > 0 metres, got {self.view_size}")
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any], **override: Any) -> Framing:
@@ -175,7 +196,15 @@ class Framing:
         for k in ("crop_px", "render_px"):
             if keys.get(k) is not None:
                 keys[k] = int(keys[k])
+        if keys.get("view_size") is not None:
+            keys["view_size"] = tuple(float(v) for v in keys["view_size"])
         return cls(**keys)
+
+    def with_sensor(self, sensor: Any) -> Framing:
+        """This framing with ``view_size`` from ``sensor`` where ``crop_extent="sensor"`` needs it and lacks it."""
+        if self.crop_extent != "sensor" or self.view_size is not None:
+            return self
+        return replace(self, view_size=tuple(float(v) for v in sensor.view_size()))
 
     @property
     def per_view(self) -> bool:
@@ -246,9 +275,16 @@ def render_rgbd_crops(
     ref = torch.where(torch.isfinite(contact), contact, torch.full_like(contact, framing.footprint_distance))
     if framing.per_view:
         size = int(framing.render_px or SIZE)
-        crop = footprint_px(focal, gel_size, 1.0, framing.crop_margin) / ref  # [B] capture-camera pixels
-        s = size / crop
-        intr = torch.stack([fx * s, fy * s, torch.full_like(s, size / 2), torch.full_like(s, size / 2)], 1)
+        centre = torch.full_like(ref, size / 2)
+        if framing.crop_extent == "sensor":
+            if framing.view_size is None:
+                raise TnfError("crop_extent=sensor needs the sensor's view_size (Framing.with_sensor)")
+            # The view_size patch at the contact depth spans the render: x = +-w/2 at u = 0 and u = size.
+            w, h = framing.view_size
+            intr = torch.stack([size * ref / w, size * ref / h, centre, centre], 1)
+        else:
+            s = size / (footprint_px(focal, gel_size, 1.0, framing.crop_margin) / ref)  # crop in capture pixels
+            intr = torch.stack([fx * s, fy * s, centre, centre], 1)
     else:
         size, k4 = render_intrinsics(fx, fy, framing.fixed_crop(focal, gel_size), render_px=framing.render_px)
         intr = torch.tensor(k4, dtype=torch.float32, device=dev).expand(b, 4)

@@ -181,6 +181,13 @@ class Sensor:
         x, y = np.meshgrid(cols, rows)
         return x.astype(np.float32), y.astype(np.float32)
 
+    def view_size(self) -> tuple[float, float]:
+        """``(width, height)`` in metres of the gel patch the tactile image shows: ``gel_grid``'s extent, pixel
+        edge to pixel edge. An RGB-D crop of this size around the sensor's axis is pixel-aligned with the image
+        (``pair.crop_extent=sensor``)."""
+        fx, fy, _, _ = self.intrinsics()
+        return self.width * self.cfg.camera_distance / fx, self.height * self.cfg.camera_distance / fy
+
     def pixel_size(self) -> tuple[float, float]:
         """Gel area one pixel covers, ``(dx, dy)`` metres."""
         fx, fy, _, _ = self.intrinsics()

@@ -118,7 +118,9 @@ def run(cfg: Any) -> dict[str, Any]:
                 f"no framing for {obj!r}: name the paired dataset (generate.dataset), or set pair.footprint_distance "
                 "or generate.crop_px"
             )
-        framing = Framing.from_settings(prep["framing"], crop_px=crop, footprint_distance=prep["footprint_distance"])
+        framing = Framing.from_settings(
+            prep["framing"], crop_px=crop, footprint_distance=prep["footprint_distance"]
+        ).with_sensor(sensor)
         seed = (int(cfg.seed) * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
         poses = (
             file_poses

@@ -89,7 +89,7 @@ def run(cfg: Any) -> None:
             raise TnfError(
                 "no touch records a contact in front of its start pose; cannot size the crop (set pair.crop_px)"
             )
-    framing = Framing.from_settings(p, footprint_distance=distance)
+    framing = Framing.from_settings(p, footprint_distance=distance).with_sensor(sensor)
     gel = gel_size_m(sensor)
     for obj, i in inputs.items():
         i["crop_px"] = None if framing.per_view else framing.fixed_crop(i["focal"], gel)
