@@ -204,7 +204,8 @@ class Framing:
         """This framing with ``view_size`` from ``sensor`` where ``crop_extent="sensor"`` needs it and lacks it."""
         if self.crop_extent != "sensor" or self.view_size is not None:
             return self
-        return replace(self, view_size=tuple(float(v) for v in sensor.view_size()))
+        w, h = sensor.view_size()
+        return replace(self, view_size=(float(w), float(h)))
 
     @property
     def per_view(self) -> bool:
