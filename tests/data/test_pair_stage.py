@@ -116,13 +116,26 @@ def test_crop_larger_than_image(data_root):
         ("pair.depth_window=0", "depth_window must be > 0 metres"),
         ("pair.crop_margin=-1", "crop_margin must be > 0"),
         ("pair.render_px=0", "render_px must be at least 1 pixel"),
+        ("pair.crop_extent=gel", "crop_extent must be one of footprint, sensor, got 'gel'"),
+        ("pair.crop_extent=sensor pair.crop_px=32", "crop_extent=sensor frames each view at its contact"),
     ],
 )
 def test_bad_framing_is_refused_before_anything_is_written(data_root, override, expected):
     make_inputs(data_root)
     with pytest.raises(TnfError, match=expected):
-        build([override])
+        build(override.split())
     assert not (data_root / "pairs").exists()
+
+
+def test_sensor_extent_is_stored_for_generation(data_root):
+    from tnf.registry import SENSORS
+
+    make_inputs(data_root)
+    build(["pair.crop_extent=sensor"])
+    pre = open_pairs(data_root / "pairs" / "digit-hashgrid").manifest["preprocess"]
+    width, height = SENSORS.build({"name": "digit"}).view_size()
+    assert pre["crop_extent"] == "sensor" and pre["view_size"] == pytest.approx([width, height])
+    assert (width, height) == pytest.approx((0.019053, 0.025403), abs=1e-6)  # 240 x 320 px, 60 deg, 22 mm
 
 
 def test_too_many_novel_objects(data_root):

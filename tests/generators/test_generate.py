@@ -94,3 +94,31 @@ def test_generate_errors(data_root, trained_model):
         generate.run(
             compose("generate", [*TINY, "object=box", f"generate.model={trained_model}", "generate.crop_px=48"])
         )
+
+
+def test_generate_frames_novel_poses_as_its_training_dataset(data_root, trained_model):
+    # A dataset made with pair.crop_extent=sensor stores the tactile image's gel patch; generation reads the
+    # framing from there (the model's first dataset), not from the pair section's defaults.
+    from tnf.artifacts import MANIFEST, read_json
+    from tnf.stages import generate
+
+    manifest = data_root / "pairs" / "digit-hashgrid" / MANIFEST
+    m = read_json(manifest, "dataset manifest")
+    m["preprocess"] = {
+        "crop_distance": "contact",
+        "crop_extent": "sensor",
+        "view_size": [0.019, 0.025],
+        "footprint_distance": 0.06,
+        "crop_margin": 1.5,
+        "crop_px": {},
+        "depth_norm": "contact",
+        "depth_window": 0.04,
+    }
+    write_json(manifest, m)
+    gen = [*TINY, "object=ball", "device=cpu", "generate.radius=0.1", f"generate.model={trained_model}"]
+    assert generate.run(compose("generate", [*gen, "generate.n_poses=3"]))["written"] == {"ball": 3}
+    config = read_json(data_root / "generated" / trained_model / "builtin" / "ball" / MANIFEST, "manifest")["config"]
+    assert config["framing"]["crop_extent"] == "sensor" and config["framing"]["view_size"] == [0.019, 0.025]
+    # A fixed crop cannot frame what the model was trained on this way: refused before anything is rendered.
+    with pytest.raises(TnfError, match="crop_distance=contact"):
+        generate.run(compose("generate", [*gen, "generate.crop_px=48", "generate.run_name=fixed"]))
