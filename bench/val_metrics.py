@@ -5,6 +5,8 @@
 Each RUN is a folder under <data-root>/models/ (its best.ckpt is scored). Generators that keep dropout on when
 generating are scored both ways (the row ``dropout off`` switches it off). This is how tn_cgan's defaults were
 chosen (results/generators/tn_cgan_variants.md): on the validation split, never on a test split.
+``--split train`` scores the pairs a run trained on: how closely the generator fits them, apart from how it
+generalises.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", help="run folders under <data-root>/models/")
     ap.add_argument("--data-root", default="tnf-data")
     ap.add_argument("--dataset", default="digit-hashgrid", help="paired dataset under <data-root>/pairs/")
-    ap.add_argument("--split", default="val")
+    ap.add_argument("--split", default="val", choices=["val", "train"], help="never a test split")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--batch", type=int, default=64)
     args = ap.parse_args()
