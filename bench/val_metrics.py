@@ -1,4 +1,4 @@
-"""SSIM and MSE of trained generator runs on a paired dataset's validation split, beside the BG baseline.
+"""SSIM and MSE of trained generator runs on a paired dataset's validation (or training) split, beside BG.
 
     python bench/val_metrics.py --data-root tnf-data --dataset digit-hashgrid RUN [RUN ...] [--device cuda]
 

@@ -185,8 +185,8 @@ class Sensor:
         """``(width, height)`` in metres of the gel patch the tactile image shows: ``gel_grid``'s extent, pixel
         edge to pixel edge. An RGB-D crop of this size around the sensor's axis is pixel-aligned with the image
         (``pair.crop_extent=sensor``)."""
-        fx, fy, _, _ = self.intrinsics()
-        return self.width * self.cfg.camera_distance / fx, self.height * self.cfg.camera_distance / fy
+        dx, dy = self.pixel_size()
+        return self.width * dx, self.height * dy
 
     def pixel_size(self) -> tuple[float, float]:
         """Gel area one pixel covers, ``(dx, dy)`` metres."""
