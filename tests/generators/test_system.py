@@ -107,19 +107,20 @@ def test_load_errors(trained, tmp_path):
 
 
 def test_checkpoints_from_before_a_config_field_existed_still_load(trained, tmp_path):
-    # A checkpoint written before tn_cgan had full_res_head and lambda_ssim: its saved config lacks both and
+    # A checkpoint written before tn_cgan had full_res_head, lambda_ssim and residual: its saved config lacks them and
     # its weights are those of the network without the head.
     run_dir, _, _ = trained
     torch.manual_seed(1)
-    older = GeneratorSystem({**SPEC, "full_res_head": False, "lambda_ssim": 0.0}).eval()
+    older = GeneratorSystem({**SPEC, "full_res_head": False, "lambda_ssim": 0.0, "residual": False}).eval()
     ckpt = torch.load(run_dir / "last.ckpt", weights_only=True)
     ckpt["state_dict"] = older.state_dict()
     saved = ckpt["tnf"]["generator"]
-    for key in ("full_res_head", "lambda_ssim"):
+    for key in ("full_res_head", "lambda_ssim", "residual"):
         del saved[key]
     torch.save(ckpt, tmp_path / "older.ckpt")
     loaded = load_generator(tmp_path / "older.ckpt")
     assert loaded.generator.net_g.head is None and loaded.generator.cfg.lambda_ssim == 0
+    assert not loaded.generator.net_g.residual
     batch = make_pairs(2, 32, seed=3)
     with torch.no_grad():
         assert torch.allclose(loaded.generate(batch), older.generator.generate(batch), atol=1e-6)

@@ -75,8 +75,9 @@ class UNetDecoder(nn.Module):
         bottleneck_ch: channels of the 1 x 1 (or 2**-num_downs) bottleneck.
         skip_ch: channels concatenated at each level 0..num_downs-2 (0 for no skip).
         dropout_blocks: how many of the innermost up-blocks apply ``NoiseDropout(dropout)``.
-        image_out: the last block ends in tanh (an image with ``out_ch`` channels); false ends it in a norm
-            layer (features for a further head).
+        image_out: the last block makes an image with ``out_ch`` channels; false ends it in a norm layer
+            (features for a further head).
+        tanh: the image ends in tanh (in [-1, 1]); false leaves it linear (a residual added to another image).
     """
 
     def __init__(
@@ -91,6 +92,7 @@ class UNetDecoder(nn.Module):
         dropout_blocks: int,
         kernel: int = 4,
         image_out: bool = True,
+        tanh: bool = True,
     ):
         super().__init__()
         nl = norm_layer(norm)
@@ -107,7 +109,8 @@ class UNetDecoder(nn.Module):
                 nn.ConvTranspose2d(cin, cout, kernel, 2, pad, output_padding=out_pad, bias=use_bias or last),
             ]
             if to_image:
-                layers.append(nn.Tanh())
+                if tanh:
+                    layers.append(nn.Tanh())
             else:
                 layers.append(nl(cout))
                 if not last and k < dropout_blocks and dropout > 0:
@@ -140,6 +143,10 @@ class MultiEncoderUNet(nn.Module):
     images themselves (the full-resolution depth, say) are concatenated to them, and two 3 x 3 convolutions
     make the image. Without it the decoder's last transposed convolution makes the image, and the inputs'
     full-resolution pixels reach it only through the encoders' first stride-2 convolutions.
+
+    With ``residual`` the network's last layer has no tanh and its output is added to the background image (the
+    simulator's own image formation: the background plus a change where the gel is pressed), so where nothing
+    touches the gel the output is the background from the start; in eval mode the sum is clipped to [-1, 1].
     """
 
     def __init__(
@@ -153,8 +160,12 @@ class MultiEncoderUNet(nn.Module):
         dropout_blocks: int,
         kernel: int = 4,
         full_res_head: bool = False,
+        residual: bool = False,
     ):
         super().__init__()
+        if residual and "background" not in inputs:
+            raise ValueError(f"residual output adds to the background image: inputs {inputs} must include background")
+        self.residual = residual
         self.inputs = tuple(inputs)
         self.skips = tuple(skips)
         n = num_downs
@@ -163,7 +174,17 @@ class MultiEncoderUNet(nn.Module):
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
         dec_out = ngf if full_res_head else 3
         self.decoder = UNetDecoder(
-            bottleneck, skip_ch, ngf, n, dec_out, norm, dropout, dropout_blocks, kernel, image_out=not full_res_head
+            bottleneck,
+            skip_ch,
+            ngf,
+            n,
+            dec_out,
+            norm,
+            dropout,
+            dropout_blocks,
+            kernel,
+            image_out=not full_res_head,
+            tanh=not residual,
         )
         self.head: nn.Module | None = None
         if full_res_head:
@@ -174,7 +195,7 @@ class MultiEncoderUNet(nn.Module):
                 norm_layer(norm)(ngf),
                 nn.ReLU(True),
                 nn.Conv2d(ngf, 3, 3, 1, 1),
-                nn.Tanh(),
+                nn.Identity() if residual else nn.Tanh(),
             )
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -183,9 +204,13 @@ class MultiEncoderUNet(nn.Module):
         n = len(next(iter(feats.values())))
         skips = [[feats[k][lv] for k in self.skips] for lv in range(n - 1)]
         out = self.decoder(bottleneck, skips)
-        if self.head is None:
+        if self.head is not None:
+            out = self.head(torch.cat([out, *(inputs[k] for k in self.skips)], 1))
+        if not self.residual:
             return out
-        return self.head(torch.cat([out, *(inputs[k] for k in self.skips)], 1))
+        out = inputs["background"] + out
+        # Training sees the unclipped sum, so that the L1 and SSIM terms still pull back a pixel that overshoots.
+        return out if self.training else out.clamp(-1, 1)
 
 
 def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
@@ -202,7 +227,7 @@ class TNcGAN(Generator):
     """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, cGAN + L1 + SSIM loss."""
 
     # Checkpoints written before these options existed hold the network without the head, trained without SSIM.
-    added_fields: ClassVar[dict[str, Any]] = {"full_res_head": False, "lambda_ssim": 0.0}
+    added_fields: ClassVar[dict[str, Any]] = {"full_res_head": False, "lambda_ssim": 0.0, "residual": False}
 
     @dataclass
     class Config:
@@ -237,6 +262,9 @@ class TNcGAN(Generator):
         full_res_head: bool = True
         """End the decoder in two 3 x 3 convolutions at full resolution that also see the skip inputs' own
         images (the 128 px depth, say); false: the decoder's last transposed convolution makes the image."""
+        residual: bool = False
+        """Add the network's output to the background image instead of making the image outright (needs
+        background in inputs): only the change that the press makes is learned."""
         lr: float = 2e-4
         """Adam learning rate of generator and discriminator."""
         beta1: float = 0.5
@@ -269,6 +297,8 @@ class TNcGAN(Generator):
                 raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
             if self.lambda_l1 < 0 or self.lambda_ssim < 0:
                 raise ValueError(f"loss weights must be >= 0, got {self.lambda_l1}, {self.lambda_ssim}")
+            if self.residual and "background" not in self.inputs:
+                raise ValueError(f"residual adds to the background image: inputs {self.inputs} must include background")
             if self.ngf < 1 or self.ndf < 1:
                 raise ValueError(f"ngf and ndf must be >= 1, got {self.ngf}, {self.ndf}")
 
@@ -285,6 +315,7 @@ class TNcGAN(Generator):
             cfg.dropout,
             cfg.dropout_blocks,
             full_res_head=cfg.full_res_head,
+            residual=cfg.residual,
         )
         cond_ch = sum(CHANNELS[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
