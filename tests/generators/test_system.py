@@ -227,3 +227,49 @@ def test_loggers(tmp_path):
         make_loggers({"name": "mlflow"}, tmp_path)
     wandb = make_loggers({"name": "wandb", "project": "tnf", "mode": "offline"}, tmp_path)
     assert [type(x).__name__ for x in wandb] == ["CSVLogger", "WandbLogger"]
+
+
+def _epoch_rows(run_dir):
+    import csv
+
+    return [r for r in csv.DictReader(open(run_dir / "metrics.csv")) if r.get("train/d_saturated")]
+
+
+def test_discriminator_saturation_is_logged_each_epoch(trained):
+    """train/d_saturated follows the epoch's mean D outputs, which are logged beside it."""
+    from tnf.generators.system import discriminator_saturated
+
+    run_dir, _, _ = trained
+    rows = _epoch_rows(run_dir)
+    assert len(rows) == 2
+    for r in rows:
+        expected = discriminator_saturated(float(r["train/d_real_epoch"]), float(r["train/d_fake_epoch"]))
+        assert float(r["train/d_saturated"]) == float(expected)
+    assert discriminator_saturated(0.99, 0.01) and not discriminator_saturated(0.99, 0.2)
+    assert not discriminator_saturated(0.6, 0.4)
+
+
+def test_a_discriminator_that_wins_is_reported(tmp_path, caplog):
+    """A generator that cannot learn (learning rate 0) against a fast discriminator: D soon tells the pairs apart
+    every time, and the epoch it starts is logged as a warning and as train/d_saturated = 1."""
+
+    class FrozenGenerator(GeneratorSystem):
+        def configure_optimizers(self):
+            opts, scheds = super().configure_optimizers()
+            for o, s, name in zip(opts, scheds, self.generator.optimizer_names):
+                lr = 0.0 if name == "g" else 2e-3
+                s.base_lrs = [lr] * len(o.param_groups)  # the schedule scales these each epoch
+                for g in o.param_groups:
+                    g["lr"] = lr
+            return opts, scheds
+
+    system = FrozenGenerator(SPEC, epochs=5, decay_epochs=0, grid_rows=3, finite_check_every=1)
+    dm = SyntheticPairs(n_train=32, n_val=4, size=32, batch_size=4)
+    with caplog.at_level("WARNING", logger="tnf.generators.system"):
+        train(tmp_path / "run", epochs=5, system=system, dm=dm)
+    rows = _epoch_rows(tmp_path / "run")
+    flags = [float(r["train/d_saturated"]) for r in rows]
+    assert len(flags) == 5 and flags[0] == 0.0 and flags[-1] == 1.0, flags
+    first = flags.index(1.0)
+    msgs = [m for m in caplog.messages if "discriminator tells real from generated" in m]
+    assert len(msgs) == 1 and msgs[0].startswith(f"epoch {first}:") and "gan_mode=lsgan" in msgs[0]

@@ -71,7 +71,9 @@ class Generator(nn.Module):
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:
         """One optimisation step of every network on ``batch``; returns detached losses by name (``loss_g``,
-        ``loss_d``, ...) for logging. Call ``opt.backward(loss)`` instead of ``loss.backward()``."""
+        ``loss_d``, ...) for logging. Call ``opt.backward(loss)`` instead of ``loss.backward()``. A GAN that also
+        returns ``d_real`` and ``d_fake`` (its discriminator's mean outputs, 1 = real) gets a saturated
+        discriminator reported each epoch (``train/d_saturated``, ``GeneratorSystem``)."""
         raise NotImplementedError
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:

@@ -5,10 +5,19 @@ path, so a checkpoint loads wherever the generator's package is installed), runs
 step with Lightning's manual optimisation (mixed precision and gradient scaling come from the trainer's
 ``precision``), applies the learning-rate schedule (constant, then linear decay to zero), validates with
 ``tnf.eval.metrics`` (L1, SSIM, MSE), writes an image grid each epoch and stops on a non-finite loss.
+
+It also watches the adversarial game. Generators that report their discriminator's mean outputs on real and
+generated images (``d_real``, ``d_fake`` among their training-step losses) get ``train/d_saturated`` logged
+each epoch: 1 when, over the whole epoch, the discriminator told the two apart almost perfectly (mean outputs
+at least ``D_SATURATED`` and at most ``1 - D_SATURATED``). The epoch it starts and the epoch it ends are also
+logged as a warning. While saturated, the generator's adversarial loss is large and pulls it away from its
+image losses: in one sim_digit run the training L1 nearly doubled over the 12 saturated epochs
+(results/paper/README.md).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -24,6 +33,16 @@ from tnf.registry import GENERATORS, config_to_dict, split_spec
 
 #: Version of the checkpoint layout written by ``GeneratorSystem``; loading another one is an error.
 CHECKPOINT_FORMAT = 1
+
+#: An epoch's mean discriminator outputs at or beyond this (real) and 1 - this (generated): saturated.
+D_SATURATED = 0.95
+
+log = logging.getLogger(__name__)
+
+
+def discriminator_saturated(d_real: float, d_fake: float) -> bool:
+    """Whether mean discriminator outputs on real and generated images show it tells them apart (almost) always."""
+    return d_real >= D_SATURATED and d_fake <= 1.0 - D_SATURATED
 
 
 class _LightningOptimisation:
@@ -89,6 +108,9 @@ class GeneratorSystem(L.LightningModule):
         self._last_losses: dict[str, torch.Tensor] = {}
         self._bad: torch.Tensor | None = None
         self._epoch_samples = 0  # pairs this process trained on in the current epoch
+        self._d_sum: torch.Tensor | None = None  # this epoch's summed (d_real, d_fake), kept on the device
+        self._d_steps = 0
+        self._d_was_saturated = False
         self._val: dict[str, list[torch.Tensor]] = {}
         self._grid_batch: dict[str, torch.Tensor] | None = None
 
@@ -137,6 +159,10 @@ class GeneratorSystem(L.LightningModule):
         every = self.hparams["finite_check_every"]
         if every > 0 and (batch_idx + 1) % every == 0:
             self._check_finite()
+        if "d_real" in losses and "d_fake" in losses:
+            d = torch.stack([losses["d_real"].detach().float(), losses["d_fake"].detach().float()])
+            self._d_sum = d if self._d_sum is None else self._d_sum + d
+            self._d_steps += 1
         bs = next(iter(batch.values())).shape[0]
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, on_step=True, on_epoch=True, batch_size=bs)
         self._epoch_samples += bs
@@ -159,6 +185,7 @@ class GeneratorSystem(L.LightningModule):
 
     def on_train_epoch_start(self) -> None:
         self._epoch_samples = 0
+        self._d_sum, self._d_steps = None, 0
 
     def on_train_epoch_end(self) -> None:
         # Runs before the checkpoint callback: a diverged model never overwrites last.ckpt.
@@ -171,6 +198,7 @@ class GeneratorSystem(L.LightningModule):
         total = self.trainer.strategy.reduce(n.clone(), reduce_op="sum") if self.trainer.world_size > 1 else n
         self.log("train/samples", total, on_epoch=True, on_step=False)
         self.log("train/rank_samples", n, on_epoch=True, on_step=False)
+        self._watch_discriminator()
         opts = self._opt.optimizers()
         for name, o in zip(self.generator.optimizer_names, opts):  # the rate this epoch trained with
             self.log(f"lr/{name}", o.param_groups[0]["lr"], on_epoch=True, on_step=False)
@@ -178,6 +206,36 @@ class GeneratorSystem(L.LightningModule):
         for s in scheds if isinstance(scheds, list) else [scheds]:
             if s is not None:
                 s.step()
+
+    def _watch_discriminator(self) -> None:
+        if self._d_sum is None:
+            return
+        d = self._d_sum / self._d_steps
+        if self.trainer.world_size > 1:  # every process runs this hook in the same order (see above)
+            d = self.trainer.strategy.reduce(d, reduce_op="mean")
+        d_real, d_fake = (float(v) for v in d.tolist())
+        saturated = discriminator_saturated(d_real, d_fake)
+        self.log("train/d_saturated", float(saturated), on_epoch=True, on_step=False)
+        if saturated != self._d_was_saturated and self.global_rank == 0:
+            if saturated:
+                vanilla = self.hparams["generator"].get("gan_mode") == "vanilla"
+                log.warning(
+                    "epoch %d: the discriminator tells real from generated images apart almost always (mean "
+                    "outputs %.3f real, %.3f generated); while it does, its gradient pulls the generator away "
+                    "from the image losses. If it lasts, try %s.",
+                    self.current_epoch,
+                    d_real,
+                    d_fake,
+                    "generator.gan_mode=lsgan or another seed" if vanilla else "another seed",
+                )
+            else:
+                log.warning(
+                    "epoch %d: the discriminator no longer saturates (mean outputs %.3f real, %.3f generated)",
+                    self.current_epoch,
+                    d_real,
+                    d_fake,
+                )
+        self._d_was_saturated = saturated
 
     # -- validation -------------------------------------------------------------------------------------
     def on_validation_epoch_start(self) -> None:
