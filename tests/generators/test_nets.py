@@ -252,3 +252,24 @@ def test_tn_cgan_ssim_loss_term():
     assert torch.allclose(metrics.ssim_unquantised(a, b), metrics.ssim(a, b), atol=1e-4)
     with pytest.raises(TnfError, match="loss weights"):
         build("tn_cgan", lambda_ssim=-1.0)
+
+
+def test_tn_cgan_reports_d_outputs_on_its_loss_scale():
+    """d_real / d_fake (what the discriminator watch reads) are on the scale the loss drives to 1 and 0: sigmoid
+    probabilities for the vanilla loss, the raw outputs for LSGAN (whose sigmoid would never pass 0.73)."""
+    from tnf.generators.system import discriminator_saturated
+    from tnf.generators.tn_cgan import d_output
+
+    won_real, won_fake = torch.full((2, 1, 4, 4), 1.0), torch.full((2, 1, 4, 4), 0.0)
+    assert d_output(won_real, "lsgan").item() == pytest.approx(1.0)
+    assert discriminator_saturated(d_output(won_real, "lsgan").item(), d_output(won_fake, "lsgan").item())
+    assert d_output(torch.full((2, 1, 4, 4), 6.0), "vanilla").item() == pytest.approx(
+        torch.sigmoid(torch.tensor(6.0)).item()
+    )
+    assert not discriminator_saturated(d_output(won_real, "vanilla").item(), d_output(won_fake, "vanilla").item())
+    # One real training step reports them under either loss.
+    torch.manual_seed(0)
+    for mode in ("vanilla", "lsgan"):
+        g = build("tn_cgan", image_size=16, ngf=4, ndf=4, d_layers=2, gan_mode=mode)
+        out = g.training_step(make_pairs(2, 16), PlainOptimisation(g))
+        assert out["d_real"].shape == () and torch.isfinite(out["d_real"]) and torch.isfinite(out["d_fake"])
