@@ -6,7 +6,7 @@ Each RUN is a folder under <data-root>/models/ (its best.ckpt is scored). Genera
 generating are scored both ways (the row ``dropout off`` switches it off). This is how tn_cgan's defaults were
 chosen (results/generators/tn_cgan_variants.md): on the validation split, never on a test split.
 ``--split train`` scores the pairs a run trained on: how closely the generator fits them, apart from how it
-generalises.
+generalises. ``--per-object`` adds each object's SSIM (one column per run, beside BG), to see where a mean is lost.
 """
 
 from __future__ import annotations
@@ -24,14 +24,26 @@ from tnf.generators import load_generator
 from tnf.generators.nets import NoiseDropout
 
 
-def score(generate, loader: DataLoader, device: str) -> tuple[float, float]:
-    ssim, mse = [], []
+def score(generate, loader: DataLoader, device: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-pair SSIM, MSE and object id, in the loader's order."""
+    ssim, mse, obj = [], [], []
     for batch in loader:
+        obj.append(batch["object_id"])
         batch = {k: v.to(device) for k, v in batch.items()}
         fake = generate(batch)
         ssim.append(metrics.ssim(fake, batch["tactile"]).cpu())
         mse.append(metrics.mse(fake, batch["tactile"]).cpu())
-    return float(torch.cat(ssim).mean()), float(torch.cat(mse).mean())
+    return torch.cat(ssim), torch.cat(mse), torch.cat(obj)
+
+
+def per_object_table(columns: dict[str, torch.Tensor], object_id: torch.Tensor, names: list[str]) -> str:
+    """Mean SSIM per object (rows) for each column's per-pair SSIM, lowest BG first."""
+    present = [i for i in range(len(names)) if bool((object_id == i).any())]
+    means = {c: {i: float(v[object_id == i].mean()) for i in present} for c, v in columns.items()}
+    order = sorted(present, key=lambda i: means["BG"][i]) if "BG" in means else present
+    lines = [f"{'object':<16}" + "".join(f" {c[:14]:>14}" for c in columns)]
+    lines += [f"{names[i]:<16}" + "".join(f" {means[c][i]:14.4f}" for c in columns) for i in order]
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -42,6 +54,7 @@ def main() -> None:
     ap.add_argument("--split", default="val", choices=["val", "train"], help="never a test split")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--per-object", action="store_true", help="also each object's SSIM per run")
     args = ap.parse_args()
 
     root = Path(args.data_root)
@@ -54,6 +67,7 @@ def main() -> None:
     loader = DataLoader(ds, batch_size=args.batch, shuffle=False, collate_fn=collate_pairs)
     print(f"{args.dataset} {args.split}: {len(ds)} pairs, device {args.device}")
     print(f"{'run':<28} {'generation':<12} {'SSIM':>7} {'MSE':>7}")
+    columns: dict[str, torch.Tensor] = {}
     for run in args.runs:
         system = load_generator(root / "models" / run / "best.ckpt", args.device)
         drops = [m for m in system.modules() if isinstance(m, NoiseDropout)]
@@ -63,10 +77,15 @@ def main() -> None:
                 if on is not None:
                     d.always_on = on
             torch.manual_seed(0)
-            s, m = score(system.generate, loader, args.device)
-            print(f"{run:<28} {label:<12} {s:7.4f} {m:7.1f}")
-    s, m = score(lambda b: b["background"], loader, args.device)
-    print(f"{'BG':<28} {'-':<12} {s:7.4f} {m:7.1f}")
+            s, m, _ = score(system.generate, loader, args.device)
+            print(f"{run:<28} {label:<12} {s.mean():7.4f} {m.mean():7.1f}")
+            columns[run if on is None else f"{run} ({label})"] = s
+    s, m, object_id = score(lambda b: b["background"], loader, args.device)
+    print(f"{'BG':<28} {'-':<12} {s.mean():7.4f} {m.mean():7.1f}")
+    if args.per_object:
+        columns["BG"] = s
+        print(f"\nSSIM per object ({args.split} split)")
+        print(per_object_table(columns, object_id, ds.object_names))
 
 
 if __name__ == "__main__":

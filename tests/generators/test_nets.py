@@ -273,3 +273,31 @@ def test_tn_cgan_reports_d_outputs_on_its_loss_scale():
         g = build("tn_cgan", image_size=16, ngf=4, ndf=4, d_layers=2, gan_mode=mode)
         out = g.training_step(make_pairs(2, 16), PlainOptimisation(g))
         assert out["d_real"].shape == () and torch.isfinite(out["d_real"]) and torch.isfinite(out["d_fake"])
+
+
+def test_tn_cgan_lambda_gan_weighs_the_adversarial_term():
+    """The generator's loss is lambda_gan x cGAN + lambda_l1 x L1 + lambda_ssim x (1 - SSIM); with lambda_gan 0
+    the discriminator is neither run nor trained, and the generator still learns from L1 and SSIM."""
+    batch = make_pairs(4, 32)
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=32, lambda_gan=0.25)
+    out = g.training_step(batch, PlainOptimisation(g))
+    expected = 0.25 * out["loss_g_gan"] + 100.0 * out["loss_l1"] + 60.0 * out["loss_ssim"]
+    assert out["loss_g"].item() == pytest.approx(expected.item(), rel=1e-5)
+
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=32, lambda_gan=0.0)
+    d0 = [p.detach().clone() for p in g.net_d.parameters()]
+    g0 = [p.detach().clone() for p in g.net_g.parameters()]
+    opt = PlainOptimisation(g)
+    losses = [g.training_step(batch, opt) for _ in range(3)]
+    assert not {"d_real", "d_fake", "loss_d", "loss_g_gan"} & set(losses[0])
+    assert all(torch.equal(a, b) for a, b in zip(d0, g.net_d.parameters()))
+    assert any(not torch.equal(a, b) for a, b in zip(g0, g.net_g.parameters()))
+    assert losses[-1]["loss_l1"] < losses[0]["loss_l1"]
+    for out in losses:
+        assert out["loss_g"].item() == pytest.approx((100.0 * out["loss_l1"] + 60.0 * out["loss_ssim"]).item(), rel=1e-5)
+    with pytest.raises(TnfError, match="no loss"):
+        build("tn_cgan", lambda_gan=0.0, lambda_l1=0.0, lambda_ssim=0.0)
+    with pytest.raises(TnfError, match="lambda_gan=-1"):
+        build("tn_cgan", lambda_gan=-1.0)

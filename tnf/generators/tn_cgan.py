@@ -236,7 +236,12 @@ class TNcGAN(Generator):
     """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, cGAN + L1 + SSIM loss."""
 
     # Checkpoints written before these options existed hold the network without the head, trained without SSIM.
-    added_fields: ClassVar[dict[str, Any]] = {"full_res_head": False, "lambda_ssim": 0.0, "residual": False}
+    added_fields: ClassVar[dict[str, Any]] = {
+        "full_res_head": False,
+        "lambda_ssim": 0.0,
+        "residual": False,
+        "lambda_gan": 1.0,
+    }
 
     @dataclass
     class Config:
@@ -263,6 +268,9 @@ class TNcGAN(Generator):
         """Keep dropout on when generating (the noise z), as pix2pix; false for deterministic outputs."""
         gan_mode: str = "vanilla"
         """Adversarial loss: vanilla (sigmoid cross-entropy, the paper's Eq. 3) or lsgan."""
+        lambda_gan: float = 1.0
+        """Weight of the adversarial term in the generator's loss (the paper: 1). 0 trains the generator as a
+        plain regression on the L1 and SSIM terms: the discriminator is then neither trained nor run."""
         lambda_l1: float = 100.0
         """Weight lambda of the L1 loss (Eq. 2)."""
         lambda_ssim: float = 60.0
@@ -304,8 +312,13 @@ class TNcGAN(Generator):
                 raise ValueError(f"gan_mode must be vanilla or lsgan, got {self.gan_mode!r}")
             if not 0 <= self.dropout < 1:
                 raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
-            if self.lambda_l1 < 0 or self.lambda_ssim < 0:
-                raise ValueError(f"loss weights must be >= 0, got {self.lambda_l1}, {self.lambda_ssim}")
+            if min(self.lambda_gan, self.lambda_l1, self.lambda_ssim) < 0:
+                raise ValueError(
+                    f"loss weights must be >= 0, got lambda_gan={self.lambda_gan}, lambda_l1={self.lambda_l1}, "
+                    f"lambda_ssim={self.lambda_ssim}"
+                )
+            if self.lambda_gan == self.lambda_l1 == self.lambda_ssim == 0:
+                raise ValueError("lambda_gan, lambda_l1 and lambda_ssim are all 0: the generator has no loss")
             if self.residual and "background" not in self.inputs:
                 raise ValueError(
                     f"residual adds to the background image: inputs {self.inputs} must include background "
@@ -356,27 +369,38 @@ class TNcGAN(Generator):
         self.check_batch(batch, (*self.inputs, "tactile"))
         opt_g, opt_d = opt.optimizers()
         real = batch["tactile"]
-        cond = self.condition(batch)
         fake = self.generate(batch)
-
-        # Discriminator: real pairs -> 1, generated pairs -> 0.
-        self.set_requires_grad(self.net_d, True)
-        logits_fake = self.net_d(torch.cat([cond, fake.detach()], 1))
-        logits_real = self.net_d(torch.cat([cond, real], 1))
-        loss_d = 0.5 * (
-            gan_loss(logits_fake, False, self.cfg.gan_mode) + gan_loss(logits_real, True, self.cfg.gan_mode)
-        )
-        opt_d.zero_grad(set_to_none=True)
-        opt.backward(loss_d)
-        opt_d.step()
-
-        # Generator: fool the (frozen) discriminator and stay close to the real image.
-        self.set_requires_grad(self.net_d, False)
-        logits_g = self.net_d(torch.cat([cond, fake], 1))
-        loss_g_gan = gan_loss(logits_g, True, self.cfg.gan_mode)
-        loss_l1 = F.l1_loss(fake.float(), real.float())
-        loss_g = loss_g_gan + self.cfg.lambda_l1 * loss_l1
         losses: dict[str, torch.Tensor] = {}
+
+        adversarial = self.cfg.lambda_gan > 0
+        loss_g = fake.new_zeros((), dtype=torch.float32)
+        if adversarial:
+            # Discriminator: real pairs -> 1, generated pairs -> 0.
+            cond = self.condition(batch)
+            self.set_requires_grad(self.net_d, True)
+            logits_fake = self.net_d(torch.cat([cond, fake.detach()], 1))
+            logits_real = self.net_d(torch.cat([cond, real], 1))
+            loss_d = 0.5 * (
+                gan_loss(logits_fake, False, self.cfg.gan_mode) + gan_loss(logits_real, True, self.cfg.gan_mode)
+            )
+            opt_d.zero_grad(set_to_none=True)
+            opt.backward(loss_d)
+            opt_d.step()
+            # Generator: fool the (frozen) discriminator.
+            self.set_requires_grad(self.net_d, False)
+            loss_g_gan = gan_loss(self.net_d(torch.cat([cond, fake], 1)), True, self.cfg.gan_mode)
+            loss_g = loss_g + self.cfg.lambda_gan * loss_g_gan
+            losses |= {
+                "loss_g_gan": loss_g_gan.detach(),
+                "loss_d": loss_d.detach(),
+                # Mean D outputs: d_real -> 1 and d_fake -> 0 together means the discriminator has won.
+                "d_real": d_output(logits_real, self.cfg.gan_mode),
+                "d_fake": d_output(logits_fake, self.cfg.gan_mode),
+            }
+
+        # ... and stay close to the real image.
+        loss_l1 = F.l1_loss(fake.float(), real.float())
+        loss_g = loss_g + self.cfg.lambda_l1 * loss_l1
         if self.cfg.lambda_ssim > 0:
             loss_ssim = 1 - metrics.ssim_unquantised(fake, real).mean()
             loss_g = loss_g + self.cfg.lambda_ssim * loss_ssim
@@ -384,15 +408,6 @@ class TNcGAN(Generator):
         opt_g.zero_grad(set_to_none=True)
         opt.backward(loss_g)
         opt_g.step()
-        self.set_requires_grad(self.net_d, True)
-
-        return {
-            "loss_g": loss_g.detach(),
-            "loss_g_gan": loss_g_gan.detach(),
-            "loss_l1": loss_l1.detach(),
-            "loss_d": loss_d.detach(),
-            # Mean D outputs: d_real -> 1 and d_fake -> 0 together means the discriminator has won.
-            "d_real": d_output(logits_real, self.cfg.gan_mode),
-            "d_fake": d_output(logits_fake, self.cfg.gan_mode),
-            **losses,
-        }
+        if adversarial:
+            self.set_requires_grad(self.net_d, True)
+        return {"loss_g": loss_g.detach(), "loss_l1": loss_l1.detach(), **losses}
