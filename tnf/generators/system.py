@@ -218,7 +218,9 @@ class GeneratorSystem(L.LightningModule):
         self.log("train/d_saturated", float(saturated), on_epoch=True, on_step=False)
         if saturated != self._d_was_saturated and self.global_rank == 0:
             if saturated:
-                vanilla = self.hparams["generator"].get("gan_mode") == "vanilla"
+                gen = self.hparams["generator"]
+                hints = ["generator.gan_mode=lsgan"] if gen.get("gan_mode") == "vanilla" else []
+                hints += ["generator.lambda_gan=0"] if "lambda_gan" in gen else []
                 log.warning(
                     "epoch %d: the discriminator tells real from generated images apart almost always (mean "
                     "outputs %.3f real, %.3f generated); while it does, its gradient pulls the generator away "
@@ -226,7 +228,7 @@ class GeneratorSystem(L.LightningModule):
                     self.current_epoch,
                     d_real,
                     d_fake,
-                    "generator.gan_mode=lsgan or another seed" if vanilla else "another seed",
+                    " or ".join([*hints, "another seed"]),
                 )
             else:
                 log.warning(
