@@ -296,7 +296,9 @@ def test_tn_cgan_lambda_gan_weighs_the_adversarial_term():
     assert any(not torch.equal(a, b) for a, b in zip(g0, g.net_g.parameters()))
     assert losses[-1]["loss_l1"] < losses[0]["loss_l1"]
     for out in losses:
-        assert out["loss_g"].item() == pytest.approx((100.0 * out["loss_l1"] + 60.0 * out["loss_ssim"]).item(), rel=1e-5)
+        assert out["loss_g"].item() == pytest.approx(
+            (100.0 * out["loss_l1"] + 60.0 * out["loss_ssim"]).item(), rel=1e-5
+        )
     with pytest.raises(TnfError, match="no loss"):
         build("tn_cgan", lambda_gan=0.0, lambda_l1=0.0, lambda_ssim=0.0)
     with pytest.raises(TnfError, match="lambda_gan=-1"):
