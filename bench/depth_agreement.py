@@ -5,7 +5,8 @@
 
 Both datasets must pair the same touches (``tnf pair`` of one touch stage). Only pixels that the gel can reach
 count: where the mesh's surface lies within ``--reach-mm`` behind the first contact. For each object it prints the
-mean absolute depth difference there (mm), the relief of the mesh's surface (the standard deviation of its depth
+mean absolute depth difference there (mm; each crop's depth is measured from its own first-contact estimate, so
+a shifted estimate counts too), the relief of the mesh's surface (the standard deviation of its depth
 minus a 7 x 7 pixel local mean, mm: knurls, threads, dimples) and how much of that relief the fitted depth
 reproduces (the correlation of the two local reliefs). A generator cannot draw relief that its input lacks.
 """
@@ -19,8 +20,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from tnf.data.splits import split_code
+from tnf.data.splits import SPLITS, split_code
 from tnf.data.store import open_pairs
+from tnf.errors import TnfError
 
 
 def local_relief(depth: torch.Tensor, k: int = 7) -> torch.Tensor:
@@ -35,7 +37,7 @@ def main() -> None:
     ap.add_argument("--data-root", default="tnf-data")
     ap.add_argument("--fitted", default="digit-hashgrid", help="paired dataset with RGB-D from the fitted scenes")
     ap.add_argument("--mesh", default="digit-mesh", help="the same touches paired with RGB-D from the meshes")
-    ap.add_argument("--split", default="val")
+    ap.add_argument("--split", default="val", choices=list(SPLITS))
     ap.add_argument("--reach-mm", type=float, default=5.0, help="depth behind first contact that counts")
     args = ap.parse_args()
 
@@ -50,6 +52,8 @@ def main() -> None:
     print(f"{'object':<16} {'pairs':>6} {'|diff| mm':>10} {'relief mm':>10} {'relief corr':>12}")
     for i, name in enumerate(mesh.objects):
         rows_m = np.flatnonzero((mesh.object_id == i) & (mesh.split == code))
+        if name not in fit.objects:
+            raise SystemExit(f"{args.fitted} has no pairs of {name}; pair both datasets from the same touches")
         j = fit.objects.index(name)
         rows_f = np.flatnonzero((fit.object_id == j) & (fit.split == code))
         if len(rows_m) == 0:
@@ -66,4 +70,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except TnfError as e:  # a missing or unreadable dataset: one line, as the tnf command prints it
+        raise SystemExit(f"error: {e}") from None

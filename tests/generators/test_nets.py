@@ -277,7 +277,7 @@ def test_tn_cgan_reports_d_outputs_on_its_loss_scale():
 
 def test_tn_cgan_lambda_gan_weighs_the_adversarial_term():
     """The generator's loss is lambda_gan x cGAN + lambda_l1 x L1 + lambda_ssim x (1 - SSIM); with lambda_gan 0
-    the discriminator is neither run nor trained, and the generator still learns from L1 and SSIM."""
+    the discriminator has no optimiser and is never run, and the generator still learns from L1 and SSIM."""
     batch = make_pairs(4, 32)
     torch.manual_seed(0)
     g = build("tn_cgan", image_size=32, lambda_gan=0.25)
@@ -290,6 +290,7 @@ def test_tn_cgan_lambda_gan_weighs_the_adversarial_term():
     d0 = [p.detach().clone() for p in g.net_d.parameters()]
     g0 = [p.detach().clone() for p in g.net_g.parameters()]
     opt = PlainOptimisation(g)
+    assert len(opt.optimizers()) == 1
     losses = [g.training_step(batch, opt) for _ in range(3)]
     assert not {"d_real", "d_fake", "loss_d", "loss_g_gan"} & set(losses[0])
     assert all(torch.equal(a, b) for a, b in zip(d0, g.net_d.parameters()))

@@ -249,6 +249,23 @@ def test_discriminator_saturation_is_logged_each_epoch(trained):
     assert not discriminator_saturated(0.6, 0.4)
 
 
+def test_training_without_the_adversarial_term(tmp_path, recwarn):
+    """lambda_gan = 0 through Lightning: only the generator's optimiser and schedule, no discriminator columns,
+    no warnings about schedules stepping an optimiser that never stepped."""
+    spec = {**SPEC, "lambda_gan": 0.0}
+    system = GeneratorSystem(spec, epochs=2, decay_epochs=1, grid_rows=3, finite_check_every=1)
+    train(tmp_path / "run", epochs=2, system=system)
+    import csv
+
+    rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
+    lr = [float(r["lr/g"]) for r in rows if r["lr/g"]]
+    assert len(lr) == 2 and lr[0] > lr[1]  # the schedule ran
+    assert len([r for r in rows if r["val_l1"]]) == 2
+    header = list(rows[0])
+    assert not [c for c in header if c.startswith(("lr/d", "train/loss_d", "train/d_"))], header
+    assert not [w for w in recwarn if "lr_scheduler.step()" in str(w.message)]
+
+
 def test_a_discriminator_that_wins_is_reported(tmp_path, caplog):
     """A generator that cannot learn (learning rate 0) against a fast discriminator: D soon tells the pairs apart
     every time, and the epoch it starts is logged as a warning and as train/d_saturated = 1."""

@@ -54,7 +54,8 @@ class Generator(nn.Module):
 
     #: Batch keys the generator reads when generating (set per instance from the config where configurable).
     inputs: tuple[str, ...] = ("rgb",)
-    #: Names of the optimisers ``configure_optimizers`` returns, in order (used for learning-rate logging).
+    #: Names of the optimisers ``configure_optimizers`` returns, in order (used for learning-rate logging); a
+    #: generator may return only the first ones (tn_cgan without its adversarial term: the generator's alone).
     optimizer_names: ClassVar[tuple[str, ...]] = ("g", "d")
     #: Config fields added after checkpoints were first written, with the values that rebuild the network an
     #: older checkpoint (one whose saved config lacks the field) holds. Loading fills them in.

@@ -272,7 +272,7 @@ class TNcGAN(Generator):
         """Adversarial loss: vanilla (sigmoid cross-entropy, the paper's Eq. 3) or lsgan."""
         lambda_gan: float = 1.0
         """Weight of the adversarial term in the generator's loss (the paper: 1). 0 trains the generator as a
-        plain regression on the L1 and SSIM terms: the discriminator is then neither trained nor run."""
+        plain regression on the L1 and SSIM terms: the discriminator then has no optimiser and is never run."""
         lambda_l1: float = 100.0
         """Weight lambda of the L1 loss (Eq. 2)."""
         lambda_ssim: float = 60.0
@@ -362,14 +362,13 @@ class TNcGAN(Generator):
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         betas = (self.cfg.beta1, self.cfg.beta2)
         fused = next(self.parameters()).is_cuda  # one kernel per step instead of several per tensor
-        return [
-            torch.optim.Adam(self.trainable(self.net_g), lr=self.cfg.lr, betas=betas, fused=fused),
-            torch.optim.Adam(self.trainable(self.net_d), lr=self.cfg.lr, betas=betas, fused=fused),
-        ]
+        nets = [self.net_g, self.net_d] if self.cfg.lambda_gan > 0 else [self.net_g]  # no game, no D optimiser
+        return [torch.optim.Adam(self.trainable(n), lr=self.cfg.lr, betas=betas, fused=fused) for n in nets]
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:
         self.check_batch(batch, (*self.inputs, "tactile"))
-        opt_g, opt_d = opt.optimizers()
+        opts = opt.optimizers()  # [generator's, discriminator's] ([generator's] without the adversarial term)
+        opt_g = opts[0]
         real = batch["tactile"]
         fake = self.generate(batch)
         losses: dict[str, torch.Tensor] = {}
@@ -385,9 +384,9 @@ class TNcGAN(Generator):
             loss_d = 0.5 * (
                 gan_loss(logits_fake, False, self.cfg.gan_mode) + gan_loss(logits_real, True, self.cfg.gan_mode)
             )
-            opt_d.zero_grad(set_to_none=True)
+            opts[1].zero_grad(set_to_none=True)
             opt.backward(loss_d)
-            opt_d.step()
+            opts[1].step()
             # Generator: fool the (frozen) discriminator.
             self.set_requires_grad(self.net_d, False)
             loss_g_gan = gan_loss(self.net_d(torch.cat([cond, fake], 1)), True, self.cfg.gan_mode)
@@ -412,8 +411,4 @@ class TNcGAN(Generator):
         opt_g.step()
         if adversarial:
             self.set_requires_grad(self.net_d, True)
-        else:
-            # No gradients: the discriminator stays as it is. The step keeps its learning-rate schedule in order
-            # (torch warns when a scheduler steps an optimizer that never has).
-            opt_d.step()
         return {"loss_g": loss_g.detach(), "loss_l1": loss_l1.detach(), **losses}
