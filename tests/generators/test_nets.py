@@ -144,7 +144,7 @@ def _l1(g, batch):
 @pytest.mark.parametrize(
     "name,kw",
     [
-        ("tn_cgan", {"norm": "instance", "dropout": 0.0}),
+        ("tn_cgan", {"norm": "instance", "dropout": 0.0, "lambda_gan": 1.0}),
         ("lee", {"norm": "instance", "dropout": 0.0, "lambda_l1": 100.0}),
     ],
 )
@@ -270,7 +270,7 @@ def test_tn_cgan_reports_d_outputs_on_its_loss_scale():
     # One real training step reports them under either loss.
     torch.manual_seed(0)
     for mode in ("vanilla", "lsgan"):
-        g = build("tn_cgan", image_size=16, ngf=4, ndf=4, d_layers=2, gan_mode=mode)
+        g = build("tn_cgan", image_size=16, ngf=4, ndf=4, d_layers=2, gan_mode=mode, lambda_gan=1.0)
         out = g.training_step(make_pairs(2, 16), PlainOptimisation(g))
         assert out["d_real"].shape == () and torch.isfinite(out["d_real"]) and torch.isfinite(out["d_fake"])
 

@@ -12,7 +12,8 @@ from tnf.generators import GeneratorSystem, load_generator
 from tnf.generators.system import NonFiniteLoss, image_grid
 from tnf.generators.training import fit
 
-SPEC = {"name": "tn_cgan", "image_size": 32, "ngf": 4, "ndf": 4, "dropout_at_generation": False}
+# With the adversarial term (not the default), so that both players' optimisers, schedules and logs are exercised.
+SPEC = {"name": "tn_cgan", "image_size": 32, "ngf": 4, "ndf": 4, "dropout_at_generation": False, "lambda_gan": 1.0}
 CPU = {"accelerator": "cpu", "devices": 1, "precision": "32-true"}
 
 
