@@ -14,8 +14,11 @@ full-resolution head 0.952 / 97, both with an SSIM loss term of weight 60 0.959 
 network draws the change to the background image) then scored 0.962 / 90 against 0.956 / 102 on one machine's
 data; three more seeds on another machine scored 0.954-0.962. Without the adversarial term
 (``lambda_gan=0``, the default: the discriminator is built but neither run nor trained) one seed scored
-0.970 / 64 against 0.961 / 90 with it, and two more seeds led every run with it at matched epochs. The paper's
-layout is ``skips=[background] dropout=0.5 lambda_ssim=0 full_res_head=false residual=false lambda_gan=1``.
+0.970 / 64 against 0.961 / 90 with it, and two more seeds led every run with it at matched epochs. The term
+does carry object-specific detail: a classifier trained on the generated images alone scored 41 % on
+validation touches without it, 55 % with it and 50 % at ``lambda_gan=0.1`` (SSIM 0.968), so generated data
+meant to train a model is better made with the term. The paper's layout is
+``skips=[background] dropout=0.5 lambda_ssim=0 full_res_head=false residual=false lambda_gan=1``.
 """
 
 from __future__ import annotations
