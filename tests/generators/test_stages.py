@@ -101,3 +101,23 @@ def test_finetune_stage_from_checkpoint_and_from_scratch(data_root):
 
     with pytest.raises(TnfError, match="finetune.checkpoint"):
         finetune.run(compose("finetune", [*ft, "finetune.checkpoint=nope"]))
+
+
+@pytest.mark.parametrize("name", ["tn_cgan", "lee", "cyclegan"])
+def test_generator_config_files_match_the_config_classes(name):
+    """conf/generator/<name>.yaml and the generator's Config hold the same defaults, so that `tnf train` and
+    building a generator in Python (a test, a notebook) train the same network with the same loss."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from tnf.registry import GENERATORS
+
+    composed = OmegaConf.to_container(compose("train", [f"generator={name}"]).generator, resolve=True)
+    assert isinstance(composed, dict) and composed.pop("name") == name
+    fields = dataclasses.fields(GENERATORS.get(name).Config)
+    defaults = {
+        f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        for f in fields
+    }
+    assert composed == defaults
