@@ -2,9 +2,13 @@
 
     python bench/generators.py --device cuda [--generators tn_cgan,lee,cyclegan] [--steps 30] [--json out.json]
 
-Training runs each generator's own GAN step (generator and discriminator updates) on random batches already
-on the device, as ``tnf train`` does inside Lightning: fp32 at batch 64 (TF32 convolutions) and bf16 autocast
-at batch 256, channels-last memory. Generation runs ``generate`` in eval mode under ``inference_mode`` with
+A generator may carry config overrides after colons: ``--generators tn_cgan,tn_cgan:lambda_gan=1`` times
+tn_cgan with its defaults (no adversarial term) and with the paper's cGAN term.
+
+Training runs each generator's own training step (with its defaults, tn_cgan's updates only the generator;
+Lee's and CycleGAN's also their discriminators) on random batches already on the device, as ``tnf train``
+does inside Lightning: fp32 at batch 64 (TF32 convolutions) and bf16 autocast at batch 256, channels-last
+memory. Generation runs ``generate`` in eval mode under ``inference_mode`` with
 bf16 autocast. On a CPU use small ``--steps`` and batches (``--train-batches 8 --gen-batch 32``).
 """
 
@@ -35,10 +39,25 @@ def sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def build(name: str, device: str, channels_last: bool):
+def parse_spec(spec: str) -> dict:
+    """``name[:key=value...]`` -> the generator's config dict; values are read as JSON where they parse."""
+    name, *pairs = spec.split(":")
+    out: dict = {"name": name}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise SystemExit(f"override {pair!r} of {spec!r} is not key=value")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def build(spec: str, device: str, channels_last: bool):
     from tnf.registry import GENERATORS
 
-    g = GENERATORS.build({"name": name}).to(device)
+    g = GENERATORS.build(parse_spec(spec)).to(device)
     if channels_last:
         g = g.to(memory_format=torch.channels_last)
     return g
@@ -102,12 +121,12 @@ def main() -> None:
             b, prec = spec.split(":")
             rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl)
             results["train"][f"{name}/{prec}/b{b}"] = rate
-            print(f"train    {name:9s} {prec:5s} batch {int(b):4d}: {rate:9.0f} pairs/s")
+            print(f"train    {name:9s} {prec:5s} batch {int(b):4d}: {rate:9.0f} pairs/s", flush=True)
             if args.device.startswith("cuda"):
                 torch.cuda.empty_cache()
         rate = bench_generate(name, args.device, args.gen_batch, args.steps, cl)
         results["generate"][f"{name}/bf16/b{args.gen_batch}"] = rate
-        print(f"generate {name:9s} bf16  batch {args.gen_batch:4d}: {rate:9.0f} images/s")
+        print(f"generate {name:9s} bf16  batch {args.gen_batch:4d}: {rate:9.0f} images/s", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(results, f, indent=2)
