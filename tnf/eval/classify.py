@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -98,6 +99,22 @@ def _to_input(x: torch.Tensor, size: int) -> torch.Tensor:
     return x
 
 
+@contextmanager
+def deterministic_cudnn() -> Iterator[None]:
+    """cuDNN's deterministic kernels, without autotuning, inside the block; the previous settings after it.
+
+    A GPU training stage turns autotuning on for the generators (``tnf.generators.training``); autotuned
+    kernels differ from run to run, and so did the classifier's accuracy for the same images and seed.
+    """
+    cudnn = torch.backends.cudnn
+    saved = cudnn.benchmark, cudnn.deterministic
+    cudnn.benchmark, cudnn.deterministic = False, True
+    try:
+        yield
+    finally:
+        cudnn.benchmark, cudnn.deterministic = saved
+
+
 def train_classifier(
     images: torch.Tensor,
     labels: torch.Tensor,
@@ -109,13 +126,27 @@ def train_classifier(
 ) -> TactileClassifier:
     """Train a fresh classifier on uint8 images ``[N, 3, H, W]`` with labels ``[N]`` (0..num_classes-1).
 
-    The initial weights, batch order and augmentation depend only on ``seed``. ``on_step(i)`` is called after
-    each step (progress bars).
+    The initial weights, batch order and augmentation depend only on ``seed``, and on a GPU cuDNN runs its
+    deterministic kernels, so the same images and seed train the same classifier. ``on_step(i)`` is called
+    after each step (progress bars).
     """
     if len(images) == 0:
         raise TnfError("classifier training set is empty; check the touch and generated datasets")
     if images.dtype != torch.uint8 or images.ndim != 4:
         raise ValueError(f"images must be uint8 [N, 3, H, W], got {images.dtype} {tuple(images.shape)}")
+    with deterministic_cudnn():
+        return _train(images, labels, num_classes, cfg, seed, device, on_step)
+
+
+def _train(
+    images: torch.Tensor,
+    labels: torch.Tensor,
+    num_classes: int,
+    cfg: ClassifierConfig,
+    seed: int,
+    device: str,
+    on_step: Callable[[int], None] | None,
+) -> TactileClassifier:
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     model = TactileClassifier(num_classes, cfg.width, blocks=min(4, int(math.log2(cfg.image_size)) - 2)).to(device)
@@ -152,10 +183,11 @@ def train_classifier(
 def predict(model: TactileClassifier, images: torch.Tensor, image_size: int, batch_size: int = 512) -> torch.Tensor:
     """Predicted class ``[N]`` (long, on the CPU) of uint8 images ``[N, 3, H, W]``."""
     device = next(model.parameters()).device
-    out = [
-        model(_to_input(images[i : i + batch_size].to(device), image_size)).argmax(1).cpu()
-        for i in range(0, len(images), batch_size)
-    ]
+    with deterministic_cudnn():
+        out = [
+            model(_to_input(images[i : i + batch_size].to(device), image_size)).argmax(1).cpu()
+            for i in range(0, len(images), batch_size)
+        ]
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.long)
 
 
