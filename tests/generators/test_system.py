@@ -138,6 +138,35 @@ def test_resume_continues_from_last(tmp_path):
         train(run_dir, epochs=2, system=system)
     _, s2 = train(run_dir, epochs=1, system=GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1))
     assert s2["epochs"] == 2 and s2["global_step"] == 2 * steps
+    # The finished run's metrics.csv holds both parts; the first part's raw log stays beside it.
+    import csv
+
+    rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
+    assert [int(r["epoch"]) for r in rows if r["val_l1"]] == [0, 1]
+    assert (run_dir / "metrics.part1.csv").is_file()
+
+
+def test_merged_metrics_drop_the_steps_a_resume_repeated(tmp_path):
+    """A run killed mid-epoch logged steps past its last checkpoint; the resumed part logs them again. The
+    merged history keeps each step once, from the part that went on, with the union of both parts' columns."""
+    from tnf.generators.training import merge_metrics_parts
+
+    (tmp_path / "metrics.part1.csv").write_text("epoch,step,train/loss\n0,0,5\n0,1,4\n0,2,3\n1,3,2.5\n1,4,2.4\n")
+    (tmp_path / "metrics.part2.csv").write_text("")  # killed before it logged anything
+    (tmp_path / "metrics.csv").write_text("epoch,step,train/loss,val_l1\n1,3,2.6,\n1,4,2.2,\n1,4,,0.5\n")
+    merge_metrics_parts(tmp_path)
+    import csv
+
+    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
+    assert [(r["step"], r["train/loss"], r["val_l1"]) for r in rows] == [
+        ("0", "5", ""),
+        ("1", "4", ""),
+        ("2", "3", ""),
+        ("3", "2.6", ""),
+        ("4", "2.2", ""),
+        ("4", "", "0.5"),
+    ]
+    assert (tmp_path / "metrics.part1.csv").read_text().count("\n") == 6  # the raw part is kept
 
 
 def test_last_checkpoint_interval_skips_epochs_but_keeps_the_final_one(tmp_path):

@@ -1,8 +1,8 @@
 """Running a ``GeneratorSystem`` with Lightning: trainer, loggers, checkpoints, resume, run folder.
 
 Shared by ``tnf train`` and ``tnf finetune``. A run folder ``<root>/models/<run_name>/`` holds ``last.ckpt``,
-``best.ckpt`` (lowest validation L1), ``grids/epoch_XXX.png``, ``metrics.csv`` (earlier parts of a
-resumed run in ``metrics.partN.csv``), ``run.json`` (the run's
+``best.ckpt`` (lowest validation L1), ``grids/epoch_XXX.png``, ``metrics.csv`` (a resumed run logs its earlier
+parts to ``metrics.partN.csv``; once it finishes, ``metrics.csv`` holds the whole history), ``run.json`` (the run's
 config, written when it starts, so a resumed run can be checked against it) and, once finished,
 ``manifest.json``.
 """
@@ -252,8 +252,39 @@ def fit(
             "config_hash": config_hash(config),
             "tnf_version": __version__,
         }
+        merge_metrics_parts(run_dir)
         write_json(run_dir / MANIFEST, manifest)
     return summary
+
+
+def merge_metrics_parts(run_dir: Path) -> None:
+    """Rewrite a resumed run's ``metrics.csv`` as its whole history: the earlier parts (``metrics.partN.csv``,
+    kept as they are) and the last, each part cut where the next one resumed, so that the steps repeated after
+    a resume from ``last.ckpt`` appear once. Columns are the union, in order of first appearance."""
+    import csv
+
+    last = run_dir / "metrics.csv"
+    parts = sorted(run_dir.glob("metrics.part*.csv"), key=lambda f: int(f.stem.removeprefix("metrics.part")))
+    if not parts or not last.is_file():
+        return
+    columns: dict[str, None] = {}
+    tables = []
+    for f in [*parts, last]:
+        with open(f, newline="") as fh:
+            reader = csv.DictReader(fh)
+            columns.update(dict.fromkeys(reader.fieldnames or []))
+            tables.append([r for r in reader])
+    rows: list[dict[str, str]] = []
+    for i, table in enumerate(tables):
+        later = [float(r["step"]) for t in tables[i + 1 :] for r in t if r.get("step")]
+        resumed_at = min(later) if later else float("inf")
+        rows += [r for r in table if not r.get("step") or float(r["step"]) < resumed_at]
+    tmp = run_dir / ".metrics.csv.tmp"
+    with open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, last)
 
 
 def quiet_advice() -> None:
