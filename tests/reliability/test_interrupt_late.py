@@ -164,7 +164,9 @@ FINETUNE = (
     f"finetune.checkpoint={MODEL}",
     f"data.datasets=[{DATASET}]",
     "finetune.run_name=ft",
-    "finetune.epochs=3",
+    # Epochs of a step or two each: the kill after epoch 1 must leave several to resume, or a fast machine
+    # finishes them between two polls of the kill condition.
+    "finetune.epochs=6",
     "finetune.decay_epochs=2",
     "finetune.limit_train_batches=2",
     "finetune.freeze=[net_g.encoders.rgb]",
