@@ -5,8 +5,9 @@
 #   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU); every scene's figures to scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
-#                 process each (on one H100: tn_cgan alone 459 s, two tn_cgan seeds 579 s, Lee and CycleGAN
-#                 together about 460 s; to stay inside a 10-minute job, give at most two tn_cgan seeds per call)
+#                 process each (on one H100, tn_cgan with the cGAN term: alone 459 s, two seeds 579 s; without
+#                 it, the default, three seeds train in about 510 s; Lee and CycleGAN together about 460 s; to
+#                 stay inside a 10-minute job, give at most two tn_cgan seeds per call)
 #   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
 #   report        rebuild both reports from every run present and copy them to $OUT
 # Artifacts go to $TNF_DATA (default /tmp/tnf-paper); logs, stage times and reports go to $OUT when it is set.

@@ -116,8 +116,5 @@ def test_generator_config_files_match_the_config_classes(name):
     composed = OmegaConf.to_container(compose("train", [f"generator={name}"]).generator, resolve=True)
     assert isinstance(composed, dict) and composed.pop("name") == name
     fields = dataclasses.fields(GENERATORS.get(name).Config)
-    defaults = {
-        f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        for f in fields
-    }
+    defaults = {f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory() for f in fields}
     assert composed == defaults

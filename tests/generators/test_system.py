@@ -153,6 +153,7 @@ def test_merged_metrics_drop_the_steps_a_resume_repeated(tmp_path):
 
     (tmp_path / "metrics.part1.csv").write_text("epoch,step,train/loss\n0,0,5\n0,1,4\n0,2,3\n1,3,2.5\n1,4,2.4\n")
     (tmp_path / "metrics.part2.csv").write_text("")  # killed before it logged anything
+    (tmp_path / "metrics.partial.csv").write_text("not,a,part\n")  # a user's file: neither read nor touched
     (tmp_path / "metrics.csv").write_text("epoch,step,train/loss,val_l1\n1,3,2.6,\n1,4,2.2,\n1,4,,0.5\n")
     merge_metrics_parts(tmp_path)
     import csv
@@ -167,6 +168,12 @@ def test_merged_metrics_drop_the_steps_a_resume_repeated(tmp_path):
         ("4", "", "0.5"),
     ]
     assert (tmp_path / "metrics.part1.csv").read_text().count("\n") == 6  # the raw part is kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "metrics.csv",
+        "metrics.part1.csv",
+        "metrics.part2.csv",
+        "metrics.partial.csv",
+    ]  # no temporary file left behind
 
 
 def test_last_checkpoint_interval_skips_epochs_but_keeps_the_final_one(tmp_path):

@@ -16,8 +16,8 @@ data; three more seeds on another machine scored 0.954-0.962. Without the advers
 (``lambda_gan=0``, the default: the discriminator is built but neither run nor trained) one seed scored
 0.970 / 64 against 0.961 / 90 with it, and two more seeds led every run with it at matched epochs. The term
 does carry object-specific detail: a classifier trained on the generated images alone scored 41 % on
-validation touches without it, 55 % with it and 50 % at ``lambda_gan=0.1`` (SSIM 0.968), so generated data
-meant to train a model is better made with the term. The paper's layout is
+validation touches without it, 55 % with it and 50 % at ``lambda_gan=0.1`` (SSIM 0.968; one seed each), so
+generated data meant to train a model is better made with the term. The paper's layout is
 ``skips=[background] dropout=0.5 lambda_ssim=0 full_res_head=false residual=false lambda_gan=1``.
 """
 

@@ -262,9 +262,13 @@ def merge_metrics_parts(run_dir: Path) -> None:
     kept as they are) and the last, each part cut where the next one resumed, so that the steps repeated after
     a resume from ``last.ckpt`` appear once. Columns are the union, in order of first appearance."""
     import csv
+    import io
+
+    from tnf.artifacts import write_bytes
 
     last = run_dir / "metrics.csv"
-    parts = sorted(run_dir.glob("metrics.part*.csv"), key=lambda f: int(f.stem.removeprefix("metrics.part")))
+    numbered = {f: f.stem.removeprefix("metrics.part") for f in run_dir.glob("metrics.part*.csv")}
+    parts = sorted((f for f, k in numbered.items() if k.isdigit()), key=lambda f: int(numbered[f]))
     if not parts or not last.is_file():
         return
     columns: dict[str, None] = {}
@@ -279,12 +283,11 @@ def merge_metrics_parts(run_dir: Path) -> None:
         later = [float(r["step"]) for t in tables[i + 1 :] for r in t if r.get("step")]
         resumed_at = min(later) if later else float("inf")
         rows += [r for r in table if not r.get("step") or float(r["step"]) < resumed_at]
-    tmp = run_dir / ".metrics.csv.tmp"
-    with open(tmp, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(columns))
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, last)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=list(columns))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_bytes(last, text.getvalue().encode())
 
 
 def quiet_advice() -> None:
