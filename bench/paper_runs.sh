@@ -5,9 +5,9 @@
 #   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU); every scene's figures to scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
-#                 process each (on one H100, tn_cgan with the cGAN term: alone 459 s, two seeds 579 s; without
-#                 it, the default, three seeds train in about 510 s; Lee and CycleGAN together about 460 s; to
-#                 stay inside a 10-minute job, give at most two tn_cgan seeds per call)
+#                 process each (on one H100, three tn_cgan seeds of 45 epochs train side by side in about 760 s,
+#                 so a 10-minute job stops them and the next resumes them; Lee and CycleGAN together took about
+#                 460 s at 30 epochs)
 #   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
 #   report        rebuild both reports from every run present and copy them to $OUT
 # Artifacts go to $TNF_DATA (default /tmp/tnf-paper); logs, stage times and reports go to $OUT when it is set.
@@ -19,7 +19,7 @@ export TNF_DATA=${TNF_DATA:-/tmp/tnf-paper} PYTHONUNBUFFERED=1
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 out=${OUT:-$TNF_DATA/out}
 seeds=${SEEDS:-0}
-fit_workers=${FIT_WORKERS:-4}
+fit_workers=${FIT_WORKERS:-6}
 # More overrides for every command, and the objects dealt to the fit workers (default: sim_digit's). A dry run
 # on a CPU: DEVICE=cpu TRAINER=cpu FIT_WORKERS=2 OBJECTS="ball box can mug" EXTRA="debug=tiny object_names=[...] ..."
 extra=(${EXTRA:-})
@@ -87,7 +87,7 @@ case "$1" in
     t0=$SECONDS
     jobs=()
     # CycleGAN's two ResNet generators train at ~200 pairs/s on an H100 (tn_cgan: ~3,500; results/generators):
-    # its 30 epochs would take 30 minutes, so it gets CYCLEGAN_EPOCHS (default 5) and the report says so.
+    # sim_digit's 45 epochs would take 45 minutes, so it gets CYCLEGAN_EPOCHS (default 5) and the report says so.
     ce=${CYCLEGAN_EPOCHS:-5}
     for s in $seeds; do for g in ${GENERATORS:-tn_cgan lee cyclegan}; do
       j="generator=$g seed=$s"
