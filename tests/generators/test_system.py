@@ -1,5 +1,6 @@
 """GeneratorSystem with Lightning: a tiny training run, checkpoints, loading, resume, NaN guard, fine-tuning."""
 
+import csv
 import hashlib
 import json
 
@@ -10,7 +11,7 @@ from tests.generators.synthetic import SyntheticPairs, make_pairs
 from tnf.errors import TnfError
 from tnf.generators import GeneratorSystem, load_generator
 from tnf.generators.system import NonFiniteLoss, image_grid
-from tnf.generators.training import fit
+from tnf.generators.training import fit, merge_metrics_parts
 
 # With the adversarial term (not the default), so that both players' optimisers, schedules and logs are exercised.
 SPEC = {"name": "tn_cgan", "image_size": 32, "ngf": 4, "ndf": 4, "dropout_at_generation": False, "lambda_gan": 1.0}
@@ -63,8 +64,6 @@ def test_run_folder(trained):
 
 
 def test_learning_rate_schedule_decays(trained):
-    import csv
-
     run_dir, _, _ = trained
     rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
     lrs = [float(r["lr/g"]) for r in rows if r.get("lr/g")]
@@ -139,8 +138,6 @@ def test_resume_continues_from_last(tmp_path):
     _, s2 = train(run_dir, epochs=1, system=GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1))
     assert s2["epochs"] == 2 and s2["global_step"] == 2 * steps
     # The finished run's metrics.csv holds both parts; the first part's raw log stays beside it.
-    import csv
-
     rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
     assert [int(r["epoch"]) for r in rows if r["val_l1"]] == [0, 1]
     assert (run_dir / "metrics.part1.csv").is_file()
@@ -149,15 +146,11 @@ def test_resume_continues_from_last(tmp_path):
 def test_merged_metrics_drop_the_steps_a_resume_repeated(tmp_path):
     """A run killed mid-epoch logged steps past its last checkpoint; the resumed part logs them again. The
     merged history keeps each step once, from the part that went on, with the union of both parts' columns."""
-    from tnf.generators.training import merge_metrics_parts
-
     (tmp_path / "metrics.part1.csv").write_text("epoch,step,train/loss\n0,0,5\n0,1,4\n0,2,3\n1,3,2.5\n1,4,2.4\n")
     (tmp_path / "metrics.part2.csv").write_text("")  # killed before it logged anything
     (tmp_path / "metrics.partial.csv").write_text("not,a,part\n")  # a user's file: neither read nor touched
     (tmp_path / "metrics.csv").write_text("epoch,step,train/loss,val_l1\n1,3,2.6,\n1,4,2.2,\n1,4,,0.5\n")
     merge_metrics_parts(tmp_path)
-    import csv
-
     rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
     assert [(r["step"], r["train/loss"], r["val_l1"]) for r in rows] == [
         ("0", "5", ""),
@@ -174,6 +167,16 @@ def test_merged_metrics_drop_the_steps_a_resume_repeated(tmp_path):
         "metrics.part2.csv",
         "metrics.partial.csv",
     ]  # no temporary file left behind
+
+
+def test_merging_again_after_a_finished_run_is_resumed_keeps_each_step_once(tmp_path):
+    """A finished run's merged metrics.csv becomes the next part when the run is resumed for more epochs; the
+    next merge must not repeat the steps it already holds."""
+    (tmp_path / "metrics.part1.csv").write_text("epoch,step,loss\n0,0,5\n0,1,4\n")
+    (tmp_path / "metrics.part2.csv").write_text("epoch,step,loss\n0,0,5\n0,1,4\n1,2,3\n1,3,2\n")  # merged before
+    (tmp_path / "metrics.csv").write_text("epoch,step,loss\n2,4,1.5\n2,5,1\n")
+    merge_metrics_parts(tmp_path)
+    assert [r["step"] for r in csv.DictReader(open(tmp_path / "metrics.csv"))] == ["0", "1", "2", "3", "4", "5"]
 
 
 def test_last_checkpoint_interval_skips_epochs_but_keeps_the_final_one(tmp_path):
@@ -267,8 +270,6 @@ def test_loggers(tmp_path):
 
 
 def _epoch_rows(run_dir):
-    import csv
-
     return [r for r in csv.DictReader(open(run_dir / "metrics.csv")) if r.get("train/d_saturated")]
 
 
@@ -292,8 +293,6 @@ def test_training_without_the_adversarial_term(tmp_path, recwarn):
     spec = {**SPEC, "lambda_gan": 0.0}
     system = GeneratorSystem(spec, epochs=2, decay_epochs=1, grid_rows=3, finite_check_every=1)
     train(tmp_path / "run", epochs=2, system=system)
-    import csv
-
     rows = list(csv.DictReader(open(tmp_path / "run" / "metrics.csv")))
     lr = [float(r["lr/g"]) for r in rows if r["lr/g"]]
     assert len(lr) == 2 and lr[0] > lr[1]  # the schedule ran
