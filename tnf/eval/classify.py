@@ -100,19 +100,24 @@ def _to_input(x: torch.Tensor, size: int) -> torch.Tensor:
 
 
 @contextmanager
-def deterministic_cudnn() -> Iterator[None]:
-    """cuDNN's deterministic kernels, without autotuning, inside the block; the previous settings after it.
+def reproducible_kernels() -> Iterator[None]:
+    """cuDNN's deterministic kernels without autotuning, and full-precision fp32 matrix products, inside the
+    block; the caller's settings after it.
 
-    A GPU training stage turns autotuning on for the generators (``tnf.generators.training``); autotuned
-    kernels differ from run to run, and so did the classifier's accuracy for the same images and seed.
+    A GPU training stage turns autotuning on and lets fp32 matrix products run in TF32 for the generators
+    (``tnf.generators.training``), and a pipeline evaluates in the same process. With autotuned kernels the
+    classifier's accuracy differed from run to run for the same images and seed; with TF32 left on, the same
+    rows scored differently after a training stage than in a process of their own.
     """
     cudnn = torch.backends.cudnn
-    saved = cudnn.benchmark, cudnn.deterministic
+    saved = cudnn.benchmark, cudnn.deterministic, torch.get_float32_matmul_precision()
     cudnn.benchmark, cudnn.deterministic = False, True
+    torch.set_float32_matmul_precision("highest")
     try:
         yield
     finally:
-        cudnn.benchmark, cudnn.deterministic = saved
+        cudnn.benchmark, cudnn.deterministic = saved[:2]
+        torch.set_float32_matmul_precision(saved[2])
 
 
 def train_classifier(
@@ -127,14 +132,15 @@ def train_classifier(
     """Train a fresh classifier on uint8 images ``[N, 3, H, W]`` with labels ``[N]`` (0..num_classes-1).
 
     The initial weights, batch order and augmentation depend only on ``seed``, and on a GPU cuDNN runs its
-    deterministic kernels, so the same images and seed train the same classifier. ``on_step(i)`` is called
+    deterministic kernels and matrix products stay in full fp32 (``reproducible_kernels``), so the same images
+    and seed train the same classifier whatever ran before in the process. ``on_step(i)`` is called
     after each step (progress bars).
     """
     if len(images) == 0:
         raise TnfError("classifier training set is empty; check the touch and generated datasets")
     if images.dtype != torch.uint8 or images.ndim != 4:
         raise ValueError(f"images must be uint8 [N, 3, H, W], got {images.dtype} {tuple(images.shape)}")
-    with deterministic_cudnn():
+    with reproducible_kernels():
         return _train(images, labels, num_classes, cfg, seed, device, on_step)
 
 
@@ -183,7 +189,7 @@ def _train(
 def predict(model: TactileClassifier, images: torch.Tensor, image_size: int, batch_size: int = 512) -> torch.Tensor:
     """Predicted class ``[N]`` (long, on the CPU) of uint8 images ``[N, 3, H, W]``."""
     device = next(model.parameters()).device
-    with deterministic_cudnn():
+    with reproducible_kernels():
         out = [
             model(_to_input(images[i : i + batch_size].to(device), image_size)).argmax(1).cpu()
             for i in range(0, len(images), batch_size)
