@@ -86,8 +86,9 @@ case "$1" in
     t0=$SECONDS
     jobs=()
     # CycleGAN's two ResNet generators train at ~200 pairs/s on an H100 (tn_cgan: ~3,500; results/generators):
-    # sim_digit's 45 epochs would take 45 minutes, so it gets CYCLEGAN_EPOCHS (default 5) and the report says so.
-    ce=${CYCLEGAN_EPOCHS:-5}
+    # sim_digit's 45 epochs would take 45 minutes, so it gets CYCLEGAN_EPOCHS (default 3, as every committed
+    # CycleGAN row; results/paper/README.md says so).
+    ce=${CYCLEGAN_EPOCHS:-3}
     for s in $seeds; do for g in ${GENERATORS:-tn_cgan lee cyclegan}; do
       j="generator=$g seed=$s"
       [[ $g == cyclegan ]] && j+=" train.epochs=$ce train.decay_epochs=$((ce / 2))"
