@@ -111,3 +111,26 @@ def test_ssim_refuses_images_smaller_than_its_window():
 
     with pytest.raises(ValueError, match="larger than 5 px"):
         ssim_unquantised(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))
+
+
+def test_ssim_loss_in_float32_matches_float64_in_value_and_gradient():
+    # The training loss computes the window's statistics in float32 (centred values, exact products); the metric
+    # in float64. A prediction close to the truth is where the variances cancel most.
+    from tnf.eval.metrics import _ssim, ssim_unquantised
+
+    real = _images(3, n=3).float() / 127.5 - 1
+    noise = torch.randn(real.shape, generator=torch.Generator().manual_seed(4))
+    pred = (real + 0.01 * noise).requires_grad_(True)
+    saved = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision("high")  # what GPU training sets: TF32 products
+    try:
+        loss32 = ssim_unquantised(pred, real)
+        (grad32,) = torch.autograd.grad(loss32.sum(), pred)
+        assert torch.get_float32_matmul_precision() == "high"  # restored after both passes
+    finally:
+        torch.set_float32_matmul_precision(saved)
+    loss64 = _ssim((pred.double() + 1) / 2, (real.double() + 1) / 2, 1.0, torch.float64)
+    (grad64,) = torch.autograd.grad(loss64.sum(), pred)
+    assert 0.5 < loss64.min() < 0.999
+    assert torch.allclose(loss32, loss64, atol=1e-6)
+    assert ((grad32.double() - grad64).norm() / grad64.norm()) < 1e-4

@@ -198,20 +198,29 @@ def test_tn_cgan_overfits_a_handful_of_pairs(residual):
     assert abs(start - bg) < 0.01 if residual else s > start + 0.2, (start, bg, s)
 
 
-def test_tn_cgan_full_res_head_sees_the_skip_images():
+@pytest.mark.parametrize("norm", ["batch", "none"])
+@pytest.mark.parametrize("training", [True, False])
+def test_tn_cgan_full_res_head_sees_the_skip_images(norm, training):
     torch.manual_seed(0)
-    g = build("tn_cgan", image_size=32, full_res_head=True).eval()
+    g = build("tn_cgan", image_size=32, full_res_head=True, norm=norm).train(training)
     batch = make_pairs(2, 32)
-    seen = []
-    hook = g.net_g.head.register_forward_pre_hook(lambda m, i: seen.append(i[0].clone()))
-    with torch.no_grad():
-        out = g.generate(batch)
+    decoded = []
+    hook = g.net_g.decoder.register_forward_hook(lambda m, i, o: decoded.append(o.clone()))
+    out = g.net_g({k: batch[k] for k in ("rgb", "depth", "background")})
     hook.remove()
-    # The head's input: the decoder's ngf (4) full-resolution features, then the background and depth images
-    # themselves, in the order of skips.
-    assert seen[0].shape == (2, 4 + 3 + 1, 32, 32)
-    assert torch.equal(seen[0][:, 4:], torch.cat([batch["background"], batch["depth"]], 1))
-    assert out.shape == (2, 3, 32, 32) and out.abs().max() <= 1
+    # The head works on the decoder's ngf (4) full-resolution features followed by the background and depth
+    # images themselves, in the order of skips; it splits its first convolution instead of concatenating them.
+    assert decoded[0].shape == (2, 4, 32, 32)
+    head_in = torch.cat([decoded[0], batch["background"], batch["depth"]], 1)
+    expected = batch["background"] + g.net_g.head(head_in)
+    if not training:
+        expected = expected.clamp(-1, 1)
+    assert torch.allclose(out, expected, atol=1e-5)
+    # The images reach the output through the head, not only through their encoders.
+    with torch.no_grad():
+        w = g.net_g.head[1].weight
+        w[:, 4:] = 0
+        assert not torch.allclose(g.net_g({k: batch[k] for k in ("rgb", "depth", "background")}), out, atol=1e-4)
     assert build("tn_cgan", image_size=32, full_res_head=False).net_g.head is None
 
 

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from tnf.errors import TnfError
+from tnf.eval.metrics import exact_fp32_matmul
 
 
 @dataclass
@@ -110,14 +111,13 @@ def reproducible_kernels() -> Iterator[None]:
     rows scored differently after a training stage than in a process of their own.
     """
     cudnn = torch.backends.cudnn
-    saved = cudnn.benchmark, cudnn.deterministic, torch.get_float32_matmul_precision()
+    saved = cudnn.benchmark, cudnn.deterministic
     cudnn.benchmark, cudnn.deterministic = False, True
-    torch.set_float32_matmul_precision("highest")
     try:
-        yield
+        with exact_fp32_matmul():
+            yield
     finally:
-        cudnn.benchmark, cudnn.deterministic = saved[:2]
-        torch.set_float32_matmul_precision(saved[2])
+        cudnn.benchmark, cudnn.deterministic = saved
 
 
 def train_classifier(
