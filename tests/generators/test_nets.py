@@ -222,6 +222,9 @@ def test_tn_cgan_full_res_head_sees_the_skip_images(norm, training):
         w[:, 4:] = 0
         assert not torch.allclose(g.net_g({k: batch[k] for k in ("rgb", "depth", "background")}), out, atol=1e-4)
     assert build("tn_cgan", image_size=32, full_res_head=False).net_g.head is None
+    # Without skips the head sees the decoder's features alone.
+    g = build("tn_cgan", image_size=32, full_res_head=True, skips=[]).eval()
+    assert g.net_g.head[1].in_channels == 4 and g.generate(batch).shape == (2, 3, 32, 32)
 
 
 @pytest.mark.parametrize("full_res_head", [True, False])

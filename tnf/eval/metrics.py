@@ -8,7 +8,7 @@ Both ignore autocast (a bf16-mixed trainer's validation). The metric computes SS
 float64. Its variances E[x^2] - E[x]^2 cancel to noise in bfloat16, and would lose most of their digits in the
 TF32 matrix products that GPU training switches on for float32. The training loss (:func:`ssim_unquantised`)
 computes them in float32 on values centred on zero, with the window's products in full float32 precision
-in both passes: within 1e-6 of float64, at half its memory traffic.
+in both passes: within 1e-6 of float64 and a few per cent faster per training step on a GPU.
 """
 
 from __future__ import annotations
