@@ -10,7 +10,9 @@ from tnf.data import SPLITS, PairDataset, PairWriter, open_pairs, write_manifest
 from tnf.errors import TnfError
 
 
-def make_dataset(folder, objects=("a", "b", "c"), touches=6, frames=1, seed=0, novel=("c",)):
+def make_dataset(
+    folder, objects=("a", "b", "c"), touches=6, frames=1, seed=0, novel=("c",), sensor="digit", **sensor_config
+):
     """A small dataset of random images: per object `touches` touches of `frames` frames each.
 
     Training objects' touches cycle train, train, val, novel_view; novel objects' are all novel_object.
@@ -42,7 +44,9 @@ def make_dataset(folder, objects=("a", "b", "c"), touches=6, frames=1, seed=0, n
     with PairWriter(folder, n, bg) as w:
         for s in range(0, n, 5):  # several chunks, as the builder streams
             w.write(s, **{k: v[s : s + 5] for k, v in {**data, **meta}.items()})
-    write_manifest(folder, {"objects": list(objects), "sensors": ["digit"], "count": n})
+    # The sensor record `tnf pair` writes (the mirror augmentation reads it).
+    record = {"name": sensor, "config": {"noise_std": 0.0, **sensor_config}}
+    write_manifest(folder, {"objects": list(objects), "sensors": [sensor], "sensor": record, "count": n})
     return {**data, **meta, "backgrounds": bg}
 
 
@@ -159,20 +163,88 @@ def test_per_object_keeps_whole_touches(tmp_path):
     assert len(PairDataset(tmp_path / "ds", per_object=100)) == len(PairDataset(tmp_path / "ds"))
 
 
-def test_augment_keeps_range_and_pairs_aligned(tmp_path):
+def _mirrored(x, order=None):
+    x = x.flip(-1)
+    return x if order is None else x[list(order)]
+
+
+def test_mirror_augment_flips_pairs_as_the_digit_mirrors(tmp_path):
     make_dataset(tmp_path / "ds")
+    idx = list(range(12))
+    plain = PairDataset(tmp_path / "ds", splits=SPLITS).__getitems__(idx)
     torch.manual_seed(0)
+    ds = PairDataset(tmp_path / "ds", splits=SPLITS, augment=["mirror"])
+    assert ds.mirror == (1, 0, 2)  # the Digit's red and green LEDs swap under the mirror
+    aug = ds.__getitems__(idx)
+    flipped = 0
+    for i in range(len(idx)):
+        if torch.equal(aug["tactile"][i], plain["tactile"][i]):
+            same = lambda k, i=i: plain[k][i]  # noqa: E731
+        else:
+            flipped += 1
+            same = lambda k, i=i: _mirrored(plain[k][i], (1, 0, 2) if k in ("tactile", "background") else None)  # noqa: E731
+        for k in ("rgb", "depth", "background", "tactile"):
+            assert torch.equal(aug[k][i], same(k)), (k, i)
+    assert 0 < flipped < len(idx)  # seed 0 mirrors some pairs and not others
+    # The dataset's shared background is not written to.
+    torch.testing.assert_close(PairDataset(tmp_path / "ds", splits=SPLITS)[0]["background"], plain["background"][0])
+
+
+def test_jitter_changes_only_rgb_within_range(tmp_path):
+    make_dataset(tmp_path / "ds")
     plain = PairDataset(tmp_path / "ds").__getitems__(list(range(6)))
-    aug = PairDataset(tmp_path / "ds", augment=True).__getitems__(list(range(6)))
-    for k in ("rgb", "depth", "background", "tactile"):
-        assert aug[k].min() >= -1 and aug[k].max() <= 1
-    # The same flip is applied to tactile, depth and background: each is one of the 4 flips of the original.
-    for i in range(6):
-        flips = [lambda x: x, lambda x: x.flip(-1), lambda x: x.flip(-2), lambda x: x.flip(-1).flip(-2)]
-        match = [f for f in flips if torch.equal(f(plain["tactile"][i]), aug["tactile"][i])]
-        assert len(match) >= 1
-        assert torch.equal(match[0](plain["depth"][i]), aug["depth"][i])
-        assert torch.equal(match[0](plain["background"][i]), aug["background"][i])
+    torch.manual_seed(0)
+    aug = PairDataset(tmp_path / "ds", augment=["jitter"]).__getitems__(list(range(6)))
+    assert not torch.equal(aug["rgb"], plain["rgb"]) and aug["rgb"].min() >= -1 and aug["rgb"].max() <= 1
+    for k in ("depth", "background", "tactile"):
+        assert torch.equal(aug[k], plain[k])
+
+
+def test_augment_errors(tmp_path):
+    from tnf.data import PairDataModule
+
+    make_dataset(tmp_path / "digit")
+    make_dataset(tmp_path / "omnitact", sensor="omnitact")
+    with pytest.raises(TnfError, match="unknown augmentation 'rotate'"):
+        PairDataset(tmp_path / "digit", augment=["rotate"])
+    with pytest.raises(TnfError, match="a list of augmentations"):
+        PairDataset(tmp_path / "digit", augment=True)
+    with pytest.raises(TnfError, match="'omnitact' .* has no mirror symmetry"):
+        PairDataset(tmp_path / "omnitact", augment=["mirror"])
+    PairDataset(tmp_path / "omnitact", augment=["jitter"])  # jitter needs no symmetry
+    with pytest.raises(TnfError, match="has no mirror symmetry"):
+        PairDataModule([tmp_path / "digit", tmp_path / "omnitact"], augment=["mirror"])
+    # One light on the axis: a Digit whose mirror keeps every channel, unlike the standard one.
+    axis = [{"position": [0.0, 0.01, -0.02], "color": [1.0, 1.0, 1.0], "intensity": 1.0}]
+    make_dataset(tmp_path / "white", lights=axis)
+    with pytest.raises(TnfError, match="mirror alike"):
+        PairDataModule([tmp_path / "digit", tmp_path / "white"], augment=["mirror"])
+    write_manifest(tmp_path / "digit", {"objects": ["a", "b", "c"], "sensors": ["digit"], "count": 18})
+    with pytest.raises(TnfError, match="does not record its sensor's settings"):
+        PairDataset(tmp_path / "digit", augment=["mirror"])
+
+
+def test_compact_batches_are_mirrored_on_the_device_side(tmp_path):
+    from tnf.data import PairDataModule
+
+    make_dataset(tmp_path / "ds")
+    dm = PairDataModule([tmp_path / "ds"], batch_size=16, convert_on_device=True, augment=["mirror"])
+    assert dm.mirror == (1, 0, 2)
+    plain = PairDataModule([tmp_path / "ds"], batch_size=16, convert_on_device=True)
+    compact = next(iter(plain.val_dataloader()))
+    ref = plain.on_after_batch_transfer(compact, 0)
+
+    class Training:
+        training = True
+
+    dm.trainer = Training()  # the hook augments only while training
+    torch.manual_seed(1)
+    aug = dm.on_after_batch_transfer(compact, 0)
+    flipped = [not torch.equal(aug["depth"][i], ref["depth"][i]) for i in range(len(ref["depth"]))]
+    assert any(flipped) and not all(flipped)
+    for i, f in enumerate(flipped):
+        expect = _mirrored(ref["tactile"][i], (1, 0, 2)) if f else ref["tactile"][i]
+        assert torch.equal(aug["tactile"][i], expect)
 
 
 def test_datamodule_batches_and_mixing(tmp_path):
@@ -240,7 +312,7 @@ def _rows_of_object(ds, ref, obj):
     return [j for j, row in enumerate(ds.index) if ref["object_id"][row] == obj]
 
 
-def test_one_background_batches_share_it_and_augment_copies_it(tmp_path):
+def test_one_background_batches_share_it_and_mirroring_leaves_it(tmp_path):
     from tnf.data import to_float_batch
 
     ref = make_dataset(tmp_path / "ds")
@@ -255,16 +327,16 @@ def test_one_background_batches_share_it_and_augment_copies_it(tmp_path):
     compact = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view"), compact=True).__getitems__(idx)
     for k, v in to_float_batch(compact).items():
         torch.testing.assert_close(v, batch[k])
-    # Augmenting flips each pair's background on its own (the shared image is copied, not flipped for all).
-    torch.manual_seed(3)
-    aug = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view"), augment=True).__getitems__(idx)
-    flips = [lambda x: x, lambda x: x.flip(-1), lambda x: x.flip(-2), lambda x: x.flip(-1).flip(-2)]
+    # Mirroring flips each pair's background on its own (the shared image is not flipped for all).
+    torch.manual_seed(0)
+    aug = PairDataset(tmp_path / "ds", splits=("train", "val", "novel_view"), augment=["mirror"]).__getitems__(idx)
     used = set()
     for i in range(len(idx)):
-        f = next(j for j, f in enumerate(flips) if torch.equal(f(batch["tactile"][i]), aug["tactile"][i]))
+        f = torch.equal(_mirrored(batch["tactile"][i], (1, 0, 2)), aug["tactile"][i])
         used.add(f)
-        assert torch.equal(flips[f](batch["background"][0]), aug["background"][i])
-    assert len(used) > 1  # seed 3 flips some pairs and not others
+        bg = batch["background"][0]
+        assert torch.equal(_mirrored(bg, (1, 0, 2)) if f else bg, aug["background"][i])
+    assert used == {True, False}  # seed 0 mirrors some pairs and not others
     torch.testing.assert_close(ds[idx[0]]["background"], expect_bg)  # the dataset's own copy is untouched
 
 

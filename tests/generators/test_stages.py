@@ -33,7 +33,8 @@ def write_pairs(folder, n=12, seed=0, objects=("ball", "box")):
     }
     with PairWriter(folder, n, to_uint8(p["background"][:1])) as w:
         w.write(0, **meta)
-    write_manifest(folder, {"objects": list(objects), "sensors": ["digit"], "count": n})
+    record = {"name": "digit", "config": {}}  # the sensor record `tnf pair` writes
+    write_manifest(folder, {"objects": list(objects), "sensors": ["digit"], "sensor": record, "count": n})
 
 
 TINY = ["debug=tiny", "progress=false", "data.batch_size=4"]
@@ -60,6 +61,18 @@ def test_train_stage_writes_a_loadable_run(data_root):
     assert train.run(cfg)["skipped"]
     with pytest.raises(TnfError, match="another config"):
         train.run(compose("train", [*TINY, "generator.lambda_l1=10", "train.resume=true"]))
+
+
+def test_train_stage_with_the_mirror_augmentation(data_root):
+    from tnf.stages import train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    out = train.run(compose("train", [*TINY, "data.augment=[mirror,jitter]", "train.epochs=1", "train.decay_epochs=0"]))
+    manifest = json.loads((data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").read_text())
+    assert manifest["epochs"] == 1 and 0 < out["last"]["val_ssim"] < 1
+    assert manifest["config"]["data"]["augment"] == ["mirror", "jitter"]
+    with pytest.raises(TnfError, match="unknown augmentation 'flip'"):
+        train.run(compose("train", [*TINY, "data.augment=[flip]", "train.force=true"]))
 
 
 @pytest.mark.parametrize("name", ["lee", "cyclegan"])

@@ -91,3 +91,25 @@ def test_shading_brighter_toward_light():
     tilt = (0.2 * (x * 0.866 + y * 0.5)).astype(np.float32)
     tilted = s.shade(s.gel_points(h), s.surface_normals(tilt))
     assert tilted[..., 0].mean() > flat[..., 0].mean()
+
+
+def test_mirror_symmetry_follows_the_lights_and_gel():
+    # The Digit's red and green LEDs are mirror images (30 and 150 degrees), its blue one on the axis.
+    assert SENSORS.build("digit").mirror_channels() == (1, 0, 2)
+    # Moving the green LED off its mirror position breaks the symmetry.
+    lights = [
+        {"position": [0.011258, 0.0065, -0.02], "color": [1.0, 0.0, 0.0], "intensity": 1.0},
+        {"position": [-0.009, 0.0065, -0.02], "color": [0.0, 1.0, 0.0], "intensity": 1.0},
+        {"position": [0.0, -0.013, -0.02], "color": [0.0, 0.0, 1.0], "intensity": 1.0},
+    ]
+    assert SENSORS.build({"name": "digit", "lights": lights}).mirror_channels() is None
+    # A light on the axis keeps it with every channel in place.
+    axis = [{"position": [0.0, 0.01, -0.02], "color": [1.0, 0.5, 0.2], "intensity": 1.0}]
+    assert SENSORS.build({"name": "digit", "lights": axis}).mirror_channels() == (0, 1, 2)
+    assert SENSORS.build("omnitact").mirror_channels() is None
+
+    class Marked(type(SENSORS.build("digit"))):  # markers drawn on the image: no symmetry is assumed
+        def decorate(self, image, indentation):
+            return image
+
+    assert Marked(Marked.Config()).mirror_channels() is None

@@ -7,12 +7,21 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.data.dataset import MixedPairDataset, PairDataset, augment_batch, collate_pairs, to_float_batch
+from tnf.data.dataset import (
+    AUGMENTATIONS,
+    MixedPairDataset,
+    PairDataset,
+    augment_batch,
+    collate_pairs,
+    sensor_mirror,
+    to_float_batch,
+)
 from tnf.data.preprocess import SIZE, crop_for_sensor, preprocess_rgbd, resize_uint8
 from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
 from tnf.data.store import PairArrays, PairWriter, dataset_name, open_pairs, write_manifest
 
 __all__ = [
+    "AUGMENTATIONS",
     "SIZE",
     "SPLITS",
     "MixedPairDataset",
@@ -31,6 +40,7 @@ __all__ = [
     "preprocess_rgbd",
     "render_pairs_for_touches",
     "resize_uint8",
+    "sensor_mirror",
     "to_float_batch",
     "write_manifest",
 ]

@@ -12,7 +12,16 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
 from tnf.artifacts import MANIFEST, data_root, read_json
-from tnf.data.dataset import Batch, MixedPairDataset, PairDataset, augment_batch, collate_pairs, to_float_batch
+from tnf.data.dataset import (
+    Batch,
+    MixedPairDataset,
+    PairDataset,
+    augment_batch,
+    check_augment,
+    collate_pairs,
+    sensor_mirror,
+    to_float_batch,
+)
 from tnf.errors import TnfError
 
 if TYPE_CHECKING:
@@ -42,7 +51,8 @@ class PairDataModule(L.LightningDataModule):
         batch_size: pairs per batch.
         num_workers: DataLoader worker processes (0 loads in the main process).
         per_object: at most this many touches per object and dataset; None keeps all.
-        augment: flips and RGB jitter on the training batches (see ``augment_batch``).
+        augment: augmentations of the training batches, from ``tnf.data.AUGMENTATIONS`` (see ``augment_batch``);
+            ``mirror`` needs every dataset to come from sensors with the same mirror symmetry.
         pin_memory: page-locked batches for faster copies to a GPU.
         seed: seed of the subsample and the training order.
         train_splits, val_splits: splits served by ``train_dataloader`` / ``val_dataloader``.
@@ -59,7 +69,7 @@ class PairDataModule(L.LightningDataModule):
         batch_size: int = 64,
         num_workers: int = 0,
         per_object: int | None = None,
-        augment: bool = False,
+        augment: Sequence[str] = (),
         pin_memory: bool = False,
         seed: int = 0,
         train_splits: Sequence[str] = ("train",),
@@ -79,7 +89,7 @@ class PairDataModule(L.LightningDataModule):
         self.batch_size = batch_size
         self.num_workers = num_workers
         self.per_object = per_object
-        self.augment = augment
+        self.augment = check_augment(augment)
         self.pin_memory = pin_memory
         self.seed = seed
         self.train_splits = tuple(train_splits)
@@ -92,8 +102,17 @@ class PairDataModule(L.LightningDataModule):
                 if n not in names:
                     names.append(n)
         self.object_names = names
+        self.mirror: tuple[int, ...] | None = None
+        if "mirror" in self.augment:
+            orders = {sensor_mirror(read_json(f / MANIFEST, "dataset manifest"), f) for f in self.folders}
+            if len(orders) > 1:
+                raise TnfError(
+                    "data.augment=[mirror] needs datasets whose sensors mirror alike, but their channel orders "
+                    f"differ ({sorted(orders)}); train on them without it"
+                )
+            self.mirror = orders.pop()
 
-    def dataset(self, splits: Sequence[str], augment: bool = False) -> PairDataset | MixedPairDataset:
+    def dataset(self, splits: Sequence[str], augment: Sequence[str] = ()) -> PairDataset | MixedPairDataset:
         """The pairs of ``splits`` over all folders (one dataset, or a mix)."""
         parts = [
             PairDataset(
@@ -110,7 +129,7 @@ class PairDataModule(L.LightningDataModule):
         return parts[0] if len(parts) == 1 else MixedPairDataset(parts)
 
     def _loader(self, splits: Sequence[str], train: bool) -> DataLoader:
-        ds = self.dataset(splits, augment=self.augment and train)
+        ds = self.dataset(splits, augment=self.augment if train else ())
         if len(ds) == 0:
             raise TnfError(f"no pairs in split(s) {', '.join(splits)} of {', '.join(map(str, self.folders))}")
         g = torch.Generator().manual_seed(self.seed)
@@ -147,7 +166,7 @@ class PairDataModule(L.LightningDataModule):
         batch = to_float_batch(batch)
         trainer = getattr(self, "trainer", None)
         if self.augment and trainer is not None and trainer.training:
-            augment_batch(batch)
+            augment_batch(batch, self.augment, self.mirror)
         return batch
 
     def train_dataloader(self) -> DataLoader:

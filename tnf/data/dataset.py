@@ -140,8 +140,8 @@ def _as_tensor(x: np.ndarray | torch.Tensor) -> torch.Tensor:
 
 def _gather_backgrounds(backgrounds: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``backgrounds[index]`` for a batch: when the batch has one background (one sensor), a stride-0
-    expanded view of it instead of a copy per pair. Nothing writes into batches in place except
-    ``augment_batch``, which makes its own copy first."""
+    expanded view of it instead of a copy per pair. Nothing writes into batches in place (``augment_batch``
+    replaces a batch's images by new tensors)."""
     if len(backgrounds) == 1:  # a dataset of one sensor: no need to look at the index
         return backgrounds.expand(len(index), *backgrounds.shape[1:])
     first = index[:1]
@@ -158,7 +158,7 @@ class PairDataset(Dataset):
     [1, 128, 128] (-1 nearest, 1 far or empty), ``background`` [3, 128, 128], ``tactile`` [3, 128, 128];
     plus ``object_id`` (long; index into ``object_names``). Batches have a leading batch dimension; when all
     pairs of a batch share one background (one sensor), ``background`` is a stride-0 expanded view of it:
-    read it freely, but call ``.contiguous()`` before writing into it in place (``augment_batch`` does).
+    read it freely, but call ``.contiguous()`` before writing into it in place.
 
     Args:
         folder: a dataset folder (``<root>/pairs/<name>``).
@@ -168,8 +168,8 @@ class PairDataset(Dataset):
         seed: seed of the per-object subsample.
         object_names: the object vocabulary ``object_id`` indexes; default this dataset's own object list.
             Datasets that are mixed share one vocabulary so an object keeps its id.
-        augment: random horizontal/vertical flips (the same flip on all four images of a pair) and
-            brightness/contrast jitter of the RGB image.
+        augment: augmentations of each batch, from ``AUGMENTATIONS``: ``mirror`` (the sensor's mirror
+            symmetry, which the dataset's manifest records) and ``jitter`` (RGB brightness and contrast).
         compact: serve batches as stored (``rgb``, ``background``, ``tactile`` uint8 [B, 128, 128, 3],
             ``depth`` float16 [B, 128, 128]), 4x fewer bytes to load, pin and copy; ``to_float_batch``
             turns them into the float form, best on the GPU after the copy. ``augment`` is then not applied
@@ -183,14 +183,18 @@ class PairDataset(Dataset):
         per_object: int | None = None,
         seed: int = 0,
         object_names: Sequence[str] | None = None,
-        augment: bool = False,
+        augment: Sequence[str] = (),
         compact: bool = False,
     ):
         if isinstance(splits, str):
             splits = (splits,)
         self.arrays: PairArrays = open_pairs(folder)
+        augment = check_augment(augment)
+        # The channel order of the dataset's sensor under the mirror: also read when compact batches are
+        # augmented after the copy (PairDataModule).
+        self.mirror = sensor_mirror(self.arrays.manifest, folder) if "mirror" in augment else None
         self.splits = tuple(splits)
-        self.augment = augment and not compact
+        self.augment = () if compact else augment
         self.compact = compact
         own = self.arrays.objects
         self.object_names = list(object_names) if object_names is not None else own
@@ -250,7 +254,7 @@ class PairDataset(Dataset):
         background = _gather_backgrounds(self._backgrounds, bg_index)
         batch = PairBatch(rgb=rgb, depth=depth, background=background, tactile=tactile, object_id=object_id)
         if self.augment:
-            augment_batch(batch)
+            augment_batch(batch, self.augment, self.mirror)
         return batch
 
     def split_counts(self) -> dict[str, int]:
@@ -298,24 +302,68 @@ def _subsample_touches(
     return rows[keep]
 
 
-def augment_batch(batch: Batch) -> None:
-    """In place: per-pair random flips of all images, and RGB brightness/contrast jitter (+-10 %).
+AUGMENTATIONS = ("mirror", "jitter")
+"""What ``data.augment`` may list: ``mirror``, the sensor's own mirror symmetry (``Sensor.mirror_channels``:
+pairs flipped left-right with the tactile and background channels reordered, as real as the simulated ones);
+``jitter``, +-10 % brightness and contrast of the RGB image."""
 
-    An image shared by the whole batch (a stride-0 expanded background) is replaced by its own copy first.
+
+def check_augment(augment: Sequence[str] | None) -> tuple[str, ...]:
+    """``data.augment`` as a tuple of known augmentation names (a TnfError for anything else)."""
+    if augment is None:
+        return ()
+    if isinstance(augment, (bool, str)):
+        raise TnfError(f"data.augment is a list of augmentations from {list(AUGMENTATIONS)}, got {augment!r}")
+    names = tuple(str(a) for a in augment)
+    unknown = [a for a in names if a not in AUGMENTATIONS]
+    if unknown:
+        raise TnfError(f"unknown augmentation {unknown[0]!r} in data.augment; known: {', '.join(AUGMENTATIONS)}")
+    return names
+
+
+def sensor_mirror(manifest: dict[str, Any], where: Any) -> tuple[int, ...]:
+    """The mirror symmetry (``Sensor.mirror_channels``) of the sensor a dataset was made with, from the sensor
+    record ``tnf pair`` writes into its manifest; a TnfError when there is no record or no symmetry."""
+    from tnf.registry import SENSORS
+
+    rec = manifest.get("sensor")
+    if not isinstance(rec, dict) or not isinstance(rec.get("name"), str):
+        raise TnfError(
+            f"dataset {where} does not record its sensor's settings, which the mirror augmentation needs; "
+            "rebuild it with `tnf pair`"
+        )
+    sensor = SENSORS.build({"name": rec["name"], **(rec.get("config") or {})})
+    channels = sensor.mirror_channels()
+    if channels is None:
+        raise TnfError(
+            f"sensor {rec['name']!r} of dataset {where} has no mirror symmetry (its gel, lights or markers are "
+            "not left-right mirror images up to a swap of colour channels); drop 'mirror' from data.augment"
+        )
+    return channels
+
+
+def augment_batch(batch: Batch, augment: Sequence[str], mirror: Sequence[int] | None = None) -> None:
+    """The augmentations named in ``augment`` (see ``AUGMENTATIONS``) on a float batch, each pair drawn on its
+    own; the batch's images are replaced by new tensors (a shared, stride-0 background is never written to).
+    ``mirror`` is the sensor's channel order under the mirror (``sensor_mirror``).
     """
     b = batch["rgb"].shape[0]
-    images = ("rgb", "depth", "background", "tactile")
-    for k in images:
-        if b > 1 and batch[k].stride(0) == 0:
-            batch[k] = batch[k].contiguous()
-    for dim in (-1, -2):
-        flip = torch.rand(b) < 0.5
-        if flip.any():
-            for k in images:
-                batch[k][flip] = batch[k][flip].flip(dim)
-    gain = 1 + 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
-    shift = 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
-    batch["rgb"].mul_(gain).add_(shift).clamp_(-1, 1)
+    if "mirror" in augment:
+        if mirror is None:
+            raise TnfError("the mirror augmentation needs the sensor's channel order (sensor_mirror)")
+        flip = (torch.rand(b) < 0.5).to(batch["rgb"].device).view(b, 1, 1, 1)
+        order = torch.tensor(list(mirror), device=batch["rgb"].device)
+        for k in ("rgb", "depth", "background", "tactile"):
+            x = batch[k]
+            mirrored = x.flip(-1)
+            if k in ("background", "tactile"):
+                mirrored = mirrored.index_select(1, order)
+            batch[k] = torch.where(flip, mirrored, x)
+    if "jitter" in augment:
+        gain = 1 + 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
+        shift = 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
+        rgb = batch["rgb"]
+        batch["rgb"] = (rgb * gain.to(rgb.device) + shift.to(rgb.device)).clamp_(-1, 1)
 
 
 class MixedPairDataset(Dataset):

@@ -42,6 +42,7 @@ A plugin sensor, e.g. in a package ``tnf_gelsight`` registered through the ``tnf
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -255,6 +256,44 @@ class Sensor:
             ndh = np.clip((normals * half).sum(-1, keepdims=True), 0, None)
             out += r * (c.diffuse * ndl + c.specular * ndh**c.shininess)
         return out.astype(np.float32)
+
+    def mirror_channels(self) -> tuple[int, ...] | None:
+        """The sensor's left-right mirror symmetry, if it has one, else None.
+
+        Returns the colour-channel order ``p`` for which pressing the mirror image of a surface (``x -> -x`` in
+        the sensor frame) gives this sensor's image of the original, flipped left-right, with channels
+        ``p``: ``image[:, ::-1][..., p]``. Pairs mirrored this way are as real as the simulated ones, which makes
+        the mirror a free augmentation (``data.augment=[mirror]``). The Digit has one, ``(1, 0, 2)``: its red and
+        green LEDs sit mirror-wise at 30 and 150 degrees, its blue one on the axis.
+
+        Checked numerically on what this sensor computes: its pixel grid, ``gel_mask``, ``gel_surface`` and
+        ``shade`` (at random points and normals), so a sensor that overrides them is judged by its own code. A
+        sensor that ``decorates`` its images (markers) is taken to have none.
+        """
+        if self.decorates:
+            return None
+        x, _ = self.gel_grid()
+        h = self.gel_surface()
+        mask = self.gel_mask()
+        if not (
+            np.allclose(x, -x[:, ::-1], atol=1e-9)
+            and np.array_equal(mask, mask[:, ::-1])
+            and np.allclose(h, h[:, ::-1], atol=1e-9)
+        ):
+            return None
+        rng = np.random.default_rng(0)
+        points = self.gel_points(h)[mask]
+        points = points[rng.choice(len(points), size=min(512, len(points)), replace=False)]
+        normals = rng.normal(size=points.shape) * 0.5 + np.array([0.0, 0.0, 1.0])
+        normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+        flip = np.array([-1.0, 1.0, 1.0], dtype=np.float32)
+        direct = self.shade(points, normals.astype(np.float32)).astype(np.float64)
+        mirrored = self.shade(points * flip, (normals * flip).astype(np.float32)).astype(np.float64)
+        tol = 1e-4 * max(float(np.abs(direct).max()), 1e-6)
+        for p in itertools.permutations(range(direct.shape[-1])):
+            if np.allclose(mirrored, direct[..., list(p)], atol=tol, rtol=0):
+                return tuple(p)
+        return None
 
     def surface_normals(self, heights: np.ndarray) -> np.ndarray:
         """Unit normals ``[H, W, 3]`` facing the camera (+z) of the surface with outward heights ``[H, W]``."""
