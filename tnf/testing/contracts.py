@@ -105,7 +105,7 @@ class SensorContract(_ComponentContract):
     composes and builds; camera, gel and shading outputs have the documented shapes and dtypes; the
     background is ``[H, W, 3]`` uint8, the same for the same seed and different for another; a sphere pressed
     with the ``warp_gel`` simulator makes contact and an image that differs from the background, and a press
-    that misses leaves the background (plus noise).
+    that misses leaves the background (plus noise); a mirror symmetry the sensor reports holds in the simulator.
     """
 
     registry = SENSORS
@@ -209,6 +209,31 @@ class SensorContract(_ComponentContract):
             assert diff[out.contact[i]].mean() > 8, "the contact should show in the image"
         miss = np.abs(out.images[2].astype(np.float32) - bg)
         assert miss.mean() < 3 * max(sensor.cfg.noise_std, 1.0), "no contact should give the background plus noise"
+
+    def test_mirror_symmetry_holds_in_the_simulator(self, sensor, pressed):
+        """Where ``mirror_channels`` reports a symmetry (``data.augment=[mirror]`` relies on it), the press
+        off-centre by +r/3 is the press at -r/3 flipped left-right with its channels reordered."""
+        order = sensor.mirror_channels()
+        if order is None:
+            pytest.skip(f"{self.name} has no mirror symmetry")
+        import trimesh
+
+        sim, out, force = pressed
+        r = self.sphere_radius
+        pose = np.eye(4)
+        pose[2, 3] = r + sensor.cfg.camera_distance + 0.01
+        pose[0, 3] = -r / 3
+        sphere = trimesh.creation.icosphere(subdivisions=3, radius=r)
+        mirrored = sim.press(sphere, pose[None], force, seed=1)
+        bg = sensor.background().astype(np.float32)
+        diff = out.images[1].astype(np.float32) - bg
+        diff_m = mirrored.images[0].astype(np.float32) - bg
+        region = out.contact[1][:, ::-1] | mirrored.contact[0]
+        energy = np.abs(diff_m)[region].mean()
+        err = np.abs(diff[:, ::-1][..., list(order)] - diff_m)[region].mean()
+        assert err < 0.1 * energy + 2 * sensor.cfg.noise_std, (
+            f"mirror_channels() says {order}, but the mirrored press differs by {err:.1f} (imprint {energy:.1f})"
+        )
 
 
 # -- generators -------------------------------------------------------------------------------------
