@@ -17,7 +17,7 @@ from torch import nn
 
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import NoiseDropout, init_weights, norm_layer
-from tnf.generators.tn_cgan import CHANNELS, MultiEncoderUNet, gan_loss
+from tnf.generators.tn_cgan import CHANNELS, MultiEncoderUNet, conditions, gan_loss, needed_keys
 from tnf.registry import GENERATORS
 
 
@@ -105,8 +105,8 @@ class Lee(Generator):
                 m.always_on = cfg.dropout_at_generation
 
     def generate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        self.check_batch(batch, self.inputs)
-        return self.net_g({k: batch[k] for k in self.inputs})
+        self.check_batch(batch, needed_keys(self.inputs))
+        return self.net_g(conditions(batch, self.inputs))
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         return [
@@ -115,10 +115,10 @@ class Lee(Generator):
         ]
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:
-        self.check_batch(batch, (*self.inputs, "tactile"))
+        self.check_batch(batch, (*needed_keys(self.inputs), "tactile"))
         opt_g, opt_d = opt.optimizers()
         real = batch["tactile"]
-        cond = torch.cat([batch[k] for k in self.inputs], 1)
+        cond = torch.cat(list(conditions(batch, self.inputs).values()), 1)
         fake = self.generate(batch)
 
         self.set_requires_grad(self.net_d, True)

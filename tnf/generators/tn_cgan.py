@@ -36,7 +36,32 @@ from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
 from tnf.registry import GENERATORS
 
-CHANNELS = {"rgb": 3, "depth": 1, "background": 3}
+CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2}
+"""Channels of each condition a generator may take; ``depth_slope`` is derived from ``depth`` (``conditions``)."""
+
+SLOPE_GAIN = 64.0
+"""``depth_slope`` = this times the depth image's change per pixel, clipped to [-1, 1]. At sim_digit's framing
+(a 40 mm depth window over a crop of about 30 mm) a 45 degree slope is about 0.75, so the gel-sized relief that
+an imprint shows spans the range, and the crop's edges (jumps to the far plane) clip."""
+
+
+def depth_slope(depth: torch.Tensor) -> torch.Tensor:
+    """[B, 2, H, W] x and y slopes of a depth image [B, 1, H, W] (central differences, edges replicated), times
+    ``SLOPE_GAIN``, clipped to [-1, 1]: the surface's orientation, which is what a lit gel's image shows."""
+    padded = F.pad(depth, (1, 1, 1, 1), mode="replicate")
+    dx = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]) / 2
+    dy = (padded[..., 2:, 1:-1] - padded[..., :-2, 1:-1]) / 2
+    return (torch.cat([dx, dy], 1) * SLOPE_GAIN).clamp(-1.0, 1.0)
+
+
+def needed_keys(inputs: tuple[str, ...]) -> tuple[str, ...]:
+    """The batch keys that ``inputs`` are made from (``depth_slope`` from ``depth``)."""
+    return tuple(dict.fromkeys("depth" if k == "depth_slope" else k for k in inputs))
+
+
+def conditions(batch: dict[str, torch.Tensor], inputs: tuple[str, ...]) -> dict[str, torch.Tensor]:
+    """The condition images named in ``inputs``, from a batch (derived ones computed from theirs)."""
+    return {k: depth_slope(batch["depth"]) if k == "depth_slope" else batch[k] for k in inputs}
 
 
 def level_channels(ngf: int, level: int) -> int:
@@ -265,7 +290,8 @@ class TNcGAN(Generator):
     @dataclass
     class Config:
         inputs: list[str] = field(default_factory=lambda: ["rgb", "depth", "background"])
-        """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations)."""
+        """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations) and
+        depth_slope, the depth image's x and y slopes (``depth_slope``), which a lit gel's image follows."""
         skips: list[str] = field(default_factory=lambda: ["background", "depth"])
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only). Depth
         skips place the imprint's edges from the depth image at every scale, not from the 1 x 1 bottleneck."""
@@ -371,11 +397,11 @@ class TNcGAN(Generator):
                 m.always_on = cfg.dropout_at_generation
 
     def condition(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat([batch[k] for k in self.inputs], 1)
+        return torch.cat(list(conditions(batch, self.inputs).values()), 1)
 
     def generate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        self.check_batch(batch, self.inputs)
-        return self.net_g({k: batch[k] for k in self.inputs})
+        self.check_batch(batch, needed_keys(self.inputs))
+        return self.net_g(conditions(batch, self.inputs))
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         betas = (self.cfg.beta1, self.cfg.beta2)
@@ -384,7 +410,7 @@ class TNcGAN(Generator):
         return [torch.optim.Adam(self.trainable(n), lr=self.cfg.lr, betas=betas, fused=fused) for n in nets]
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:
-        self.check_batch(batch, (*self.inputs, "tactile"))
+        self.check_batch(batch, (*needed_keys(self.inputs), "tactile"))
         opts = opt.optimizers()  # [generator's, discriminator's] ([generator's] without the adversarial term)
         opt_g = opts[0]
         real = batch["tactile"]
