@@ -67,12 +67,13 @@ def test_train_stage_with_the_mirror_augmentation(data_root):
     from tnf.stages import train
 
     write_pairs(data_root / "pairs" / "digit-hashgrid")
+    with pytest.raises(TnfError, match="unknown augmentation 'flip'"):
+        train.run(compose("train", [*TINY, "data.augment=[flip]"]))
+    assert not (data_root / "models").exists()  # refused before anything was written
     out = train.run(compose("train", [*TINY, "data.augment=[mirror,jitter]", "train.epochs=1", "train.decay_epochs=0"]))
     manifest = json.loads((data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").read_text())
     assert manifest["epochs"] == 1 and 0 < out["last"]["val_ssim"] < 1
     assert manifest["config"]["data"]["augment"] == ["mirror", "jitter"]
-    with pytest.raises(TnfError, match="unknown augmentation 'flip'"):
-        train.run(compose("train", [*TINY, "data.augment=[flip]", "train.force=true"]))
 
 
 @pytest.mark.parametrize("name", ["lee", "cyclegan"])

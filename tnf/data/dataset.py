@@ -189,12 +189,10 @@ class PairDataset(Dataset):
         if isinstance(splits, str):
             splits = (splits,)
         self.arrays: PairArrays = open_pairs(folder)
-        augment = check_augment(augment)
-        # The channel order of the dataset's sensor under the mirror: also read when compact batches are
-        # augmented after the copy (PairDataModule).
-        self.mirror = sensor_mirror(self.arrays.manifest, folder) if "mirror" in augment else None
+        # Compact batches are augmented after the copy, by PairDataModule (which reads the sensor's mirror itself).
+        self.augment = () if compact else check_augment(augment)
+        self.mirror = sensor_mirror(self.arrays.manifest, folder) if "mirror" in self.augment else None
         self.splits = tuple(splits)
-        self.augment = () if compact else augment
         self.compact = compact
         own = self.arrays.objects
         self.object_names = list(object_names) if object_names is not None else own

@@ -49,10 +49,11 @@ class Generator(nn.Module):
     """Base class of tactile-image generators.
 
     Subclasses declare a nested ``Config`` dataclass, take it in ``__init__`` and implement ``generate``,
-    ``training_step`` and ``configure_optimizers``. ``inputs`` names the batch keys ``generate`` reads.
+    ``training_step`` and ``configure_optimizers``. ``inputs`` names the conditions ``generate`` takes: batch keys,
+    or ``depth_slope``, which tn_cgan and lee derive from ``depth`` (``tnf.generators.tn_cgan.conditions``).
     """
 
-    #: Batch keys the generator reads when generating (set per instance from the config where configurable).
+    #: Conditions the generator takes when generating (set per instance from the config where configurable).
     inputs: tuple[str, ...] = ("rgb",)
     #: Names of the optimisers ``configure_optimizers`` returns, in order (used for learning-rate logging); a
     #: generator may return only the first ones (tn_cgan without its adversarial term: the generator's alone).
