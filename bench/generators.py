@@ -3,7 +3,8 @@
     python bench/generators.py --device cuda [--generators tn_cgan,lee,cyclegan] [--steps 30] [--json out.json]
 
 A generator may carry config overrides after colons: ``--generators tn_cgan,tn_cgan:lambda_gan=1`` times
-tn_cgan with its defaults (no adversarial term) and with the paper's cGAN term.
+tn_cgan with its defaults (no adversarial term) and with the paper's cGAN term. A list value is JSON, its commas
+inside the brackets: ``tn_cgan:inputs=["rgb","depth","background","depth_slope"]``.
 
 Training runs each generator's own training step (with its defaults, tn_cgan's updates only the generator;
 Lee's and CycleGAN's also their discriminators) on random batches already on the device, as ``tnf train``
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from contextlib import nullcontext
 
@@ -117,7 +119,7 @@ def main() -> None:
     name_dev = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else "cpu"
     print(f"device: {name_dev}; torch {torch.__version__}; channels_last={cl}")
     results = {"device": name_dev, "torch": torch.__version__, "channels_last": cl, "train": {}, "generate": {}}
-    for name in args.generators.split(","):
+    for name in re.split(r",(?![^\[]*\])", args.generators):
         for spec in args.train_batches.split(","):
             b, prec = spec.split(":")
             rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl)

@@ -37,6 +37,12 @@ def test_scoring_perfect_generator_and_background_row():
     assert set(g["per_object"]) == {"ball", "box"} and g["per_object"]["ball"]["n"] == 3
     assert bg["ssim"] < 1 and bg["mse"] > 0
     assert ex["generated"].shape == (4, 3, 128, 128) and ex["depth"].shape == (4, 1, 128, 128)
+    # the examples are spread over the objects (the batches hold three ball touches, then three box touches)
+    assert ex["object_id"].tolist() == [0, 1, 0, 1] and torch.equal(ex["generated"], ex["real"])
+    rows = [b["tactile"][i] for b in _batches() for i in range(3)]
+    assert torch.equal(ex["real"][1], rows[3]) and torch.equal(ex["real"][2], rows[1])
+    _, one = score_batches(_batches(), lambda batch: batch["tactile"], ["ball", "box"], keep_examples=1)
+    assert one["object_id"].tolist() == [0]
     img = example_grid(ex, threshold=20, labels=["ball"] * 4)
     assert img.size[1] > 4 * 128
     # perfect generation: the thresholded difference column is black
@@ -92,6 +98,23 @@ def test_report_tables_checks_and_figures(tmp_path):
     assert "ssim_per_object_main_novel_object.png" in md
     with Image.open(png) as im:
         assert im.size[0] >= 360
+
+
+def test_example_caption_names_the_split_it_came_from(tmp_path):
+    results = []
+    for seed, split in ((0, "val"), (1, None)):
+        run = tmp_path / f"run{seed}"
+        run.mkdir()
+        Image.new("RGB", (8, 8)).save(run / "examples.png")
+        r = {**_result("main", "T-N", seed, 0.97, 20.0, 95.0), "examples": "examples.png"}
+        r["_path"] = str(run / "results.json")
+        results.append(r if split is None else {**r, "examples_split": split})
+    write_report(results, tmp_path / "rep", name="tiny")
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "**T-N, validation touches (seed 0): RGB |" in md and "novel object touches" not in md
+    # results written before the split was recorded took their examples from novel_object
+    write_report(results[1:], tmp_path / "rep1", name="tiny")
+    assert "**T-N, novel object touches (seed 1): RGB |" in (tmp_path / "rep1" / "report.md").read_text()
 
 
 def _touch_data(root, generated_run="fake", good_generator=True):

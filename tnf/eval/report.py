@@ -26,7 +26,13 @@ from tnf.eval.paper import PAPER
 from tnf.eval.scoring import BG
 
 TABLES = {"main": ("1", "Simulated tactile images (Digit)"), "transfer": ("2", "Transfer to a new sensor")}
-TEST_SET_NAMES = {"novel_view": "Novel view", "novel_object": "Novel object", "all": "All test sets"}
+TEST_SET_NAMES = {
+    "novel_view": "Novel view",
+    "novel_object": "Novel object",
+    "all": "All test sets",
+    "val": "Validation",
+    "train": "Training",
+}
 # The paper's method order per table; methods it does not have follow in the order first seen.
 METHOD_ORDER = {"main": ["T-N", "Lee", "Cycle"], "transfer": ["T-N", "T-N+", "FS"]}
 PRIMARY = "T-N"
@@ -278,9 +284,11 @@ def write_report(
             if runs and "_path" in runs[0]:
                 ex = Path(runs[0]["_path"]).parent / runs[0]["examples"]
                 if ex.is_file():
+                    # Runs written before examples_split was recorded took their examples from novel_object.
+                    split = str(runs[0].get("examples_split", "novel_object"))
                     caption = (
-                        f"{m}, novel-object touches (seed {runs[0]['seed']}): RGB | depth | generated | real "
-                        "| thresholded difference"
+                        f"{m}, {TEST_SET_NAMES.get(split, split).lower()} touches (seed {runs[0]['seed']}): RGB | "
+                        "depth | generated | real | thresholded difference"
                     )
                     figs.append((caption, _relpath(ex, folder)))
         figures[table] = figs

@@ -67,12 +67,13 @@ def score_batches(
 ) -> tuple[dict[str, MetricAccumulator], dict[str, torch.Tensor]]:
     """Score ``generate`` (None: the background baseline only) on ``batches``.
 
-    Returns ({"G": accumulator, "BG": accumulator}, examples) where examples holds the first ``keep_examples``
-    images on the CPU: rgb, depth, generated, real (all in [-1, 1]) and object_id.
+    Returns ({"G": accumulator, "BG": accumulator}, examples) where examples holds ``keep_examples`` touches
+    spread over the objects (the first touch of each of the first objects seen, then their second, ...) on the
+    CPU: rgb, depth, generated, real (all in [-1, 1]) and object_id.
     """
     accs = {"G": MetricAccumulator(), BG: MetricAccumulator()}
-    kept: dict[str, list[torch.Tensor]] = defaultdict(list)
-    n_kept = 0
+    # object id -> its first keep_examples touches, for the first keep_examples objects seen
+    pools: dict[int, list[dict[str, torch.Tensor]]] = {}
     with torch.no_grad():
         for batch in batches:
             real = batch["tactile"]
@@ -83,17 +84,17 @@ def score_batches(
             if generate is not None:
                 fake = generate(batch).detach().float().to(real.device)
                 accs["G"].add(objs, ssim(fake, real), mse(fake, real))
-                if n_kept < keep_examples:
-                    take = min(keep_examples - n_kept, len(real))
-                    for key, val in (
-                        ("rgb", batch["rgb"]),
-                        ("depth", batch["depth"]),
-                        ("generated", fake),
-                        ("real", real),
-                        ("object_id", batch["object_id"]),
-                    ):
-                        kept[key].append(val[:take].detach().cpu())
-                    n_kept += take
+                for i, oid in enumerate(ids):
+                    if oid not in pools and len(pools) >= keep_examples:
+                        continue
+                    pool = pools.setdefault(oid, [])
+                    if len(pool) < keep_examples:
+                        row = {"rgb": batch["rgb"], "depth": batch["depth"], "generated": fake, "real": real}
+                        pool.append(
+                            {k: v[i].detach().to("cpu", copy=True) for k, v in row.items()}
+                            | {"object_id": torch.tensor(oid)}
+                        )
             if on_batch is not None:
                 on_batch()
-    return accs, {k: torch.cat(v) for k, v in kept.items()}
+    rows = [p[r] for r in range(keep_examples) for p in pools.values() if r < len(p)][:keep_examples]
+    return accs, {k: torch.stack([row[k] for row in rows]) for k in rows[0]} if rows else {}

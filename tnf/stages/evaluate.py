@@ -129,6 +129,7 @@ def evaluate_model(cfg: Any, store: Any, method: str, folder: Path) -> dict[str,
                     folder / "examples.png"
                 )
                 results["examples"] = "examples.png"
+                results["examples_split"] = examples["split"]
         if ecfg.classify.enabled:
             seed_everything(int(cfg.seed))
             acc, info, warnings = classification(cfg, store, method, device, bar)
@@ -191,7 +192,7 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
         bg_all = accs[BG] if bg_all is None else bg_all.merge(accs[BG])
         if keep and kept:
             labels = [names[i] if names else str(i) for i in kept["object_id"].tolist()]
-            examples = {"tensors": kept, "labels": labels}
+            examples = {"tensors": kept, "labels": labels, "split": split}
     results: dict[str, Any] = {}
     method = cfg.evaluate.method or _method_label(cfg)
     for split, rows in out.items():
