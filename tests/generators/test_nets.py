@@ -96,7 +96,7 @@ def test_tn_cgan_inputs_are_configurable():
 
 
 def test_depth_slope_is_the_scaled_clipped_gradient():
-    from tnf.generators.tn_cgan import SLOPE_GAIN, depth_slope
+    from tnf.generators.tn_cgan import SLOPE_GAIN, conditions, depth_slope
 
     cols = torch.arange(16, dtype=torch.float32)
     ramp = (0.002 * cols).expand(1, 1, 16, 16).clone()  # depth rising 0.002 per column, flat down the rows
@@ -105,18 +105,24 @@ def test_depth_slope_is_the_scaled_clipped_gradient():
     torch.testing.assert_close(slope[0, 0, :, 1:-1], torch.full((16, 14), 0.002 * SLOPE_GAIN))
     torch.testing.assert_close(slope[0, 1], torch.zeros(16, 16))
     assert slope[0, 0, :, 0].mean() == pytest.approx(0.001 * SLOPE_GAIN)  # the replicated edge: half the step
+    both = conditions({"depth": ramp}, ("depth_and_slope",))["depth_and_slope"]  # one encoder sees the two
+    torch.testing.assert_close(both, torch.cat([ramp, slope], 1))
     step = torch.zeros(1, 1, 8, 8)
     step[..., 4:] = 1.0  # a jump to the far plane clips
     assert depth_slope(step).max() == 1.0
 
 
 @pytest.mark.parametrize("name", ["tn_cgan", "lee"])
-def test_depth_slope_input_trains_from_the_depth_image(name):
+@pytest.mark.parametrize(
+    "inputs", [["rgb", "depth", "background", "depth_slope"], ["rgb", "depth_and_slope", "background"]]
+)
+def test_depth_slope_input_trains_from_the_depth_image(name, inputs):
     torch.manual_seed(0)
-    skips = {"skips": ["background", "depth_slope"]} if name == "tn_cgan" else {}
-    g = build(name, image_size=32, inputs=["rgb", "depth", "background", "depth_slope"], **skips)
-    assert "depth_slope" in g.net_g.encoders
-    batch = make_pairs(4, 32)  # no depth_slope key: it is derived from depth
+    derived = inputs[-1] if "depth_slope" in inputs else inputs[1]
+    skips = {"skips": ["background", derived]} if name == "tn_cgan" else {}
+    g = build(name, image_size=32, inputs=inputs, **skips)
+    assert derived in g.net_g.encoders
+    batch = make_pairs(4, 32)  # no derived key: it is made from depth
     assert g.generate(batch).shape == (4, 3, 32, 32)
     before = _l1(g, batch)
     g.training_step(batch, PlainOptimisation(g))

@@ -36,8 +36,12 @@ from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
 from tnf.registry import GENERATORS
 
-CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2}
-"""Channels of each condition a generator may take; ``depth_slope`` is derived from ``depth`` (``conditions``)."""
+CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2, "depth_and_slope": 3}
+"""Channels of each condition a generator may take. ``depth_slope`` and ``depth_and_slope`` (the depth image
+with its slopes, for one encoder to see both) are derived from ``depth`` (``conditions``)."""
+
+DERIVED = ("depth_slope", "depth_and_slope")
+"""The conditions made from the depth image."""
 
 SLOPE_GAIN = 64.0
 """``depth_slope`` = this times the depth image's change per pixel, clipped to [-1, 1]. At sim_digit's framing
@@ -55,13 +59,21 @@ def depth_slope(depth: torch.Tensor) -> torch.Tensor:
 
 
 def needed_keys(inputs: tuple[str, ...]) -> tuple[str, ...]:
-    """The batch keys that ``inputs`` are made from (``depth_slope`` from ``depth``)."""
-    return tuple(dict.fromkeys("depth" if k == "depth_slope" else k for k in inputs))
+    """The batch keys that ``inputs`` are made from (the derived ones from ``depth``)."""
+    return tuple(dict.fromkeys("depth" if k in DERIVED else k for k in inputs))
 
 
 def conditions(batch: dict[str, torch.Tensor], inputs: tuple[str, ...]) -> dict[str, torch.Tensor]:
     """The condition images named in ``inputs``, from a batch (derived ones computed from theirs)."""
-    return {k: depth_slope(batch["depth"]) if k == "depth_slope" else batch[k] for k in inputs}
+    out = {}
+    for k in inputs:
+        if k == "depth_slope":
+            out[k] = depth_slope(batch["depth"])
+        elif k == "depth_and_slope":
+            out[k] = torch.cat([batch["depth"], depth_slope(batch["depth"])], 1)
+        else:
+            out[k] = batch[k]
+    return out
 
 
 def level_channels(ngf: int, level: int) -> int:
@@ -290,8 +302,9 @@ class TNcGAN(Generator):
     @dataclass
     class Config:
         inputs: list[str] = field(default_factory=lambda: ["rgb", "depth", "background"])
-        """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations) and
-        depth_slope, the depth image's x and y slopes (``depth_slope``), which a lit gel's image follows."""
+        """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations),
+        depth_slope, the depth image's x and y slopes (``depth_slope``), which a lit gel's image follows, and
+        depth_and_slope, the two together for one encoder (in place of depth)."""
         skips: list[str] = field(default_factory=lambda: ["background", "depth"])
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only). Depth
         skips place the imprint's edges from the depth image at every scale, not from the 1 x 1 bottleneck."""

@@ -282,7 +282,7 @@ class GeneratorContract(_ComponentContract):
         assert isinstance(generator, Generator)
         from tnf.generators.tn_cgan import CHANNELS
 
-        # Batch keys tnf serves, or conditions derived from them (depth_slope).
+        # Batch keys tnf serves, or conditions derived from them (depth_slope, depth_and_slope).
         assert generator.inputs and set(generator.inputs) <= set(CHANNELS)
 
     def test_generate_shape_and_range(self, generator):
