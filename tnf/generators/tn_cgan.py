@@ -24,6 +24,7 @@ generated data meant to train a model is better made with the term. The paper's 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -40,9 +41,6 @@ CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2, "depth_and_
 """Channels of each condition a generator may take. ``depth_slope`` and ``depth_and_slope`` (the depth image
 with its slopes, for one encoder to see both) are derived from ``depth`` (``conditions``)."""
 
-DERIVED = ("depth_slope", "depth_and_slope")
-"""The conditions made from the depth image."""
-
 SLOPE_GAIN = 64.0
 """``depth_slope`` = this times the depth image's change per pixel, clipped to [-1, 1]. At sim_digit's framing
 (a 40 mm depth window over a crop of about 30 mm) a 45 degree slope is about 0.75, so the gel-sized relief that
@@ -58,6 +56,13 @@ def depth_slope(depth: torch.Tensor) -> torch.Tensor:
     return (torch.cat([dx, dy], 1) * SLOPE_GAIN).clamp(-1.0, 1.0)
 
 
+DERIVED: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
+    "depth_slope": depth_slope,
+    "depth_and_slope": lambda depth: torch.cat([depth, depth_slope(depth)], 1),
+}
+"""The conditions made from the depth image, and how."""
+
+
 def needed_keys(inputs: tuple[str, ...]) -> tuple[str, ...]:
     """The batch keys that ``inputs`` are made from (the derived ones from ``depth``)."""
     return tuple(dict.fromkeys("depth" if k in DERIVED else k for k in inputs))
@@ -65,15 +70,7 @@ def needed_keys(inputs: tuple[str, ...]) -> tuple[str, ...]:
 
 def conditions(batch: dict[str, torch.Tensor], inputs: tuple[str, ...]) -> dict[str, torch.Tensor]:
     """The condition images named in ``inputs``, from a batch (derived ones computed from theirs)."""
-    out = {}
-    for k in inputs:
-        if k == "depth_slope":
-            out[k] = depth_slope(batch["depth"])
-        elif k == "depth_and_slope":
-            out[k] = torch.cat([batch["depth"], depth_slope(batch["depth"])], 1)
-        else:
-            out[k] = batch[k]
-    return out
+    return {k: DERIVED[k](batch["depth"]) if k in DERIVED else batch[k] for k in inputs}
 
 
 def level_channels(ngf: int, level: int) -> int:
