@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from tests.generators.synthetic import make_pairs
 from tnf.errors import TnfError
@@ -110,6 +111,22 @@ def test_depth_slope_is_the_scaled_clipped_gradient():
     step = torch.zeros(1, 1, 8, 8)
     step[..., 4:] = 1.0  # a jump to the far plane clips
     assert depth_slope(step).max() == 1.0
+
+
+def test_depth_slope_equals_the_padded_central_difference():
+    """The one-buffer derivation gives exactly what padding, differencing and concatenating give."""
+    from tnf.generators.tn_cgan import SLOPE_GAIN, depth_and_slope, depth_slope
+
+    torch.manual_seed(0)
+    depth = torch.rand(3, 1, 16, 24) * 0.03 - 0.5  # rough relief, non-square ...
+    depth[..., 10:, :] += 0.2  # ... with a jump that clips
+    padded = F.pad(depth, (1, 1, 1, 1), mode="replicate")
+    dx = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]) / 2
+    dy = (padded[..., 2:, 1:-1] - padded[..., :-2, 1:-1]) / 2
+    reference = (torch.cat([dx, dy], 1) * SLOPE_GAIN).clamp(-1.0, 1.0)
+    assert 0 < (reference.abs() == 1).float().mean() < 0.5  # some pixels clip, most do not
+    assert torch.equal(depth_slope(depth), reference)
+    assert torch.equal(depth_and_slope(depth), torch.cat([depth, reference], 1))
 
 
 @pytest.mark.parametrize("name", ["tn_cgan", "lee"])

@@ -47,18 +47,40 @@ SLOPE_GAIN = 64.0
 an imprint shows spans the range, and the crop's edges (jumps to the far plane) clip."""
 
 
+def _write_slopes(depth: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """Write the x and y slopes of ``depth`` [B, 1, H, W] into ``out`` [B, 2, H, W] in place: central
+    differences, one-sided at the edges (the replicated edge's central difference), times ``SLOPE_GAIN``,
+    clipped to [-1, 1]. Written into one buffer rather than padded, differenced and concatenated: at a
+    generation batch of 1,024 images the intermediate tensors are most of the derivation's memory traffic."""
+    dx, dy = out[:, :1], out[:, 1:]
+    dx[..., 1:-1] = depth[..., 2:] - depth[..., :-2]
+    dx[..., :1] = depth[..., 1:2] - depth[..., :1]
+    dx[..., -1:] = depth[..., -1:] - depth[..., -2:-1]
+    dy[..., 1:-1, :] = depth[..., 2:, :] - depth[..., :-2, :]
+    dy[..., :1, :] = depth[..., 1:2, :] - depth[..., :1, :]
+    dy[..., -1:, :] = depth[..., -1:, :] - depth[..., -2:-1, :]
+    return out.mul_(SLOPE_GAIN / 2).clamp_(-1.0, 1.0)  # a power-of-two scale: exactly (difference / 2) * gain
+
+
 def depth_slope(depth: torch.Tensor) -> torch.Tensor:
     """[B, 2, H, W] x and y slopes of a depth image [B, 1, H, W] (central differences, edges replicated), times
     ``SLOPE_GAIN``, clipped to [-1, 1]: the surface's orientation, which is what a lit gel's image shows."""
-    padded = F.pad(depth, (1, 1, 1, 1), mode="replicate")
-    dx = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]) / 2
-    dy = (padded[..., 2:, 1:-1] - padded[..., :-2, 1:-1]) / 2
-    return (torch.cat([dx, dy], 1) * SLOPE_GAIN).clamp(-1.0, 1.0)
+    b, _, h, w = depth.shape
+    return _write_slopes(depth, depth.new_empty(b, 2, h, w))
+
+
+def depth_and_slope(depth: torch.Tensor) -> torch.Tensor:
+    """[B, 3, H, W]: the depth image [B, 1, H, W] and its ``depth_slope``, for one encoder to see both."""
+    b, _, h, w = depth.shape
+    out = depth.new_empty(b, 3, h, w)
+    out[:, :1] = depth
+    _write_slopes(depth, out[:, 1:])
+    return out
 
 
 DERIVED: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "depth_slope": depth_slope,
-    "depth_and_slope": lambda depth: torch.cat([depth, depth_slope(depth)], 1),
+    "depth_and_slope": depth_and_slope,
 }
 """The conditions made from the depth image, and how."""
 
