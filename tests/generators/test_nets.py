@@ -42,30 +42,34 @@ def test_output_shape_and_range(name, size):
 def test_tn_cgan_default_architecture():
     g = GENERATORS.build({"name": "tn_cgan"})
     # One encoder per input, each down to 1 x 1 at 128 px (7 stride-2 levels).
-    assert set(g.net_g.encoders) == {"rgb", "depth", "background"}
+    assert set(g.net_g.encoders) == {"rgb", "depth_and_slope", "background"}
     assert all(len(e.blocks) == 7 for e in g.net_g.encoders.values())
-    assert g.net_g.encoders["depth"].blocks[0].in_channels == 1
+    assert g.net_g.encoders["depth_and_slope"].blocks[0].in_channels == 3  # the depth image and its two slopes
     # Skips from the background and depth encoders; no dropout (deterministic generation).
-    assert g.net_g.skips == ("background", "depth")
+    assert g.net_g.skips == ("background", "depth_and_slope")
     assert not [m for m in g.net_g.decoder.modules() if isinstance(m, NoiseDropout)]
     # The paper's layout: dropout 0.5 in the three innermost decoder blocks, on when generating.
-    paper = GENERATORS.build({"name": "tn_cgan", "skips": ["background"], "dropout": 0.5})
+    paper_layout = {"inputs": ["rgb", "depth", "background"], "skips": ["background"], "dropout": 0.5}
+    paper = GENERATORS.build({"name": "tn_cgan", **paper_layout})
+    assert paper.net_g.encoders["depth"].blocks[0].in_channels == 1
     drops = [m for m in paper.net_g.decoder.modules() if isinstance(m, NoiseDropout)]
     assert len(drops) == 3 and all(d.p == 0.5 and d.always_on for d in drops)
-    # PatchGAN on condition (3 + 1 + 3) + tactile (3) channels: 14 x 14 logits for 128 px.
-    assert g.net_d.net[0].in_channels == 10
-    assert g.net_d(torch.zeros(1, 10, 128, 128)).shape == (1, 1, 14, 14)
+    # PatchGAN on condition (3 + 3 + 3) + tactile (3) channels: 14 x 14 logits for 128 px.
+    assert g.net_d.net[0].in_channels == 12
+    assert g.net_d(torch.zeros(1, 12, 128, 128)).shape == (1, 1, 14, 14)
     assert g.cfg.lambda_l1 == 100 and g.cfg.lr == 2e-4 and g.cfg.beta1 == 0.5
     # A full-resolution head and an SSIM loss term (the paper: neither).
     assert g.net_g.head is not None and g.cfg.lambda_ssim == 60
 
 
-@pytest.mark.parametrize("skips", [["background"], ["background", "depth"]])
+@pytest.mark.parametrize("skips", [["background"], ["background", "depth_and_slope"]])
 def test_tn_cgan_skips_come_from_the_named_encoders(skips):
+    from tnf.generators.tn_cgan import conditions
+
     torch.manual_seed(0)
     g = build("tn_cgan", image_size=32, skips=skips).eval()
     batch = make_pairs(2, 32)
-    feats = {k: g.net_g.encoders[k](batch[k]) for k in g.inputs}
+    feats = {k: g.net_g.encoders[k](v) for k, v in conditions(batch, g.inputs).items()}
     seen = []
     hooks = [b.register_forward_pre_hook(lambda m, i: seen.append(i[0].clone())) for b in g.net_g.decoder.blocks]
     with torch.no_grad():
@@ -74,7 +78,7 @@ def test_tn_cgan_skips_come_from_the_named_encoders(skips):
     for h in hooks:
         h.remove()
     # Bottleneck = concatenated innermost features of the three encoders.
-    assert torch.equal(seen[0], torch.cat([feats[k][-1] for k in ("rgb", "depth", "background")], 1))
+    assert torch.equal(seen[0], torch.cat([feats[k][-1] for k in ("rgb", "depth_and_slope", "background")], 1))
     # Every later block's input ends with the named encoders' features at that scale, in the order named.
     n = len(seen)
     for k in range(1, n):
@@ -255,17 +259,21 @@ def test_tn_cgan_overfits_a_handful_of_pairs(residual):
 @pytest.mark.parametrize("norm", ["batch", "none"])
 @pytest.mark.parametrize("training", [True, False])
 def test_tn_cgan_full_res_head_sees_the_skip_images(norm, training):
+    from tnf.generators.tn_cgan import conditions
+
     torch.manual_seed(0)
     g = build("tn_cgan", image_size=32, full_res_head=True, norm=norm).train(training)
     batch = make_pairs(2, 32)
+    cond = conditions(batch, g.inputs)
     decoded = []
     hook = g.net_g.decoder.register_forward_hook(lambda m, i, o: decoded.append(o.clone()))
-    out = g.net_g({k: batch[k] for k in ("rgb", "depth", "background")})
+    out = g.net_g(cond)
     hook.remove()
-    # The head works on the decoder's ngf (4) full-resolution features followed by the background and depth
-    # images themselves, in the order of skips; it splits its first convolution instead of concatenating them.
+    # The head works on the decoder's ngf (4) full-resolution features followed by the background image and the
+    # depth image with its slopes, in the order of skips; it splits its first convolution instead of
+    # concatenating them.
     assert decoded[0].shape == (2, 4, 32, 32)
-    head_in = torch.cat([decoded[0], batch["background"], batch["depth"]], 1)
+    head_in = torch.cat([decoded[0], batch["background"], cond["depth_and_slope"]], 1)
     expected = batch["background"] + g.net_g.head(head_in)
     if not training:
         expected = expected.clamp(-1, 1)
@@ -274,7 +282,7 @@ def test_tn_cgan_full_res_head_sees_the_skip_images(norm, training):
     with torch.no_grad():
         w = g.net_g.head[1].weight
         w[:, 4:] = 0
-        assert not torch.allclose(g.net_g({k: batch[k] for k in ("rgb", "depth", "background")}), out, atol=1e-4)
+        assert not torch.allclose(g.net_g(cond), out, atol=1e-4)
     assert build("tn_cgan", image_size=32, full_res_head=False).net_g.head is None
     # Without skips the head sees the decoder's features alone.
     g = build("tn_cgan", image_size=32, full_res_head=True, skips=[]).eval()

@@ -229,14 +229,14 @@ def test_finetune_changes_only_unfrozen_parameters(trained, tmp_path):
     start = {k: v.clone() for k, v in system.generator.state_dict().items()}
     src_state = torch.load(src, weights_only=True)["state_dict"]
     assert all(torch.equal(start[k], src_state["generator." + k]) for k in start)  # starts from the checkpoint
-    frozen = system.generator.freeze(["net_g.encoders.rgb", "net_g.encoders.depth"])
+    frozen = system.generator.freeze(["net_g.encoders.rgb", "net_g.encoders.depth_and_slope"])
     assert frozen and all(n.startswith("net_g.encoders.") for n in frozen)
     dm = SyntheticPairs(n_train=8, n_val=4, size=32, batch_size=4, seed=7)
     train(tmp_path / "ft", epochs=1, dm=dm, system=system)
     end = system.generator.state_dict()
     for k in start:
         same = torch.equal(start[k], end[k])
-        if k.startswith(("net_g.encoders.rgb", "net_g.encoders.depth")):
+        if k.startswith(("net_g.encoders.rgb", "net_g.encoders.depth_and_slope")):
             assert same, f"frozen {k} changed"
         elif (
             k.endswith(".weight")
