@@ -1,10 +1,10 @@
 """``tn_cgan``: the Touch-NeRF conditional GAN (the paper's Fig. 2).
 
-The RGB image, the depth image and the sensor's background image go through separate convolutional encoders;
-their innermost features are concatenated and decoded by a U-Net decoder into the tactile image, with skip
-connections from the background and depth encoders (configurable) at every scale. A PatchGAN discriminator
-judges (condition, tactile) pairs; the generator minimises the cGAN loss plus lambda_L1 times the L1 distance
-to the real image, plus lambda_SSIM times (1 - SSIM).
+The RGB image, the depth image (by default with its slopes) and the sensor's background image go through
+separate convolutional encoders; their innermost features are concatenated and decoded by a U-Net decoder into
+the tactile image, with skip connections from the background and depth encoders (configurable) at every
+scale. A PatchGAN discriminator judges (condition, tactile) pairs; the generator minimises the cGAN loss plus
+lambda_L1 times the L1 distance to the real image, plus lambda_SSIM times (1 - SSIM).
 
 Seven defaults depart from the paper's figure, chosen on the validation split of ``sim_digit`` (seed 0, 30
 epochs, results/generators/tn_cgan_variants.md): the paper's layout (skips from the background encoder only,
