@@ -133,6 +133,30 @@ def test_depth_slope_equals_the_padded_central_difference():
     assert torch.equal(depth_and_slope(depth), torch.cat([depth, reference], 1))
 
 
+def test_depth_slopes_are_differentiable_and_reject_other_shapes():
+    """Gradients reach the depth image through the slopes, as through the padded form; a batch that is not
+    [B, 1, H, W] with H, W >= 2 gets a clear error, not an unpacking or narrowing one."""
+    from tnf.generators.tn_cgan import depth_and_slope, depth_slope
+
+    torch.manual_seed(0)
+    depth = (torch.rand(2, 1, 8, 8) * 0.01).requires_grad_(True)
+    depth_and_slope(depth).square().sum().backward()
+    assert depth.grad is not None and depth.grad.abs().sum() > 0
+    padded = F.pad(depth.detach(), (1, 1, 1, 1), mode="replicate").requires_grad_(True)
+    ref = (padded[..., 1:-1, 2:] - padded[..., 1:-1, :-2]) / 2 * 64.0
+    ref_d = torch.autograd.grad(ref.square().sum(), padded)[0]
+    mine = depth.detach().clone().requires_grad_(True)
+    got_d = torch.autograd.grad(depth_slope(mine)[:, :1].square().sum(), mine)[0]
+    # The replicated border's gradient folds back onto the edge pixels.
+    folded = ref_d[..., 1:-1, 1:-1].clone()
+    folded[..., :, 0] += ref_d[..., 1:-1, 0]
+    folded[..., :, -1] += ref_d[..., 1:-1, -1]
+    assert torch.allclose(got_d, folded, atol=1e-6)
+    for bad in (torch.rand(2, 8, 8), torch.rand(2, 3, 8, 8), torch.rand(2, 1, 1, 8)):
+        with pytest.raises(TnfError, match=r"\[B, 1, H, W\]"):
+            depth_slope(bad)
+
+
 @pytest.mark.parametrize("name", ["tn_cgan", "lee"])
 @pytest.mark.parametrize(
     "inputs", [["rgb", "depth", "background", "depth_slope"], ["rgb", "depth_and_slope", "background"]]

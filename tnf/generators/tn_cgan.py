@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tnf.errors import TnfError
 from tnf.eval import metrics
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
@@ -50,35 +51,38 @@ SLOPE_GAIN = 64.0
 an imprint shows spans the range, and the crop's edges (jumps to the far plane) clip."""
 
 
-def _write_slopes(depth: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-    """Write the x and y slopes of ``depth`` [B, 1, H, W] into ``out`` [B, 2, H, W] in place: central
-    differences, one-sided at the edges (the replicated edge's central difference), times ``SLOPE_GAIN``,
-    clipped to [-1, 1]. Each difference is written straight into its place in ``out`` (``out=``), with no
-    padded copy, intermediate tensor or concatenation: at a generation batch of 1,024 images those are most of
-    the derivation's memory traffic."""
-    dx, dy = out[:, :1], out[:, 1:]
-    for d, view in ((-1, dx), (-2, dy)):
-        n = depth.shape[d]
-        torch.sub(depth.narrow(d, 2, n - 2), depth.narrow(d, 0, n - 2), out=view.narrow(d, 1, n - 2))
-        torch.sub(depth.narrow(d, 1, 1), depth.narrow(d, 0, 1), out=view.narrow(d, 0, 1))
-        torch.sub(depth.narrow(d, n - 1, 1), depth.narrow(d, n - 2, 1), out=view.narrow(d, n - 1, 1))
-    return out.mul_(SLOPE_GAIN / 2).clamp_(-1.0, 1.0)  # a power-of-two scale: exactly (difference / 2) * gain
+def _slopes(depth: torch.Tensor, with_depth: bool) -> torch.Tensor:
+    """The x and y slopes of ``depth`` [B, 1, H, W] (after the depth image itself when ``with_depth``), in one
+    new buffer: central differences, one-sided at the edges (the replicated edge's central difference), times
+    ``SLOPE_GAIN``, clipped to [-1, 1]. Written into the buffer rather than padded, differenced and concatenated:
+    at a generation batch of 1,024 images the intermediate tensors are most of the derivation's memory traffic.
+    Assignments into the buffer's views (not ``out=`` arguments) keep it differentiable in ``depth``."""
+    if depth.dim() != 4 or depth.shape[1] != 1 or min(depth.shape[-2:]) < 2:
+        raise TnfError(f"depth slopes need a depth image batch [B, 1, H, W] with H, W >= 2, got {tuple(depth.shape)}")
+    b, _, h, w = depth.shape
+    out = depth.new_empty(b, 2 + with_depth, h, w)
+    if with_depth:
+        out[:, :1] = depth
+    dx, dy = out[:, -2:-1], out[:, -1:]
+    dx[..., 1:-1] = depth[..., 2:] - depth[..., :-2]
+    dx[..., :1] = depth[..., 1:2] - depth[..., :1]
+    dx[..., -1:] = depth[..., -1:] - depth[..., -2:-1]
+    dy[..., 1:-1, :] = depth[..., 2:, :] - depth[..., :-2, :]
+    dy[..., :1, :] = depth[..., 1:2, :] - depth[..., :1, :]
+    dy[..., -1:, :] = depth[..., -1:, :] - depth[..., -2:-1, :]
+    out[:, -2:].mul_(SLOPE_GAIN / 2).clamp_(-1.0, 1.0)  # a power-of-two scale: exactly (difference / 2) * gain
+    return out
 
 
 def depth_slope(depth: torch.Tensor) -> torch.Tensor:
     """[B, 2, H, W] x and y slopes of a depth image [B, 1, H, W] (central differences, edges replicated), times
     ``SLOPE_GAIN``, clipped to [-1, 1]: the surface's orientation, which is what a lit gel's image shows."""
-    b, _, h, w = depth.shape
-    return _write_slopes(depth, depth.new_empty(b, 2, h, w))
+    return _slopes(depth, with_depth=False)
 
 
 def depth_and_slope(depth: torch.Tensor) -> torch.Tensor:
     """[B, 3, H, W]: the depth image [B, 1, H, W] and its ``depth_slope``, for one encoder to see both."""
-    b, _, h, w = depth.shape
-    out = depth.new_empty(b, 3, h, w)
-    out[:, :1] = depth
-    _write_slopes(depth, out[:, 1:])
-    return out
+    return _slopes(depth, with_depth=True)
 
 
 DERIVED: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
