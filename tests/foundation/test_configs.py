@@ -44,3 +44,17 @@ def test_component_groups_name_registered_components():
             name = node.pop("name")
             node.update(REQUIRED.get((group, path.stem), {}))
             REGISTRIES[kind].config(name, node)  # raises TnfError on unknown or mistyped keys
+
+
+@pytest.mark.parametrize("experiment", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
+def test_every_experiment_augments_only_with_what_its_sensor_has(experiment):
+    """An experiment asking for the mirror augmentation has a sensor with a mirror symmetry (training would
+    stop with an error otherwise), and sim_digit's Digit, the one that asks, has it."""
+    from tnf.registry import SENSORS
+
+    cfg = compose("pipeline", [f"experiment={experiment}"])
+    sensor = SENSORS.build(cfg.sensor)
+    if "mirror" in cfg.data.augment:
+        assert sensor.mirror_channels() is not None, f"{experiment}: {cfg.sensor.name} has no mirror symmetry"
+    if experiment == "sim_digit":
+        assert list(cfg.data.augment) == ["mirror"] and sensor.mirror_channels() == (1, 0, 2)
