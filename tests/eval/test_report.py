@@ -163,3 +163,37 @@ def test_tnf_evaluate_refuses_missing_inputs(data_root):
         run(compose("evaluate", ["progress=false"]))
     with pytest.raises(TnfError, match="tnf touch"):
         run(compose("evaluate", ["debug=tiny", "progress=false", "evaluate.model=x", "evaluate.splits=[]"]))
+
+
+def test_tnf_evaluate_keeps_one_models_row_from_another_models_results(data_root):
+    """Two models evaluated with the same row label and seed into one report (a sweep over a generator setting)
+    must not leave only the last one's numbers: the second is refused unless it gets its own row or forces."""
+    from tnf.errors import TnfError
+    from tnf.stages.evaluate import run
+
+    _touch_data(data_root, generated_run="first")
+    _touch_data(data_root, generated_run="second")
+    over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.splits=[]", "evaluate.classifier.steps=4", "seed=0"]
+    run(compose("evaluate", [*over, "evaluate.model=first"]))
+    row = data_root / "reports/default/runs/main_T-N_seed0/results.json"
+    with pytest.raises(TnfError, match="already holds T-N seed 0 from model 'first'"):
+        run(compose("evaluate", [*over, "evaluate.model=second"]))
+    assert json.loads(row.read_text())["model"] == "first"
+    # its own row label: both rows in the report
+    out = run(compose("evaluate", [*over, "evaluate.model=second", "evaluate.method=T-N wide"]))
+    assert json.loads((data_root / "reports/default/runs/main_T-N_wide_seed0/results.json").read_text())["model"] == (
+        "second"
+    )
+    assert "| Sim + T-N wide |" in (data_root / "reports/default/report.md").read_text()
+    assert out["results"]["method"] == "T-N wide"
+    # forced: the second model replaces the first's row
+    run(compose("evaluate", [*over, "evaluate.model=second", "evaluate.force=true"]))
+    assert json.loads(row.read_text())["model"] == "second"
+    # collecting a folder where two models share a row is refused too
+    sweep = data_root / "sweep"
+    for job, model in enumerate(["first", "second"]):
+        (sweep / str(job)).mkdir(parents=True)
+        r = json.loads(row.read_text())
+        (sweep / str(job) / "results.json").write_text(json.dumps({**r, "model": model}))
+    with pytest.raises(TnfError, match="two models below"):
+        run(compose("evaluate", ["progress=false", f"evaluate.sweep_dir={sweep}", "evaluate.name=collected"]))

@@ -40,7 +40,17 @@ def run(cfg: Any) -> dict[str, Any]:
         files = find_results(Path(str(ecfg.sweep_dir)).expanduser())
         if not files:
             raise TnfError(f"no {RESULTS_FILE} below evaluate.sweep_dir={ecfg.sweep_dir}; did the sweep's jobs finish?")
-        for r in load_results(files):
+        collected = load_results(files)
+        seen: dict[str, tuple[Any, str]] = {}
+        for r in collected:  # the same model found twice (a sweep run again) is one run; two models are not
+            rid, where = run_id(r), str(Path(r["_path"]).parent)
+            if rid in seen and seen[rid][0] != r.get("model"):
+                raise TnfError(
+                    f"two models below {ecfg.sweep_dir} share the row {r['method']} seed {r['seed']} "
+                    f"({seen[rid][1]} and {where}): give the sweep's jobs distinct row labels (evaluate.method=LABEL)"
+                )
+            seen[rid] = (r.get("model"), where)
+        for r in collected:
             src = Path(r.pop("_path"))
             dst = runs_dir / run_id(r)
             dst.mkdir(parents=True, exist_ok=True)
@@ -59,6 +69,7 @@ def run(cfg: Any) -> dict[str, Any]:
         chash = config_hash(hashed)
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
         old = folder / RESULTS_FILE
+        _check_not_another_models(old, str(ecfg.model), method, cfg.seed, bool(ecfg.force))
         if not ecfg.force and old.is_file() and load_results([old])[0].get("config_hash") == chash:
             console.print(
                 f"{method} seed {cfg.seed}: results exist with the same settings, skipped (evaluate.force=true)"
@@ -68,6 +79,8 @@ def run(cfg: Any) -> dict[str, Any]:
         else:
             results = evaluate_model(cfg, store, method, folder)
             results["config_hash"] = chash
+            # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile.
+            _check_not_another_models(old, str(ecfg.model), method, cfg.seed, bool(ecfg.force))
             write_json(folder / RESULTS_FILE, results)
         _copy_to_hydra_output(folder)
         out["results"] = results
@@ -89,6 +102,24 @@ def run_id(r: Mapping[str, Any]) -> str:
     """Folder name of a run's results: ``<table>_<method>_seed<k>`` with unsafe characters replaced."""
     raw = f"{r.get('table', 'main')}_{r['method']}_seed{r['seed']}"
     return re.sub(r"[^A-Za-z0-9_.+-]", "_", raw)
+
+
+def _check_not_another_models(results_file: Path, model: str, method: str, seed: Any, force: bool) -> None:
+    """A report holds one run per table, row label and seed: refuse to replace another model's results there
+    (two models evaluated with the same label and seed, as a sweep over a generator setting would, would
+    otherwise leave only the last one's numbers, silently). ``evaluate.force`` replaces them."""
+    from tnf.eval.aggregate import load_results
+
+    if force or not results_file.is_file():
+        return
+    other = load_results([results_file])[0].get("model")
+    if other is not None and other != model:
+        raise TnfError(
+            f"report {results_file.parents[2].name!r} already holds {method} seed {seed} from model {other!r}; "
+            f"evaluating {model!r} there would replace it. Give it its own row (evaluate.method=LABEL; in a sweep "
+            "over a generator setting, a label naming that setting), its own report (evaluate.name=...), or "
+            "replace it (evaluate.force=true)"
+        )
 
 
 def _method_label(cfg: Any) -> str:
