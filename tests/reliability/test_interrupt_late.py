@@ -301,12 +301,13 @@ def check_evaluated(root: Path, ref: Path) -> None:
 
 
 @pytest.mark.slow
-def test_evaluate_killed_while_classifying_recomputes_the_run(tmp_path, upstream, reference):
+def test_evaluate_killed_while_evaluating_recomputes_the_run(tmp_path, upstream, reference):
     root = tmp_path / "data"
     evaluate_inputs(root, upstream, reference)
-    # examples.png is written when the image metrics are done, before the classification task.
-    assert kill_when(root, EVALUATE, (root / RESULTS.parent / "examples.png").is_file)
-    assert not (root / RESULTS).exists() and not (root / REPORT / "report.md").exists()
+    # Killed once the job has started (Hydra has written its config): nothing of the run is kept, not even the
+    # example figure, which is written with the results.
+    assert kill_when(root, EVALUATE, any_file(root / "logs", "**/.hydra/config.yaml"))
+    assert not (root / RESULTS.parent).exists() and not (root / REPORT / "report.md").exists()
     run_to_end(root, *EVALUATE)
     check_evaluated(root, reference)
 
@@ -355,7 +356,9 @@ def test_pipeline_killed_in_generate_and_in_evaluate_resumes(tmp_path, upstream,
     # 1: killed while generating the first object; 2: killed after generating, in the evaluation.
     assert kill_when(root, PIPELINE, any_file(root / GENERATED, ".ball.*.partial/images/*.png"))
     assert finished_items(root, "generated") == []
-    assert kill_when(root, PIPELINE, (root / RESULTS.parent / "examples.png").is_file)
+    assert kill_when(
+        root, PIPELINE, lambda: len([p for p in finished_items(root, "generated") if p.suffix != ".partial"]) == 2
+    )
     assert not (root / RESULTS).exists()
     generated = manifest_stamps(root, "generated")
     assert len(generated) == 2

@@ -10,6 +10,7 @@ there. ``evaluate.sweep_dir=DIR`` instead collects the results.json files of a H
 from __future__ import annotations
 
 import functools
+import io
 import re
 import shutil
 from collections.abc import Mapping
@@ -23,7 +24,7 @@ def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore, config_hash, write_json
+    from tnf.artifacts import ArtifactStore, config_hash, write_bytes, write_json
     from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
     from tnf.eval.report import write_report
 
@@ -77,10 +78,13 @@ def run(cfg: Any) -> dict[str, Any]:
             results = load_results([old])[0]
             results.pop("_path")
         else:
-            results = evaluate_model(cfg, store, method, folder)
+            results, examples_png = evaluate_model(cfg, store, method)
             results["config_hash"] = chash
-            # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile.
+            # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile. Nothing
+            # of this run is in the row's folder until here, so a refused run leaves the other model's intact.
             _check_not_another_models(old, str(ecfg.model), method, cfg.seed, bool(ecfg.force))
+            if examples_png is not None:
+                write_bytes(folder / str(results["examples"]), examples_png)
             write_json(folder / RESULTS_FILE, results)
         _copy_to_hydra_output(folder)
         out["results"] = results
@@ -129,14 +133,15 @@ def _method_label(cfg: Any) -> str:
     return METHOD_LABELS.get(name, name)
 
 
-def evaluate_model(cfg: Any, store: Any, method: str, folder: Path) -> dict[str, Any]:
-    """Image metrics and the classification task for ``cfg.evaluate.model``; returns the results dict."""
+def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], bytes | None]:
+    """Image metrics and the classification task for ``cfg.evaluate.model``: the results dict, and the example
+    figure as PNG bytes (None without image metrics), which the caller writes beside the results."""
     from tnf.eval.aggregate import SCHEMA
     from tnf.runtime import progress, resolve_device, seed_everything
 
     ecfg = cfg.evaluate
     device = resolve_device(str(cfg.device))
-    folder.mkdir(parents=True, exist_ok=True)
+    examples_png = None
     results: dict[str, Any] = {
         "schema": SCHEMA,
         "table": str(ecfg.table),
@@ -156,9 +161,9 @@ def evaluate_model(cfg: Any, store: Any, method: str, folder: Path) -> dict[str,
             if examples is not None:
                 from tnf.eval.figures import example_grid
 
-                example_grid(examples["tensors"], float(ecfg.diff_threshold), examples["labels"]).save(
-                    folder / "examples.png"
-                )
+                buf = io.BytesIO()
+                example_grid(examples["tensors"], float(ecfg.diff_threshold), examples["labels"]).save(buf, "PNG")
+                examples_png = buf.getvalue()
                 results["examples"] = "examples.png"
                 results["examples_split"] = examples["split"]
         if ecfg.classify.enabled:
@@ -167,7 +172,7 @@ def evaluate_model(cfg: Any, store: Any, method: str, folder: Path) -> dict[str,
             results["accuracy"] = acc
             results["classify"] = info
             results["warnings"] += warnings
-    return results
+    return results, examples_png
 
 
 def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str, Any], dict[str, Any] | None]:
