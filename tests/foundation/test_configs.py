@@ -58,3 +58,23 @@ def test_every_experiment_augments_only_with_what_its_sensor_has(experiment):
         assert sensor.mirror_channels() is not None, f"{experiment}: {cfg.sensor.name} has no mirror symmetry"
     if experiment == "sim_digit":
         assert list(cfg.data.augment) == ["mirror"] and sensor.mirror_channels() == (1, 0, 2)
+
+
+def test_the_transfer_frames_its_pairs_as_the_model_it_fine_tunes():
+    """sim_omnitact_transfer fine-tunes sim_digit's T-N model: its OmniTact crops must be framed the same way
+    (each as its own sensor's gel patch with crop_extent=sensor), or the pretrained encoders would see crops of
+    another scale and centring. Both experiments' pair settings must also make a valid framing."""
+    from tnf.data.render import Framing
+    from tnf.registry import SENSORS
+
+    framings = {}
+    for experiment in ("sim_digit", "sim_omnitact_transfer"):
+        cfg = compose("pipeline", [f"experiment={experiment}"])
+        framing = Framing.from_settings(cfg.pair).with_sensor(SENSORS.build(cfg.sensor))
+        framings[experiment] = framing
+    digit, omnitact = framings["sim_digit"], framings["sim_omnitact_transfer"]
+    assert digit.crop_extent == "sensor" and digit.per_view
+    shared = ("crop_distance", "crop_extent", "crop_margin", "crop_px", "depth_norm", "depth_window", "render_px")
+    assert {k: getattr(digit, k) for k in shared} == {k: getattr(omnitact, k) for k in shared}
+    # each frames its own sensor's patch: the Digit's is portrait, OmniTact's square
+    assert digit.view_size[1] > digit.view_size[0] and omnitact.view_size[0] == pytest.approx(omnitact.view_size[1])
