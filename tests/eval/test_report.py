@@ -2,6 +2,7 @@
 
 import csv
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -197,3 +198,12 @@ def test_tnf_evaluate_keeps_one_models_row_from_another_models_results(data_root
         (sweep / str(job) / "results.json").write_text(json.dumps({**r, "model": model}))
     with pytest.raises(TnfError, match="two models below"):
         run(compose("evaluate", ["progress=false", f"evaluate.sweep_dir={sweep}", "evaluate.name=collected"]))
+    # and collecting the first model's run into the report whose row now holds the second's is refused, leaving
+    # the row as it was; forced, it replaces it
+    shutil.rmtree(sweep / "1")
+    collect = ["progress=false", f"evaluate.sweep_dir={sweep}"]
+    with pytest.raises(TnfError, match="already holds T-N seed 0 from model 'second'"):
+        run(compose("evaluate", collect))
+    assert json.loads(row.read_text())["model"] == "second"
+    run(compose("evaluate", [*collect, "evaluate.force=true"]))
+    assert json.loads(row.read_text())["model"] == "first"

@@ -27,9 +27,17 @@ def run_tnf(capsys, *args: str) -> tuple[int, str]:
 
 
 def finished_items(root: Path, stage: str) -> list[Path]:
-    """Item folders of ``stage`` that carry a manifest (finished items)."""
+    """Item folders of ``stage`` that carry a manifest (finished items).
+
+    Safe to poll while a stage runs: a ``.partial`` folder renamed into place while the walk lists it makes the
+    walk fail, and it is then walked again."""
     base = root / stage
-    return sorted(m.parent for m in base.rglob("manifest.json")) if base.is_dir() else []
+    for _ in range(10):
+        try:
+            return sorted(m.parent for m in base.rglob("manifest.json")) if base.is_dir() else []
+        except FileNotFoundError:
+            continue
+    return []
 
 
 def partials(root: Path) -> list[Path]:

@@ -36,6 +36,7 @@ def run(cfg: Any) -> dict[str, Any]:
     if ecfg.table not in ("main", "transfer"):
         raise TnfError(f"evaluate.table must be main or transfer, got {ecfg.table!r}")
     out: dict[str, Any] = {}
+    force = bool(ecfg.force)
 
     if ecfg.sweep_dir:
         files = find_results(Path(str(ecfg.sweep_dir)).expanduser())
@@ -51,13 +52,17 @@ def run(cfg: Any) -> dict[str, Any]:
                     f"({seen[rid][1]} and {where}): give the sweep's jobs distinct row labels (evaluate.method=LABEL)"
                 )
             seen[rid] = (r.get("model"), where)
+            # nor does a collected run replace another model's row already in the report (checked for every run
+            # before any is written, so a refused collection leaves the report as it was)
+            if r.get("model") is not None:
+                _check_not_another_models(runs_dir / rid / RESULTS_FILE, str(r["model"]), r["method"], r["seed"], force)
         for r in collected:
             src = Path(r.pop("_path"))
             dst = runs_dir / run_id(r)
             dst.mkdir(parents=True, exist_ok=True)
-            write_json(dst / RESULTS_FILE, r)
             if r.get("examples") and (src.parent / r["examples"]).is_file():
                 shutil.copyfile(src.parent / r["examples"], dst / r["examples"])
+            write_json(dst / RESULTS_FILE, r)
         console.print(f"collected {len(files)} run(s) from {ecfg.sweep_dir}")
 
     if ecfg.model:
@@ -70,8 +75,8 @@ def run(cfg: Any) -> dict[str, Any]:
         chash = config_hash(hashed)
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
         old = folder / RESULTS_FILE
-        _check_not_another_models(old, str(ecfg.model), method, cfg.seed, bool(ecfg.force))
-        if not ecfg.force and old.is_file() and load_results([old])[0].get("config_hash") == chash:
+        _check_not_another_models(old, str(ecfg.model), method, cfg.seed, force)
+        if not force and old.is_file() and load_results([old])[0].get("config_hash") == chash:
             console.print(
                 f"{method} seed {cfg.seed}: results exist with the same settings, skipped (evaluate.force=true)"
             )
@@ -82,7 +87,7 @@ def run(cfg: Any) -> dict[str, Any]:
             results["config_hash"] = chash
             # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile. Nothing
             # of this run is in the row's folder until here, so a refused run leaves the other model's intact.
-            _check_not_another_models(old, str(ecfg.model), method, cfg.seed, bool(ecfg.force))
+            _check_not_another_models(old, str(ecfg.model), method, cfg.seed, force)
             if examples_png is not None:
                 write_bytes(folder / str(results["examples"]), examples_png)
             write_json(folder / RESULTS_FILE, results)
