@@ -7,17 +7,20 @@ generating are scored both ways (the row ``dropout off`` switches it off). This 
 chosen (results/generators/tn_cgan_variants.md): on the validation split, never on a test split.
 ``--split train`` scores the pairs a run trained on: how closely the generator fits them, apart from how it
 generalises. ``--per-object`` adds each object's SSIM (one column per run, beside BG), to see where a mean is lost.
+``--mirror-average`` also scores each run averaged with its own image of the mirrored touch (the row ``mirror
+avg``; ``GeneratorSystem.generate(batch, mirror)``), for sensors with a mirror symmetry.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 from pathlib import Path
 
 import torch
 from torch.utils.data import DataLoader
 
-from tnf.data import PairDataset, collate_pairs
+from tnf.data import PairDataset, collate_pairs, sensor_mirror
 from tnf.errors import TnfError
 from tnf.eval import metrics
 from tnf.generators import load_generator
@@ -55,6 +58,7 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--per-object", action="store_true", help="also each object's SSIM per run")
+    ap.add_argument("--mirror-average", action="store_true", help="also each run averaged with its mirror")
     args = ap.parse_args()
 
     root = Path(args.data_root)
@@ -65,21 +69,24 @@ def main() -> None:
     if len(ds) == 0:
         raise SystemExit(f"dataset {args.dataset} has no {args.split} pairs")
     loader = DataLoader(ds, batch_size=args.batch, shuffle=False, collate_fn=collate_pairs)
+    mirror = sensor_mirror(ds.manifest, root / "pairs" / args.dataset) if args.mirror_average else None
     print(f"{args.dataset} {args.split}: {len(ds)} pairs, device {args.device}")
     print(f"{'run':<28} {'generation':<12} {'SSIM':>7} {'MSE':>7}")
     columns: dict[str, torch.Tensor] = {}
     for run in args.runs:
         system = load_generator(root / "models" / run / "best.ckpt", args.device)
         drops = [m for m in system.modules() if isinstance(m, NoiseDropout)]
-        modes = [("as trained", None)] + ([("dropout off", False)] if any(d.always_on for d in drops) else [])
-        for label, on in modes:
+        modes = [("as trained", None, None)]
+        modes += [("dropout off", False, None)] if any(d.always_on for d in drops) else []
+        modes += [("mirror avg", None, mirror)] if mirror is not None else []
+        for label, on, mirror_order in modes:
             for d in drops:
                 if on is not None:
                     d.always_on = on
             torch.manual_seed(0)
-            s, m, _ = score(system.generate, loader, args.device)
+            s, m, _ = score(functools.partial(system.generate, mirror=mirror_order), loader, args.device)
             print(f"{run:<28} {label:<12} {s.mean():7.4f} {m.mean():7.1f}")
-            columns[run if on is None else f"{run} ({label})"] = s
+            columns[run if label == "as trained" else f"{run} ({label})"] = s
     s, m, object_id = score(lambda b: b["background"], loader, args.device)
     print(f"{'BG':<28} {'-':<12} {s.mean():7.4f} {m.mean():7.1f}")
     if args.per_object:

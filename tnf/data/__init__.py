@@ -13,6 +13,7 @@ from tnf.data.dataset import (
     PairDataset,
     augment_batch,
     collate_pairs,
+    mirror_batch,
     sensor_mirror,
     to_float_batch,
 )
@@ -36,6 +37,7 @@ __all__ = [
     "datamodule_from_config",
     "dataset_name",
     "crop_for_sensor",
+    "mirror_batch",
     "open_pairs",
     "preprocess_rgbd",
     "render_pairs_for_touches",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -340,6 +340,33 @@ def sensor_mirror(manifest: dict[str, Any], where: Any) -> tuple[int, ...]:
     return channels
 
 
+MIRRORED_IMAGES = ("rgb", "depth", "background", "tactile")
+"""Batch keys that the mirror flips left-right; of these, ``background`` and ``tactile`` also reorder channels."""
+
+
+def mirror_batch(batch: Mapping[str, torch.Tensor], mirror: Sequence[int]) -> dict[str, torch.Tensor]:
+    """Every image of ``batch`` (those of ``MIRRORED_IMAGES`` it holds, [B, C, H, W]) as the sensor sees the
+    mirrored object: flipped left-right, the sensor's images with their channels in the order ``mirror``
+    (``Sensor.mirror_channels``). New tensors; other keys are left out."""
+    out = {}
+    for k in MIRRORED_IMAGES:
+        if k not in batch:
+            continue
+        x = batch[k].flip(-1)
+        if k in ("background", "tactile"):
+            x = x.index_select(1, torch.tensor(list(mirror), device=x.device))
+        out[k] = x
+    return out
+
+
+def unmirror_channels(mirror: Sequence[int]) -> list[int]:
+    """The channel order that undoes ``mirror`` (``x[order][undo] == x``)."""
+    undo = [0] * len(mirror)
+    for i, c in enumerate(mirror):
+        undo[c] = i
+    return undo
+
+
 def augment_batch(batch: Batch, augment: Sequence[str], mirror: Sequence[int] | None = None) -> None:
     """The augmentations named in ``augment`` (see ``AUGMENTATIONS``) on a float batch, each pair drawn on its
     own; the batch's images are replaced by new tensors (a shared, stride-0 background is never written to).
@@ -350,13 +377,9 @@ def augment_batch(batch: Batch, augment: Sequence[str], mirror: Sequence[int] | 
         if mirror is None:
             raise TnfError("the mirror augmentation needs the sensor's channel order (sensor_mirror)")
         flip = (torch.rand(b) < 0.5).to(batch["rgb"].device).view(b, 1, 1, 1)
-        order = torch.tensor(list(mirror), device=batch["rgb"].device)
-        for k in ("rgb", "depth", "background", "tactile"):
-            x = batch[k]
-            mirrored = x.flip(-1)
-            if k in ("background", "tactile"):
-                mirrored = mirrored.index_select(1, order)
-            batch[k] = torch.where(flip, mirrored, x)
+        whole = mirror_batch(batch, mirror)
+        for k in whole:
+            batch[k] = torch.where(flip, whole[k], batch[k])
     if "jitter" in augment:
         gain = 1 + 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
         shift = 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)

@@ -27,6 +27,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from tnf.data.dataset import mirror_batch, unmirror_channels
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.base import Generator
 from tnf.registry import GENERATORS, config_to_dict, split_spec
@@ -130,12 +131,22 @@ class GeneratorSystem(L.LightningModule):
         return self.generator.generate(batch)
 
     @torch.no_grad()
-    def generate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Generate in eval mode without gradients (dropout stays on where the generator keeps it)."""
+    def generate(self, batch: dict[str, torch.Tensor], mirror: Sequence[int] | None = None) -> torch.Tensor:
+        """Generate in eval mode without gradients (dropout stays on where the generator keeps it).
+
+        With ``mirror`` (the sensor's ``Sensor.mirror_channels``), each image is the mean of the generator's
+        image and, mirrored back, its image of the mirrored conditions (``tnf.data.mirror_batch``): a sensor
+        with that symmetry makes the two alike, so the mean is the generator's estimate from both views.
+        """
         was = self.training
         self.eval()
         try:
-            return self.generator.generate(batch)
+            fake = self.generator.generate(batch)
+            if mirror is None:
+                return fake
+            flipped = self.generator.generate({**batch, **mirror_batch(batch, mirror)})
+            back = flipped.flip(-1).index_select(1, torch.tensor(unmirror_channels(mirror), device=flipped.device))
+            return (fake + back) / 2
         finally:
             self.train(was)
 
