@@ -122,3 +122,39 @@ def test_generate_frames_novel_poses_as_its_training_dataset(data_root, trained_
     # A fixed crop cannot frame what the model was trained on this way: refused before anything is rendered.
     with pytest.raises(TnfError, match="crop_distance=contact"):
         generate.run(compose("generate", [*gen, "generate.crop_px=48", "generate.run_name=fixed"]))
+
+
+def test_mirror_averaged_generation(data_root, trained_model):
+    import torch
+
+    from tnf.data import PairDataset, mirror_batch
+    from tnf.eval.metrics import ssim
+    from tnf.generators import load_generator
+    from tnf.stages import evaluate, generate
+
+    def images(run_name, *extra):
+        args = [*GEN, f"generate.model={trained_model}", "generate.n_poses=3", f"generate.run_name={run_name}"]
+        out = generate.run(compose("generate", [*args, *extra]))
+        folder = data_root / "generated" / run_name / "builtin" / "ball"
+        return out, [np.asarray(Image.open(folder / t["image"])) for t in TouchItem.load(folder).touches]
+
+    _, plain = images("plain")
+    out, averaged = images("averaged", "generate.mirror_average=true")
+    assert out["written"] == {"ball": 3}
+    assert any(not np.array_equal(a, b) for a, b in zip(plain, averaged, strict=True))
+    assert images("averaged")[0]["written"] == {"ball": 3}  # switched off again: made again, not "up to date"
+
+    # `tnf evaluate` scores the test images as generate makes them, with the mirror of the dataset's sensor
+    # (the Digit's: red and green swap).
+    def val_ssim(*extra):
+        args = [*TINY, f"evaluate.model={trained_model}", "evaluate.dataset=digit-hashgrid", "evaluate.splits=[val]"]
+        args.append("evaluate.classify.enabled=false")
+        return evaluate.run(compose("evaluate", [*args, *extra]))["results"]["image"]["val"]["T-N"]["ssim"]
+
+    system = load_generator(data_root / "models" / trained_model / "best.ckpt", "cpu")
+    batch = PairDataset(data_root / "pairs" / "digit-hashgrid", ["val"]).__getitems__([0, 1])
+    expect = ssim(system.generate(batch, (1, 0, 2)), batch["tactile"]).mean().item()
+    assert val_ssim("generate.mirror_average=true", "evaluate.name=averaged") == pytest.approx(expect, abs=1e-5)
+    flipped = {**batch, **mirror_batch(batch, (1, 0, 2))}
+    assert not torch.allclose(system.generate(flipped, (1, 0, 2)), system.generate(flipped), atol=1e-4)
+    assert val_ssim("evaluate.name=plain") != pytest.approx(expect, abs=1e-5)

@@ -319,9 +319,10 @@ def check_augment(augment: Sequence[str] | None) -> tuple[str, ...]:
     return names
 
 
-def sensor_mirror(manifest: dict[str, Any], where: Any) -> tuple[int, ...]:
+def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool = True) -> tuple[int, ...] | None:
     """The mirror symmetry (``Sensor.mirror_channels``) of the sensor a dataset was made with, from the sensor
-    record ``tnf pair`` writes into its manifest; a TnfError when there is no record or no symmetry."""
+    record ``tnf pair`` writes into its manifest; a TnfError when there is no record, or no symmetry and
+    ``required`` (else None)."""
     from tnf.registry import SENSORS
 
     rec = manifest.get("sensor")
@@ -332,7 +333,7 @@ def sensor_mirror(manifest: dict[str, Any], where: Any) -> tuple[int, ...]:
         )
     sensor = SENSORS.build({"name": rec["name"], **(rec.get("config") or {})})
     channels = sensor.mirror_channels()
-    if channels is None:
+    if channels is None and required:
         raise TnfError(
             f"sensor {rec['name']!r} of dataset {where} has no mirror symmetry (its gel, lights or markers are "
             "not left-right mirror images up to a swap of colour channels); drop 'mirror' from data.augment"

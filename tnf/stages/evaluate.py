@@ -185,7 +185,8 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     import torch
     from torch.utils.data import DataLoader
 
-    from tnf.data import PairDataset, collate_pairs
+    from tnf.artifacts import MANIFEST, read_json
+    from tnf.data import PairDataset, collate_pairs, sensor_mirror
     from tnf.data.datamodule import resolve_dataset
     from tnf.eval.scoring import BG, score_batches
 
@@ -202,10 +203,14 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     if not ckpt.is_file():
         raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check evaluate.model/checkpoint")
     system = load_generator(ckpt, device)
+    # The model makes its test images as `tnf generate` makes its images (generate.mirror_average).
+    mirror = None
+    if cfg.generate.mirror_average:
+        mirror = sensor_mirror(read_json(pairs / MANIFEST, "dataset manifest"), pairs, required=False)
 
     def generate(batch: Any) -> torch.Tensor:
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
-        return system.generate(moved)
+        return system.generate(moved, mirror)
 
     out: dict[str, Any] = {}
     bg_all = None

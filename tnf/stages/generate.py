@@ -92,6 +92,13 @@ def run(cfg: Any) -> dict[str, Any]:
     gel = gel_size_m(sensor)
     background_full = sensor.background()
     background = resize_uint8(background_full, SIZE)
+    mirror = sensor.mirror_channels() if g.mirror_average else None
+    if g.mirror_average:
+        console.print(
+            f"generate: each image averaged with its mirror image ({sensor.name}'s mirror symmetry)"
+            if mirror is not None
+            else f"generate: {sensor.name} has no mirror symmetry; images are not mirror-averaged"
+        )
     prep = _preprocessing(cfg, store, model_dir)
     file_poses = read_poses(g.poses_file) if g.poses_file else None
     scene_name = str(cfg.scene.name)
@@ -179,7 +186,7 @@ def run(cfg: Any) -> dict[str, Any]:
                         "depth": torch.from_numpy(depth01.astype(np.float32)).to(device)[:, None].mul(2).sub(1),
                         "background": bg_t.expand(b, -1, -1, -1),
                     }
-                    tactile = system.generate(batch)
+                    tactile = system.generate(batch, mirror)
                     images = ((tactile.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
                     images = images.permute(0, 2, 3, 1).cpu().numpy()
                     for i in range(b):
