@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import warnings
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 import torch
@@ -317,6 +317,14 @@ def check_augment(augment: Sequence[str] | None) -> tuple[str, ...]:
     if unknown:
         raise TnfError(f"unknown augmentation {unknown[0]!r} in data.augment; known: {', '.join(AUGMENTATIONS)}")
     return names
+
+
+@overload
+def sensor_mirror(manifest: dict[str, Any], where: Any, required: Literal[True] = ...) -> tuple[int, ...]: ...
+
+
+@overload
+def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool) -> tuple[int, ...] | None: ...
 
 
 def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool = True) -> tuple[int, ...] | None:
