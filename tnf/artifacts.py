@@ -93,6 +93,30 @@ def write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
         raise
 
 
+@contextlib.contextmanager
+def exclusive(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold ``folder``'s lock (an advisory ``flock`` on its ``.lock`` file) for the block.
+
+    For files that several jobs rebuild from what they all write, such as a report made from every run present:
+    the jobs take turns, so the last one to write has listed every run written before it took the lock, and no
+    job writes over a newer rebuild with an older one. Where the platform has no ``flock``, the block runs
+    unlocked.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        yield
+        return
+    with open(folder / ".lock", "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
 def read_json(path: str | os.PathLike[str], what: str = "file") -> Any:
     """Read JSON, turning a missing or malformed file into a one-line TnfError naming it."""
     path = Path(path)

@@ -207,3 +207,28 @@ def test_tnf_evaluate_keeps_one_models_row_from_another_models_results(data_root
     assert json.loads(row.read_text())["model"] == "second"
     run(compose("evaluate", [*collect, "evaluate.force=true"]))
     assert json.loads(row.read_text())["model"] == "first"
+
+
+def test_parallel_jobs_rebuild_the_report_one_at_a_time(data_root):
+    """Jobs of a sweep each rebuild the report from every run present. A rebuild waits while another job holds
+    the report (writing its run, then its own rebuild), so the report written last lists that job's run too."""
+    import threading
+
+    from tnf.artifacts import exclusive, write_json
+    from tnf.stages.evaluate import run
+
+    report = data_root / "reports" / "sweep"
+    write_json(report / "runs" / "main_T-N_seed0" / "results.json", _result("main", "T-N", 0, 0.97, 20.0, 95.0))
+    cfg = compose("evaluate", ["progress=false", "evaluate.name=sweep"])  # rebuilds the report only
+    rebuilds: list = []
+    with exclusive(report):  # another job, between writing its run and rebuilding
+        job = threading.Thread(target=lambda: rebuilds.append(run(cfg)))
+        job.start()
+        job.join(timeout=3)
+        assert job.is_alive() and not (report / "report.md").exists()  # waiting for the report
+        write_json(report / "runs" / "main_T-N_seed1" / "results.json", _result("main", "T-N", 1, 0.97, 22.0, 95.0))
+    job.join()
+    assert (
+        rebuilds
+        and "| Novel view | T-N | 0.970 ± 0.000 | 0.980 ± 0.001 | 21.0 ± 1.0 |" in (report / "report.md").read_text()
+    )

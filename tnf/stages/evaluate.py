@@ -24,7 +24,7 @@ def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore, config_hash, write_bytes, write_json
+    from tnf.artifacts import ArtifactStore, config_hash, exclusive, write_bytes, write_json
     from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
     from tnf.eval.report import write_report
 
@@ -94,13 +94,19 @@ def run(cfg: Any) -> dict[str, Any]:
         _copy_to_hydra_output(folder)
         out["results"] = results
 
-    files = find_results(runs_dir) if runs_dir.is_dir() else []
-    if not files:
-        raise TnfError(
-            f"nothing to report in {report_dir}: give evaluate.model=RUN (a folder under {store.path('models')}) "
-            "or evaluate.sweep_dir=DIR"
-        )
-    tables = write_report(load_results(files), report_dir, name=str(ecfg.name))
+    # Jobs of a sweep rebuild the same report, each from every run present: one at a time (tnf.artifacts.exclusive),
+    # so that a job that listed the runs before another job's run was written cannot write its report last.
+    nothing = TnfError(
+        f"nothing to report in {report_dir}: give evaluate.model=RUN (a folder under {store.path('models')}) "
+        "or evaluate.sweep_dir=DIR"
+    )
+    if not runs_dir.is_dir():
+        raise nothing
+    with exclusive(report_dir):
+        files = find_results(runs_dir)
+        if not files:
+            raise nothing
+        tables = write_report(load_results(files), report_dir, name=str(ecfg.name))
     _print_summary(console, tables, report_dir)
     out["report"] = report_dir / "report.md"
     out["tables"] = tables
