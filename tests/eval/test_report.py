@@ -209,7 +209,7 @@ def test_tnf_evaluate_keeps_one_models_row_from_another_models_results(data_root
     assert json.loads(row.read_text())["model"] == "first"
 
 
-def test_parallel_jobs_rebuild_the_report_one_at_a_time(data_root):
+def test_parallel_jobs_rebuild_the_report_one_at_a_time(data_root, capsys):
     """Jobs of a sweep each rebuild the report from every run present. A rebuild waits while another job holds
     the report (writing its run, then its own rebuild), so the report written last lists that job's run too."""
     import threading
@@ -228,6 +228,8 @@ def test_parallel_jobs_rebuild_the_report_one_at_a_time(data_root):
         assert job.is_alive() and not (report / "report.md").exists()  # waiting for the report
         write_json(report / "runs" / "main_T-N_seed1" / "results.json", _result("main", "T-N", 1, 0.97, 22.0, 95.0))
     job.join()
+    # The printed tables say how many seeds each row averages.
+    assert "seeds: T-N 2, BG 2" in capsys.readouterr().out
     assert (
         rebuilds
         and "| Novel view | T-N | 0.970 ± 0.000 | 0.980 ± 0.001 | 21.0 ± 1.0 |" in (report / "report.md").read_text()

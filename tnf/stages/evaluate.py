@@ -338,6 +338,13 @@ def _copy_to_hydra_output(folder: Path) -> None:
             shutil.copyfile(f, out / f.name)
 
 
+def _seeds(stats: Mapping[str, Any]) -> str:
+    """'seeds: T-N 3, BG 3': how many seeds each row of ours averages (a row's first statistic), printed under a table.
+    A sweep's jobs print the report as it stood when each wrote it, so a job's table may hold fewer seeds."""
+    counts = {row: st.n for row, st in stats.items() if st is not None}
+    return "seeds: " + ", ".join(f"{row} {n}" for row, n in counts.items()) if counts else ""
+
+
 def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) -> None:
     from rich.table import Table
 
@@ -345,10 +352,11 @@ def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) ->
 
     for name, data in tables.items():
         num = TABLES.get(name, (name,))[0]
+        rows = image_rows(name, data)
         t = Table(title=f"Table {num}a", box=None)
         for col in ("test set", "method", "SSIM", "paper", "MSE", "paper"):
             t.add_column(col)
-        for r in image_rows(name, data):
+        for r in rows:
             o, p = r["ours"], r["paper"]
             t.add_row(
                 r["test_set"],
@@ -359,12 +367,15 @@ def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) ->
                 fmt_stat(p.get("mse"), "mse"),
             )
         console.print(t)
+        console.print(_seeds({r["method"]: r["ours"].get("ssim") for r in rows}))
+        rows = accuracy_rows(name, data)
         t = Table(title=f"Table {num}b", box=None)
         for col in ("training set", "accuracy %", "paper"):
             t.add_column(col)
-        for r in accuracy_rows(name, data):
+        for r in rows:
             t.add_row(r["row"], fmt_stat(r["ours"], "acc"), fmt_stat(r["paper"], "acc"))
         console.print(t)
+        console.print(_seeds({r["row"]: r["ours"] for r in rows}))
         failed = [c for c, v, _ in checks(name, data) if v == "FAILS"]
         if failed:
             console.print(f"[yellow]claims not reproduced:[/] {'; '.join(failed)}")
