@@ -48,16 +48,20 @@ def test_component_groups_name_registered_components():
 
 @pytest.mark.parametrize("experiment", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
 def test_every_experiment_augments_only_with_what_its_sensor_has(experiment):
-    """An experiment asking for the mirror augmentation has a sensor with a mirror symmetry (training would
-    stop with an error otherwise), and sim_digit's Digit, the one that asks, has it."""
+    """An experiment asking for the mirror augmentation or mirror-averaged generation has a sensor with a mirror
+    symmetry (training would stop with an error otherwise, and generation would silently not average), and
+    sim_digit's Digit, the one that asks, has it."""
     from tnf.registry import SENSORS
 
     cfg = compose("pipeline", [f"experiment={experiment}"])
     sensor = SENSORS.build(cfg.sensor)
     if "mirror" in cfg.data.augment:
         assert sensor.mirror_channels() is not None, f"{experiment}: {cfg.sensor.name} has no mirror symmetry"
+    if cfg.generate.mirror_average:
+        assert sensor.mirror_channels() is not None, f"{experiment}: {cfg.sensor.name} has no mirror symmetry"
     if experiment == "sim_digit":
         assert list(cfg.data.augment) == ["mirror"] and sensor.mirror_channels() == (1, 0, 2)
+        assert cfg.generate.mirror_average
 
 
 def test_the_transfer_frames_its_pairs_as_the_model_it_fine_tunes():

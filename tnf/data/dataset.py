@@ -336,8 +336,8 @@ def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool = True) -
     rec = manifest.get("sensor")
     if not isinstance(rec, dict) or not isinstance(rec.get("name"), str):
         raise TnfError(
-            f"dataset {where} does not record its sensor's settings, which the mirror augmentation needs; "
-            "rebuild it with `tnf pair`"
+            f"dataset {where} does not record its sensor's settings, which the sensor's mirror needs "
+            "(data.augment=[mirror], generate.mirror_average); rebuild it with `tnf pair`"
         )
     sensor = SENSORS.build({"name": rec["name"], **(rec.get("config") or {})})
     channels = sensor.mirror_channels()

@@ -145,7 +145,7 @@ class GeneratorSystem(L.LightningModule):
             if mirror is None:
                 return fake
             flipped = self.generator.generate({**batch, **mirror_batch(batch, mirror)})
-            back = flipped.flip(-1).index_select(1, torch.tensor(unmirror_channels(mirror), device=flipped.device))
+            back = mirror_batch({"tactile": flipped}, unmirror_channels(mirror))["tactile"]
             return (fake + back) / 2
         finally:
             self.train(was)
