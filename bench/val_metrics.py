@@ -8,15 +8,19 @@ chosen (results/generators/tn_cgan_variants.md): on the validation split, never 
 ``--split train`` scores the pairs a run trained on: how closely the generator fits them, apart from how it
 generalises. ``--per-object`` adds each object's SSIM (one column per run, beside BG), to see where a mean is lost.
 ``--mirror-average`` also scores each run averaged with its own image of the mirrored touch (the row ``mirror
-avg``; ``GeneratorSystem.generate(batch, mirror)``), for sensors with a mirror symmetry.
+avg``; ``GeneratorSystem.generate(batch, mirror)``), for sensors with a mirror symmetry. ``--per-pair FILE``
+writes every pair's SSIM per column to a CSV (object, touch index in its touch item), for analyses such as
+``bench/pose_distance.py``.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import functools
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
@@ -49,6 +53,19 @@ def per_object_table(columns: dict[str, torch.Tensor], object_id: torch.Tensor, 
     return "\n".join(lines)
 
 
+def write_per_pair(path: Path, columns: dict[str, torch.Tensor], ds: PairDataset, object_id: torch.Tensor) -> None:
+    """One row per pair in the split's order: object, touch index within its touch item, SSIM per column."""
+    touch_index = np.asarray(ds.arrays.touch_index)[ds.index]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["object", "touch_index", *columns])
+        for i in range(len(ds)):
+            ssim = [f"{float(v[i]):.5f}" for v in columns.values()]
+            w.writerow([ds.object_names[int(object_id[i])], int(touch_index[i]), *ssim])
+    print(f"per-pair SSIM: {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run folders under <data-root>/models/")
@@ -59,6 +76,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--per-object", action="store_true", help="also each object's SSIM per run")
     ap.add_argument("--mirror-average", action="store_true", help="also each run averaged with its mirror")
+    ap.add_argument("--per-pair", metavar="FILE", help="write each pair's SSIM per column to this CSV")
     args = ap.parse_args()
 
     root = Path(args.data_root)
@@ -89,8 +107,10 @@ def main() -> None:
             columns[run if label == "as trained" else f"{run} ({label})"] = s
     s, m, object_id = score(lambda b: b["background"], loader, args.device)
     print(f"{'BG':<28} {'-':<12} {s.mean():7.4f} {m.mean():7.1f}")
+    columns["BG"] = s
+    if args.per_pair:
+        write_per_pair(Path(args.per_pair), columns, ds, object_id)
     if args.per_object:
-        columns["BG"] = s
         print(f"\nSSIM per object ({args.split} split)")
         print(per_object_table(columns, object_id, ds.object_names))
 
