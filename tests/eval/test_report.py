@@ -101,6 +101,30 @@ def test_report_tables_checks_and_figures(tmp_path):
         assert im.size[0] >= 360
 
 
+def test_report_compares_our_method_with_the_papers_own_figures(tmp_path):
+    results = [_result("main", "Lee", s, 0.70, 1000.0, 70.0) for s in range(3)]
+    # T-N: novel view 0.976 / 0.979 / 0.982 (novel object 0.01 lower), MSE 20, Sim + T-N 95-97 against Sim 80-82
+    results += [_result("main", "T-N", s, ssim, 20.0, 95.0) for s, ssim in enumerate((0.976, 0.979, 0.982))]
+    write_report(results, tmp_path / "rep", name="tiny")
+    md = (tmp_path / "rep" / "report.md").read_text()
+    part = md.split("### Against the paper's figures (Table 1)")[1].split("###")[0]
+    # 0.979 ± 0.002 against the paper's 0.980 ± 0.001: short by less than the combined standard error
+    assert "| T-N SSIM (novel view) | short, within noise | 0.979 ± 0.002 vs 0.980 ± 0.001 |" in part
+    assert "| T-N SSIM (novel object) | reaches | 0.969 ± 0.002 vs 0.961 ± 0.000 |" in part
+    assert "| T-N MSE (novel view) | FALLS SHORT | 20.0 ± 0.0 vs 14.5 ± 0.8 |" in part
+    assert "| T-N MSE (novel object) | reaches | 20.0 ± 0.0 vs 84.0 ± 3.0 |" in part
+    # the gain of Sim + T-N over Sim: 15 points against the paper's 96 - 85 = 11
+    assert "| Sim + T-N gain over Sim (points) | reaches | 15.0 ± 0.8 vs 11.0 ± 3.6 |" in part
+    assert "Lee" not in part  # the baselines' figures are the paper's to reach, not ours
+    assert "BG, the same for any generator, scores SSIM 0.920 ± 0.000 here against the paper's 0.921" in part
+    assert "## Notes" not in md
+    lower = [{**r, "accuracy": {"Sim": 85.0, "Sim + T-N": 89.0}} for r in results]
+    write_report(lower, tmp_path / "rep2", name="tiny", notes="Why the gain is smaller: the notes.\n")
+    md = (tmp_path / "rep2" / "report.md").read_text()
+    assert "| Sim + T-N gain over Sim (points) | FALLS SHORT | 4.0 ± 0.0 vs 11.0 ± 3.6 |" in md
+    assert md.endswith("## Notes\n\nWhy the gain is smaller: the notes.\n")
+
+
 def test_example_caption_names_the_split_it_came_from(tmp_path):
     results = []
     for seed, split in ((0, "val"), (1, None)):
@@ -126,7 +150,7 @@ def _touch_data(root, generated_run="fake", good_generator=True):
         write_touch_folder(root / "generated" / generated_run / "builtin" / obj, obj, g_label, {"gen": 8}, seed=1)
 
 
-def test_tnf_evaluate_classification_and_report(data_root):
+def test_tnf_evaluate_classification_and_report(data_root, capsys):
     _touch_data(data_root)
     from tnf.stages.evaluate import run
 
@@ -148,9 +172,13 @@ def test_tnf_evaluate_classification_and_report(data_root):
     assert out["tables"]["main"].accuracy["Sim"].n == 2
     md = (data_root / "reports/default/report.md").read_text()
     assert "| Sim + T-N |" in md and "| Sim | " in md
-    # a second call with the same settings reuses the results; the sweep folder mode collects results files
-    again = run(compose("evaluate", [*over, "seed=0"]))
+    # a second call with the same settings (notes only end the report) reuses the results; the sweep folder mode
+    # collects results files
+    capsys.readouterr()
+    again = run(compose("evaluate", [*over, "seed=0", "evaluate.notes='Shortfalls: see the notes.'"]))
+    assert "results exist with the same settings, skipped" in capsys.readouterr().out
     assert again["results"]["accuracy"] == json.loads((runs / "main_T-N_seed0/results.json").read_text())["accuracy"]
+    assert "## Notes\n\nShortfalls: see the notes.\n" in (data_root / "reports/default/report.md").read_text()
     out = run(compose("evaluate", ["progress=false", f"evaluate.sweep_dir={runs}", "evaluate.name=collected"]))
     assert out["tables"]["main"].accuracy["Sim + T-N"].n == 2
     assert (data_root / "reports/collected/table1b_accuracy.csv").is_file()

@@ -7,7 +7,9 @@
   ``table2b_accuracy.csv`` (sensor transfer), each with our mean, standard error and seed count beside the
   paper's mean and standard error;
 - ``ssim_per_object_<table>.png``: SSIM per object and method;
-- the ``checks`` section: whether the paper's qualitative claims hold in our numbers.
+- the ``checks`` section: whether the paper's qualitative claims hold in our numbers;
+- the ``against the paper`` section: whether our method (T-N and its variants) reaches the paper's own figures,
+  beside BG's row in both (how far the two simulators' touches differ), and the experiment's ``notes``.
 """
 
 from __future__ import annotations
@@ -152,8 +154,44 @@ def checks(table: str, data: TableData) -> list[tuple[str, str, str]]:
     return out
 
 
-def render_markdown(name: str, tables: dict[str, TableData], figures: dict[str, list[tuple[str, str]]]) -> str:
-    """The report as Markdown; ``figures[table]`` lists (caption, relative path) of its PNGs."""
+def against_paper(table: str, data: TableData) -> list[tuple[str, str, str]]:
+    """Our method's figures (T-N and its variants) against the paper's own: (figure, verdict, ours vs paper).
+
+    Verdict ``reaches``, ``short, within noise`` when the shortfall is within the combined standard error, or
+    ``FALLS SHORT``. The classification figure is the gain of ``Sim + <method>`` over ``Sim``.
+    """
+    paper = PAPER.get(table, {})
+    ours = [m for m in _ordered_methods(table, data) if m.startswith(PRIMARY)]
+    out: list[tuple[str, str, str]] = []
+
+    def compare(what: str, a: Stat | None, b: tuple[float, float] | None, higher_better: bool, kind: str) -> None:
+        if a is None or b is None:
+            return
+        ahead = a.mean >= b[0] if higher_better else a.mean <= b[0]
+        short = "short, within noise" if abs(a.mean - b[0]) <= math.hypot(a.se, b[1]) else "FALLS SHORT"
+        out.append((what, "reaches" if ahead else short, f"{fmt_stat(a, kind)} vs {fmt_stat(b, kind)}"))
+
+    image = paper.get("image", {})
+    for ts, method in sorted(image, key=lambda k: (k[0] != "novel_view", k[0], k[1])):
+        if method in ours:
+            name = TEST_SET_NAMES.get(ts, ts).lower()
+            for metric, higher_better in (("ssim", True), ("mse", False)):
+                a, b = data.image.get((ts, method), {}).get(metric), image[(ts, method)].get(metric)
+                compare(f"{method} {metric.upper()} ({name})", a, b, higher_better, metric)
+    acc, paper_acc = data.accuracy, paper.get("accuracy", {})
+    for m in ours:
+        a, a0, b, b0 = acc.get(f"Sim + {m}"), acc.get("Sim"), paper_acc.get(f"Sim + {m}"), paper_acc.get("Sim")
+        if a is not None and a0 is not None and b is not None and b0 is not None:
+            gain = Stat(a.mean - a0.mean, math.hypot(a.se, a0.se), min(a.n, a0.n))
+            compare(f"Sim + {m} gain over Sim (points)", gain, (b[0] - b0[0], math.hypot(b[1], b0[1])), True, "acc")
+    return out
+
+
+def render_markdown(
+    name: str, tables: dict[str, TableData], figures: dict[str, list[tuple[str, str]]], notes: str | None = None
+) -> str:
+    """The report as Markdown; ``figures[table]`` lists (caption, relative path) of its PNGs; ``notes`` (the
+    experiment's own words, e.g. why a figure falls short of the paper's) end it."""
     n_runs = sum(len(t.runs) for t in tables.values())
     lines = [
         f"# tnf evaluation report: {name}",
@@ -204,15 +242,31 @@ def render_markdown(name: str, tables: dict[str, TableData], figures: dict[str, 
             lines += [f"| {c} | {v} | {d} |" for c, v, d in cks]
         else:
             lines.append("No claim can be checked yet: the rows it compares are missing.")
+        figs_vs = against_paper(table, data)
+        if figs_vs:
+            lines += ["", f"### Against the paper's figures (Table {num})", ""]
+            lines += ["| Figure | Verdict | Ours vs paper |", "|---|---|---|"]
+            lines += [f"| {c} | {v} | {d} |" for c, v, d in figs_vs]
+            bg, bg_paper = data.image.get(("all", BG), {}), PAPER.get(table, {}).get("image", {}).get(("all", BG))
+            if bg and bg_paper:
+                lines += [
+                    "",
+                    f"BG, the same for any generator, scores SSIM {fmt_stat(bg.get('ssim'), 'ssim')} here against "
+                    f"the paper's {fmt_stat(bg_paper['ssim'], 'ssim')} and MSE {fmt_stat(bg.get('mse'), 'mse')} "
+                    f"against {fmt_stat(bg_paper['mse'], 'mse')}: how far this simulator's touches and background "
+                    "differ from the paper's, which the figures above inherit.",
+                ]
         lines += ["", f"### Runs (Table {num})", "", "| Method | Seed | Model | Results |", "|---|---|---|---|"]
         for run in sorted(data.runs, key=lambda r: (r["method"], r["seed"])):
             lines.append(f"| {run['method']} | {run['seed']} | {run.get('model') or '-'} | {run.get('_rel', '')} |")
         lines.append("")
+    if notes and notes.strip():
+        lines += ["## Notes", "", notes.strip(), ""]
     return "\n".join(lines)
 
 
 def write_report(
-    results: Sequence[dict[str, Any]], folder: str | Path, name: str | None = None
+    results: Sequence[dict[str, Any]], folder: str | Path, name: str | None = None, notes: str | None = None
 ) -> dict[str, TableData]:
     """Aggregate ``results`` (per-run dicts, see tnf.eval.aggregate) and write the report into ``folder``.
 
@@ -292,7 +346,7 @@ def write_report(
                     )
                     figs.append((caption, _relpath(ex, folder)))
         figures[table] = figs
-    md = render_markdown(name or folder.name, tables, figures)
+    md = render_markdown(name or folder.name, tables, figures, notes)
     write_bytes(folder / "report.md", md.encode())
     return tables
 

@@ -68,10 +68,11 @@ def run(cfg: Any) -> dict[str, Any]:
     if ecfg.model:
         method = ecfg.method or _method_label(cfg)
         settings = cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))
-        # Everything that changes the numbers; not the report name, progress or the sweep folder, nor where the
-        # store lives (a store that is moved or mounted elsewhere keeps its finished results).
+        # Everything that changes the numbers; not the report's name or notes, progress or the sweep folder, nor
+        # where the store lives (a store that is moved or mounted elsewhere keeps its finished results).
         hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate", "data_root")}
-        hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in ("name", "sweep_dir", "force")}
+        report_only = ("name", "notes", "sweep_dir", "force")
+        hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in report_only}
         chash = config_hash(hashed)
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
         old = folder / RESULTS_FILE
@@ -106,7 +107,8 @@ def run(cfg: Any) -> dict[str, Any]:
         files = find_results(runs_dir)
         if not files:
             raise nothing
-        tables = write_report(load_results(files), report_dir, name=str(ecfg.name))
+        notes = ecfg.get("notes")
+        tables = write_report(load_results(files), report_dir, name=str(ecfg.name), notes=str(notes) if notes else None)
     _print_summary(console, tables, report_dir)
     out["report"] = report_dir / "report.md"
     out["tables"] = tables
