@@ -125,6 +125,21 @@ def test_report_compares_our_method_with_the_papers_own_figures(tmp_path):
     assert md.endswith("## Notes\n\nWhy the gain is smaller: the notes.\n")
 
 
+def test_evaluate_summary_names_failed_claims_and_figures_below_the_papers(tmp_path):
+    from rich.console import Console
+
+    from tnf.eval.aggregate import aggregate
+    from tnf.stages.evaluate import _print_summary
+
+    # T-N below BG on novel objects (a failed claim) and below the paper's SSIM on both test sets
+    results = [_result("main", "T-N", s, 0.91, 10.0, 95.0) for s in range(2)]
+    console = Console(record=True, width=200)
+    _print_summary(console, aggregate(results), tmp_path)
+    out = console.export_text()
+    assert "claims not reproduced: T-N SSIM > BG SSIM (novel object)" in out
+    assert "below the paper's figures: T-N SSIM (novel view); T-N SSIM (novel object)\n" in out  # MSE 10 reaches
+
+
 def test_example_caption_names_the_split_it_came_from(tmp_path):
     results = []
     for seed, split in ((0, "val"), (1, None)):

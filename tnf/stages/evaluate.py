@@ -350,7 +350,7 @@ def _seeds(stats: Mapping[str, Any]) -> str:
 def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) -> None:
     from rich.table import Table
 
-    from tnf.eval.report import TABLES, accuracy_rows, checks, fmt_stat, image_rows
+    from tnf.eval.report import TABLES, accuracy_rows, against_paper, checks, fmt_stat, image_rows
 
     for name, data in tables.items():
         num = TABLES.get(name, (name,))[0]
@@ -381,4 +381,7 @@ def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) ->
         failed = [c for c, v, _ in checks(name, data) if v == "FAILS"]
         if failed:
             console.print(f"[yellow]claims not reproduced:[/] {'; '.join(failed)}")
+        short = [c for c, v, _ in against_paper(name, data) if v == "FALLS SHORT"]
+        if short:
+            console.print(f"[yellow]below the paper's figures:[/] {'; '.join(short)}")
     console.print(f"report: {report_dir / 'report.md'}")
