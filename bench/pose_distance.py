@@ -18,10 +18,12 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 from pathlib import Path
 
 import numpy as np
+
+from tnf.artifacts import MANIFEST, read_json
+from tnf.errors import TnfError
 
 
 def touch_poses(manifest: dict) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
@@ -67,9 +69,11 @@ def main() -> None:
     rows: dict[str, list[tuple[int, float, float]]] = {}
     with open(args.per_pair, newline="") as f:
         for r in csv.DictReader(f):
-            for col in (args.column, args.control):
+            for col in ("split", "object", "touch_index", args.column, args.control):
                 if col is not None and col not in r:
-                    raise SystemExit(f"no column {col!r} in {args.per_pair}")
+                    raise SystemExit(f"no column {col!r} in {args.per_pair} (write it with val_metrics.py --per-pair)")
+            if r["split"] != "val":
+                raise SystemExit(f"{args.per_pair} holds {r['split']} pairs: this relates validation pairs only")
             control = float(r[args.control]) if args.control else 0.0
             rows.setdefault(r["object"], []).append((int(r["touch_index"]), float(r[args.column]), control))
     touch_root = Path(args.data_root) / "touch" / args.sensor / args.source
@@ -78,8 +82,14 @@ def main() -> None:
     corr = []
     print(f"{'object':<16} {'pairs':>5} {'mm median':>9} {'deg median':>10} {'rho mm':>7} {'rho deg':>7}")
     for obj, pairs in sorted(rows.items()):
-        poses = touch_poses(json.loads((touch_root / obj / "manifest.json").read_text()))
-        train = list(poses["train"].values())
+        poses = touch_poses(read_json(touch_root / obj / MANIFEST, f"touch manifest of {obj}"))
+        train = list(poses.get("train", {}).values())
+        missing = [i for i, _, _ in pairs if i not in poses.get("val", {})]
+        if not train or missing:
+            raise TnfError(
+                f"the touches of {obj} under {touch_root} are not those the pairs were made from "
+                f"({len(train)} training touches; validation touches missing: {missing[:5]})"
+            )
         tp, ta = np.stack([p for p, _ in train]), np.stack([a for _, a in train])
         mine = [poses["val"][i] for i, _, _ in pairs]
         dist = nearest(np.stack([p for p, _ in mine]), np.stack([a for _, a in mine]), tp, ta)
@@ -108,4 +118,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except TnfError as e:  # a missing or foreign touch manifest: one line, as the tnf command prints it
+        raise SystemExit(f"error: {e}") from None

@@ -9,7 +9,7 @@ chosen (results/generators/tn_cgan_variants.md): on the validation split, never 
 generalises. ``--per-object`` adds each object's SSIM (one column per run, beside BG), to see where a mean is lost.
 ``--mirror-average`` also scores each run averaged with its own image of the mirrored touch (the row ``mirror
 avg``; ``GeneratorSystem.generate(batch, mirror)``), for sensors with a mirror symmetry. ``--per-pair FILE``
-writes every pair's SSIM per column to a CSV (object, touch index in its touch item), for analyses such as
+writes every pair's SSIM per column to a CSV (split, object, touch index in its touch item), for analyses such as
 ``bench/pose_distance.py``.
 """
 
@@ -53,16 +53,18 @@ def per_object_table(columns: dict[str, torch.Tensor], object_id: torch.Tensor, 
     return "\n".join(lines)
 
 
-def write_per_pair(path: Path, columns: dict[str, torch.Tensor], ds: PairDataset, object_id: torch.Tensor) -> None:
-    """One row per pair in the split's order: object, touch index within its touch item, SSIM per column."""
+def write_per_pair(
+    path: Path, columns: dict[str, torch.Tensor], ds: PairDataset, object_id: torch.Tensor, split: str
+) -> None:
+    """One row per pair in the split's order: split, object, touch index within its touch item, SSIM per column."""
     touch_index = np.asarray(ds.arrays.touch_index)[ds.index]
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["object", "touch_index", *columns])
+        w.writerow(["split", "object", "touch_index", *columns])
         for i in range(len(ds)):
             ssim = [f"{float(v[i]):.5f}" for v in columns.values()]
-            w.writerow([ds.object_names[int(object_id[i])], int(touch_index[i]), *ssim])
+            w.writerow([split, ds.object_names[int(object_id[i])], int(touch_index[i]), *ssim])
     print(f"per-pair SSIM: {path}")
 
 
@@ -94,13 +96,13 @@ def main() -> None:
     for run in args.runs:
         system = load_generator(root / "models" / run / "best.ckpt", args.device)
         drops = [m for m in system.modules() if isinstance(m, NoiseDropout)]
+        trained = [d.always_on for d in drops]
         modes = [("as trained", None, None)]
         modes += [("dropout off", False, None)] if any(d.always_on for d in drops) else []
         modes += [("mirror avg", None, mirror)] if mirror is not None else []
         for label, on, mirror_order in modes:
-            for d in drops:
-                if on is not None:
-                    d.always_on = on
+            for d, as_trained in zip(drops, trained, strict=True):
+                d.always_on = as_trained if on is None else on
             torch.manual_seed(0)
             s, m, _ = score(functools.partial(system.generate, mirror=mirror_order), loader, args.device)
             print(f"{run:<28} {label:<12} {s.mean():7.4f} {m.mean():7.1f}")
@@ -109,7 +111,7 @@ def main() -> None:
     print(f"{'BG':<28} {'-':<12} {s.mean():7.4f} {m.mean():7.1f}")
     columns["BG"] = s
     if args.per_pair:
-        write_per_pair(Path(args.per_pair), columns, ds, object_id)
+        write_per_pair(Path(args.per_pair), columns, ds, object_id, args.split)
     if args.per_object:
         print(f"\nSSIM per object ({args.split} split)")
         print(per_object_table(columns, object_id, ds.object_names))
