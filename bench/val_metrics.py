@@ -10,7 +10,10 @@ generalises. ``--per-object`` adds each object's SSIM (one column per run, besid
 ``--mirror-average`` also scores each run averaged with its own image of the mirrored touch (the row ``mirror
 avg``; ``GeneratorSystem.generate(batch, mirror)``), for sensors with a mirror symmetry. ``--per-pair FILE``
 writes every pair's SSIM per column to a CSV (split, object, touch index in its touch item), for analyses such as
-``bench/pose_distance.py``.
+``bench/pose_distance.py``. Runs trained with a weight average (``train.ema_decay``) are scored with it; their
+rows ``no average`` (and ``no avg, mirror avg``) score the same checkpoint's weights as trained. ``--ensemble`` adds
+the row of the mean image of all runs (mirror-averaged too with ``--mirror-average``): what averaging independent
+models would give.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from tnf.errors import TnfError
 from tnf.eval import metrics
 from tnf.generators import load_generator
 from tnf.generators.nets import NoiseDropout
+from tnf.generators.system import AVERAGE_PREFIX, read_checkpoint
 
 
 def score(generate, loader: DataLoader, device: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -79,6 +83,7 @@ def main() -> None:
     ap.add_argument("--per-object", action="store_true", help="also each object's SSIM per run")
     ap.add_argument("--mirror-average", action="store_true", help="also each run averaged with its mirror")
     ap.add_argument("--per-pair", metavar="FILE", help="write each pair's SSIM per column to this CSV")
+    ap.add_argument("--ensemble", action="store_true", help="also the mean image of all runs")
     args = ap.parse_args()
 
     root = Path(args.data_root)
@@ -91,24 +96,45 @@ def main() -> None:
     loader = DataLoader(ds, batch_size=args.batch, shuffle=False, collate_fn=collate_pairs)
     mirror = sensor_mirror(ds.manifest, root / "pairs" / args.dataset) if args.mirror_average else None
     print(f"{args.dataset} {args.split}: {len(ds)} pairs, device {args.device}")
-    print(f"{'run':<28} {'generation':<12} {'SSIM':>7} {'MSE':>7}")
+    print(f"{'run':<28} {'generation':<20} {'SSIM':>7} {'MSE':>7}")
     columns: dict[str, torch.Tensor] = {}
+    systems = []
     for run in args.runs:
-        system = load_generator(root / "models" / run / "best.ckpt", args.device)
+        ckpt = root / "models" / run / "best.ckpt"
+        system = load_generator(ckpt, args.device)
+        systems.append(system)
         drops = [m for m in system.modules() if isinstance(m, NoiseDropout)]
         trained = [d.always_on for d in drops]
         modes = [("as trained", None, None)]
         modes += [("dropout off", False, None)] if any(d.always_on for d in drops) else []
         modes += [("mirror avg", None, mirror)] if mirror is not None else []
+        if any(k.startswith(AVERAGE_PREFIX) for k in read_checkpoint(ckpt)["state_dict"]):
+            weights = load_generator(ckpt, args.device, averaged=False)
+            for label, mirror_order in [("no average", None)] + ([("no avg, mirror avg", mirror)] if mirror else []):
+                torch.manual_seed(0)
+                s, m, _ = score(functools.partial(weights.generate, mirror=mirror_order), loader, args.device)
+                print(f"{run:<28} {label:<20} {s.mean():7.4f} {m.mean():7.1f}")
+                columns[f"{run} ({label})"] = s
+            del weights
         for label, on, mirror_order in modes:
             for d, as_trained in zip(drops, trained, strict=True):
                 d.always_on = as_trained if on is None else on
             torch.manual_seed(0)
             s, m, _ = score(functools.partial(system.generate, mirror=mirror_order), loader, args.device)
-            print(f"{run:<28} {label:<12} {s.mean():7.4f} {m.mean():7.1f}")
+            print(f"{run:<28} {label:<20} {s.mean():7.4f} {m.mean():7.1f}")
             columns[run if label == "as trained" else f"{run} ({label})"] = s
+    if args.ensemble and len(systems) > 1:
+        for label, mirror_order in [("ensemble", None)] + ([("ensemble, mirror", mirror)] if mirror else []):
+
+            def mean_image(batch, order=mirror_order):
+                return torch.stack([g.generate(batch, order) for g in systems]).mean(0)
+
+            torch.manual_seed(0)
+            s, m, _ = score(mean_image, loader, args.device)
+            print(f"{f'{len(systems)} runs':<28} {label:<20} {s.mean():7.4f} {m.mean():7.1f}")
+            columns[label] = s
     s, m, object_id = score(lambda b: b["background"], loader, args.device)
-    print(f"{'BG':<28} {'-':<12} {s.mean():7.4f} {m.mean():7.1f}")
+    print(f"{'BG':<28} {'-':<20} {s.mean():7.4f} {m.mean():7.1f}")
     columns["BG"] = s
     if args.per_pair:
         write_per_pair(Path(args.per_pair), columns, ds, object_id, args.split)

@@ -76,6 +76,25 @@ def test_train_stage_with_the_mirror_augmentation(data_root):
     assert manifest["config"]["data"]["augment"] == ["mirror", "jitter"]
 
 
+def test_train_and_finetune_stages_with_a_weight_average(data_root):
+    from tnf.stages import finetune, train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    write_pairs(data_root / "pairs" / "omnitact-hashgrid", n=6, seed=3)
+    out = train.run(compose("train", [*TINY, "train.ema_decay=0.9", "train.epochs=1", "train.decay_epochs=0"]))
+    manifest = json.loads((data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").read_text())
+    assert manifest["config"]["train"]["ema_decay"] == 0.9
+    state = torch.load(f"{out['run_dir']}/best.ckpt", weights_only=True)["state_dict"]
+    assert int(state["ema_updates"]) == out["global_step"] > 0  # no adversarial term: one optimiser step a batch
+    with pytest.raises(TnfError, match="ema_decay must be in"):
+        finetune.run(compose("finetune", [*TINY, "finetune.checkpoint=tn_cgan_digit-hashgrid", "finetune.ema_decay=2"]))
+    ft = finetune.run(
+        compose("finetune", [*TINY, "data.datasets=[omnitact-hashgrid]", "finetune.checkpoint=tn_cgan_digit-hashgrid"])
+    )
+    ft_state = torch.load(f"{ft['run_dir']}/last.ckpt", weights_only=True)["state_dict"]
+    assert not any(k.startswith("generator_ema.") for k in ft_state)  # finetune.ema_decay is its own (null)
+
+
 @pytest.mark.parametrize("name", ["lee", "cyclegan"])
 def test_train_stage_baselines(data_root, name):
     from tnf.stages import train

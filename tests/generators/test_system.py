@@ -344,3 +344,88 @@ def test_a_discriminator_that_wins_is_reported(tmp_path, caplog):
     msgs = [m for m in caplog.messages if "discriminator tells real from generated" in m]
     assert len(msgs) == 1 and msgs[0].startswith(f"epoch {first}:")
     assert "try generator.gan_mode=lsgan or generator.lambda_gan=0 or another seed" in msgs[0]
+
+
+# -- the weights' exponential moving average (ema_decay) ------------------------------------------------------------
+def test_weight_average_follows_its_decay_and_warm_up():
+    torch.manual_seed(0)
+    system = GeneratorSystem(SPEC, ema_decay=0.5)
+    start = [p.clone() for p in system.generator.parameters()]
+    assert all(torch.equal(a, p) for a, p in zip(system.generator_ema.parameters(), start, strict=True))
+    assert not any(p.requires_grad for p in system.generator_ema.parameters())
+    expect = [p.clone() for p in start]
+    for n, shift in enumerate([1.0, -2.0, 0.5]):
+        with torch.no_grad():
+            for p in system.generator.parameters():
+                p.add_(shift)
+        system._update_average()
+        decay = min(0.5, (1 + n) / (10 + n))  # 0.1, 2/11, 0.25: the first updates follow the weights closely
+        expect = [decay * e + (1 - decay) * p for e, p in zip(expect, system.generator.parameters(), strict=True)]
+        for a, e in zip(system.generator_ema.parameters(), expect, strict=True):
+            torch.testing.assert_close(a, e, atol=1e-6, rtol=0)
+    assert int(system.ema_updates) == 3
+    with pytest.raises(TnfError, match="ema_decay must be in"):
+        GeneratorSystem(SPEC, ema_decay=1.0)
+
+
+@pytest.fixture(scope="module")
+def averaged_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("models") / "ema"
+    torch.manual_seed(0)
+    # A high learning rate, so that the average and the weights it follows generate visibly different images.
+    spec = {**SPEC, "lr": 5e-3}
+    system = GeneratorSystem(spec, epochs=2, decay_epochs=1, grid_rows=0, finite_check_every=1, ema_decay=0.9)
+    train(run_dir, epochs=2, system=system)
+    return run_dir, system
+
+
+def test_weight_average_validates_generates_and_is_checkpointed(averaged_run):
+    run_dir, system = averaged_run
+    state = torch.load(run_dir / "best.ckpt", weights_only=True)["state_dict"]
+    assert int(state["ema_updates"]) == system.global_step // 2 == 4  # one update per batch (two optimisers step)
+    averaged, trained = load_generator(run_dir / "best.ckpt"), load_generator(run_dir / "best.ckpt", averaged=False)
+    assert averaged.generator_ema is None  # a loaded generator carries one set of weights
+    for k, v in averaged.generator.state_dict().items():
+        torch.testing.assert_close(v, state["generator_ema." + k])
+        torch.testing.assert_close(trained.generator.state_dict()[k], state["generator." + k])
+    keys = averaged.generator.state_dict()
+    assert any(not torch.equal(state["generator." + k], state["generator_ema." + k]) for k in keys)
+    # The logged validation L1 is the average's, and best.ckpt's L1 the best one logged.
+    val = make_pairs(4, 32, seed=1)  # SyntheticPairs' validation pairs
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+
+    def l1(g):
+        return float((g.generate(val) - val["tactile"]).abs().mean())
+
+    assert l1(averaged) == pytest.approx(manifest["best_val_l1"], abs=1e-6)
+    assert abs(l1(trained) - manifest["best_val_l1"]) > 1e-4  # 100 times the tolerance above
+
+
+def test_weight_average_resumes_with_its_update_count(tmp_path):
+    run_dir = tmp_path / "run"
+    first = GeneratorSystem(SPEC, epochs=1, decay_epochs=1, finite_check_every=1, ema_decay=0.9)
+    train(run_dir, epochs=1, system=first)  # a run of one epoch, then resumed for a second
+    saved = torch.load(run_dir / "last.ckpt", weights_only=True)["state_dict"]
+    assert int(saved["ema_updates"]) == 2
+    resumed = GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1, ema_decay=0.9)
+    train(run_dir, epochs=1, system=resumed)
+    assert int(resumed.ema_updates) == 4  # continued, not started again
+    # The restored average went on (it lags the weights), rather than starting again from the weights.
+    fresh = GeneratorSystem(SPEC, ema_decay=0.9)
+    fresh.generator.load_state_dict(resumed.generator.state_dict())
+    fresh.reset_average()
+    assert any(
+        not torch.allclose(a, b) for a, b in zip(resumed.generator_ema.parameters(), fresh.generator_ema.parameters())
+    )
+
+
+def test_finetuning_starts_from_the_average(averaged_run):
+    run_dir, _ = averaged_run
+    state = torch.load(run_dir / "best.ckpt", weights_only=True)["state_dict"]
+    plain = GeneratorSystem.from_checkpoint(run_dir / "best.ckpt", "cpu", epochs=1, decay_epochs=0, ema_decay=None)
+    assert plain.generator_ema is None
+    again = GeneratorSystem.from_checkpoint(run_dir / "best.ckpt", "cpu", epochs=1, decay_epochs=0, ema_decay=0.99)
+    for k, v in plain.generator.state_dict().items():
+        torch.testing.assert_close(v, state["generator_ema." + k])
+        torch.testing.assert_close(again.generator_ema.state_dict()[k], v)  # a fresh average of the start
+    assert int(again.ema_updates) == 0

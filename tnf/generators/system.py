@@ -13,10 +13,15 @@ at least ``D_SATURATED`` and at most ``1 - D_SATURATED``). The epoch it starts a
 logged as a warning. While saturated, the generator's adversarial loss is large and pulls it away from its
 image losses: in one sim_digit run the training L1 rose from 0.025 to 0.045 within four epochs as its
 discriminator began 11 saturated ones (results/paper/README.md).
+
+With ``ema_decay`` it also keeps an exponential moving average of the generator's weights (``generator_ema``,
+updated after every training step). The average is what validates and generates; checkpoints hold both, and
+``from_checkpoint`` loads the average unless asked for the trained weights.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 from collections.abc import Mapping, Sequence
@@ -34,6 +39,9 @@ from tnf.registry import GENERATORS, config_to_dict, split_spec
 
 #: Version of the checkpoint layout written by ``GeneratorSystem``; loading another one is an error.
 CHECKPOINT_FORMAT = 1
+
+#: Prefix of the averaged generator's weights in a checkpoint's state dict (``ema_decay``).
+AVERAGE_PREFIX = "generator_ema."
 
 #: An epoch's mean discriminator outputs at or beyond this (real) and 1 - this (generated): saturated.
 D_SATURATED = 0.95
@@ -77,7 +85,12 @@ class GeneratorSystem(L.LightningModule):
         grid_dir: folder for ``epoch_XXX.png`` grids; None writes none.
         finite_check_every: check the losses for NaN/Inf every this many steps (each check synchronises
             with the GPU); they are always checked before validation and at the end of an epoch.
+        ema_decay: keep an exponential moving average of the generator's weights with this decay per
+            training step (its first steps decay less: ``min(ema_decay, (1 + n) / (10 + n))`` after n updates),
+            and validate and generate with it; None keeps none.
     """
+
+    ema_updates: torch.Tensor  # a buffer, with ema_decay only
 
     def __init__(
         self,
@@ -87,11 +100,14 @@ class GeneratorSystem(L.LightningModule):
         grid_rows: int = 8,
         grid_dir: str | None = None,
         finite_check_every: int = 50,
+        ema_decay: float | None = None,
     ):
         super().__init__()
         spec = generator_spec(generator)
         if decay_epochs < 0 or decay_epochs > epochs:
             raise TnfError(f"decay_epochs must be in [0, epochs={epochs}], got {decay_epochs}")
+        if ema_decay is not None and not 0.0 < float(ema_decay) < 1.0:
+            raise TnfError(f"ema_decay must be in (0, 1) (e.g. 0.999), or null for no average; got {ema_decay}")
         self.save_hyperparameters(
             {
                 "generator": spec,
@@ -99,11 +115,18 @@ class GeneratorSystem(L.LightningModule):
                 "decay_epochs": decay_epochs,
                 "grid_rows": grid_rows,
                 "finite_check_every": finite_check_every,
+                "ema_decay": None if ema_decay is None else float(ema_decay),
             }
         )
         self.grid_dir = grid_dir
         self.automatic_optimization = False
         self.generator: Generator = GENERATORS.build(spec)
+        # The average is a copy that no optimiser or gradient touches; its update count is checkpointed with it.
+        self.generator_ema: Generator | None = None
+        if ema_decay is not None:
+            self.generator_ema = copy.deepcopy(self.generator).requires_grad_(False)
+            self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
+        self._ema_n: int | None = None  # ema_updates as a Python int, read once (reading it waits for the GPU)
         self._opt = _LightningOptimisation(self)
         self._finite = True
         self._last_losses: dict[str, torch.Tensor] = {}
@@ -119,6 +142,11 @@ class GeneratorSystem(L.LightningModule):
     def generator_name(self) -> str:
         return self.hparams["generator"]["name"]
 
+    @property
+    def generating(self) -> Generator:
+        """The generator that validates and generates: the weights' average where one is kept."""
+        return self.generator_ema if self.generator_ema is not None else self.generator
+
     def on_fit_start(self) -> None:
         # Channels-last convolutions are markedly faster with cuDNN (tensor cores); the datasets' float
         # batches are channels-last already. The state dict is the same in either layout.
@@ -128,7 +156,7 @@ class GeneratorSystem(L.LightningModule):
     # -- generation -------------------------------------------------------------------------------------
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Tactile images [B, 3, H, W] in [-1, 1] for a batch of conditions."""
-        return self.generator.generate(batch)
+        return self.generating.generate(batch)
 
     @torch.no_grad()
     def generate(self, batch: dict[str, torch.Tensor], mirror: Sequence[int] | None = None) -> torch.Tensor:
@@ -141,10 +169,10 @@ class GeneratorSystem(L.LightningModule):
         was = self.training
         self.eval()
         try:
-            fake = self.generator.generate(batch)
+            fake = self.generating.generate(batch)
             if mirror is None:
                 return fake
-            flipped = self.generator.generate({**batch, **mirror_batch(batch, mirror)})
+            flipped = self.generating.generate({**batch, **mirror_batch(batch, mirror)})
             back = mirror_batch({"tactile": flipped}, unmirror_channels(mirror))["tactile"]
             return (fake + back) / 2
         finally:
@@ -164,6 +192,7 @@ class GeneratorSystem(L.LightningModule):
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         losses = self.generator.training_step(batch, self._opt)
+        self._update_average()
         self._last_losses = losses
         bad = torch.stack([~torch.isfinite(v.float()).all() for v in losses.values()]).any()
         self._bad = bad if self._bad is None else (self._bad | bad)
@@ -180,6 +209,36 @@ class GeneratorSystem(L.LightningModule):
         for k in ("loss_g", "loss_d"):
             if k in losses:
                 self.log(k, losses[k], prog_bar=True, on_step=True, on_epoch=False, logger=False, batch_size=bs)
+
+    @torch.no_grad()
+    def _update_average(self) -> None:
+        """Move ``generator_ema`` towards the generator's weights (and float buffers); other buffers are copied."""
+        if self.generator_ema is None:
+            return
+        if self._ema_n is None:
+            self._ema_n = int(self.ema_updates)
+        decay = min(float(self.hparams["ema_decay"]), (1 + self._ema_n) / (10 + self._ema_n))
+        avg: list[torch.Tensor] = list(self.generator_ema.parameters())
+        cur: list[torch.Tensor] = list(self.generator.parameters())
+        torch._foreach_lerp_(avg, cur, 1.0 - decay)
+        for a, c in zip(self.generator_ema.buffers(), self.generator.buffers(), strict=True):
+            if a.is_floating_point():
+                a.lerp_(c, 1.0 - decay)
+            else:
+                a.copy_(c)
+        self.ema_updates.add_(1)
+        self._ema_n += 1
+
+    def reset_average(self) -> None:
+        """Start the average afresh from the generator's current weights (no-op without ``ema_decay``)."""
+        if self.generator_ema is None:
+            return
+        self.generator_ema.load_state_dict(self.generator.state_dict())
+        self.ema_updates.zero_()
+        self._ema_n = 0
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self._ema_n = None  # resumed: read the restored count at the next update
 
     def _check_finite(self) -> None:
         bad = self._bad is not None and bool(self._bad)
@@ -260,7 +319,7 @@ class GeneratorSystem(L.LightningModule):
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
         from tnf.eval import metrics
 
-        fake = self.generator.generate(batch).float()
+        fake = self.generating.generate(batch).float()
         real = batch["tactile"].float()
         self._val["l1"].append((fake - real).abs().flatten(1).mean(1))
         self._val["ssim"].append(metrics.ssim(fake, real))
@@ -311,13 +370,17 @@ class GeneratorSystem(L.LightningModule):
         device: str | torch.device = "cpu",
         expected: str | None = None,
         generator_overrides: Mapping[str, Any] | None = None,
+        averaged: bool = True,
         **kw: Any,
     ) -> GeneratorSystem:
-        """Build the system a checkpoint was saved from and load its weights (not its optimiser state).
+        """Build the system a checkpoint was saved from and load its generator's weights (not its optimiser
+        state): the weights' average where the checkpoint holds one (``ema_decay``), else as trained.
 
         ``expected``: the generator name the caller needs (a checkpoint of another one is an error).
         ``generator_overrides``: generator config fields to change (e.g. ``{"lr": 1e-4}`` for fine-tuning);
-        ``kw`` override the other hyper-parameters (epochs, decay_epochs, grid_rows, finite_check_every).
+        ``averaged=False`` loads the trained weights rather than their average (to compare the two); ``kw``
+        override the other hyper-parameters (epochs, decay_epochs, grid_rows, finite_check_every, ema_decay).
+        A system that keeps an average starts it from the loaded weights.
         """
         ckpt = read_checkpoint(path)
         meta = ckpt["tnf"]
@@ -329,12 +392,17 @@ class GeneratorSystem(L.LightningModule):
         hp = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k != "generator"}
         hp.update(kw)
         system = cls(spec, **hp)
-        missing, unexpected = _load_state(system, ckpt["state_dict"])
+        state = ckpt["state_dict"]
+        has_average = any(k.startswith(AVERAGE_PREFIX) for k in state)
+        prefix = AVERAGE_PREFIX if averaged and has_average else "generator."
+        weights = {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
+        missing, unexpected = _load_state(system.generator, weights)
         if missing or unexpected:
             raise TnfError(
                 f"checkpoint {path} does not fit generator {spec.get('name')!r} of this tnf version "
                 f"(missing {missing[:3]}, unexpected {unexpected[:3]}); retrain or use the tnf version that wrote it"
             )
+        system.reset_average()
         return system.to(device)
 
 
@@ -368,10 +436,16 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def load_generator(
-    path: str | os.PathLike[str], device: str | torch.device = "cpu", expected: str | None = None
+    path: str | os.PathLike[str],
+    device: str | torch.device = "cpu",
+    expected: str | None = None,
+    averaged: bool = True,
 ) -> GeneratorSystem:
-    """A trained generator from a checkpoint, in eval mode on ``device``; ``system.generate(batch)`` runs it."""
-    return GeneratorSystem.from_checkpoint(path, device, expected=expected).eval()
+    """A trained generator from a checkpoint, in eval mode on ``device``; ``system.generate(batch)`` runs it.
+
+    It generates with the weights' average where the checkpoint holds one; ``averaged=False`` with the weights
+    as trained."""
+    return GeneratorSystem.from_checkpoint(path, device, expected=expected, averaged=averaged, ema_decay=None).eval()
 
 
 # -- image grids ----------------------------------------------------------------------------------------
