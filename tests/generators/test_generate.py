@@ -124,7 +124,7 @@ def test_generate_frames_novel_poses_as_its_training_dataset(data_root, trained_
         generate.run(compose("generate", [*gen, "generate.crop_px=48", "generate.run_name=fixed"]))
 
 
-def test_mirror_averaged_generation(data_root, trained_model):
+def test_mirror_averaged_generation(data_root, trained_model, capsys):
     import torch
 
     from tnf.data import PairDataset, mirror_batch
@@ -158,3 +158,20 @@ def test_mirror_averaged_generation(data_root, trained_model):
     flipped = {**batch, **mirror_batch(batch, (1, 0, 2))}
     assert not torch.allclose(system.generate(flipped, (1, 0, 2)), system.generate(flipped), atol=1e-4)
     assert val_ssim("evaluate.name=plain") != pytest.approx(expect, abs=1e-5)
+
+    # A dataset of a sensor without the symmetry is scored without averaging, and evaluate says so.
+    from tnf.artifacts import MANIFEST, read_json
+
+    manifest = data_root / "pairs" / "digit-hashgrid" / MANIFEST
+    saved = manifest.read_text()
+    m = read_json(manifest, "dataset manifest")
+    m["sensor"] = {"name": "omnitact", "config": {}}
+    write_json(manifest, m)
+    capsys.readouterr()
+    try:
+        unmirrored = val_ssim("generate.mirror_average=true", "evaluate.name=no_symmetry")
+    finally:
+        manifest.write_text(saved)
+    assert unmirrored == pytest.approx(val_ssim("evaluate.name=plain"), abs=1e-6)
+    said = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
+    assert "dataset digit-hashgrid has no mirror symmetry; test images are not mirror-averaged" in said

@@ -215,6 +215,11 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     mirror = None
     if cfg.generate.mirror_average:
         mirror = sensor_mirror(read_json(pairs / MANIFEST, "dataset manifest"), pairs, required=False)
+        if mirror is None:
+            bar.console.print(
+                f"evaluate: the sensor of dataset {pairs.name} has no mirror symmetry; test images are not "
+                "mirror-averaged (generate.mirror_average)"
+            )
 
     def generate(batch: Any) -> torch.Tensor:
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
