@@ -85,6 +85,8 @@ def main() -> None:
     ap.add_argument("--per-pair", metavar="FILE", help="write each pair's SSIM per column to this CSV")
     ap.add_argument("--ensemble", action="store_true", help="also the mean image of all runs")
     args = ap.parse_args()
+    if args.ensemble and len(args.runs) < 2:
+        ap.error("--ensemble averages the images of several runs: give at least two")
 
     root = Path(args.data_root)
     missing = [r for r in args.runs if not (root / "models" / r / "best.ckpt").is_file()]
@@ -102,7 +104,8 @@ def main() -> None:
     for run in args.runs:
         ckpt = root / "models" / run / "best.ckpt"
         system = load_generator(ckpt, args.device)
-        systems.append(system)
+        if args.ensemble:
+            systems.append(system)
         drops = [m for m in system.modules() if isinstance(m, NoiseDropout)]
         trained = [d.always_on for d in drops]
         modes = [("as trained", None, None)]
@@ -123,7 +126,7 @@ def main() -> None:
             s, m, _ = score(functools.partial(system.generate, mirror=mirror_order), loader, args.device)
             print(f"{run:<28} {label:<20} {s.mean():7.4f} {m.mean():7.1f}")
             columns[run if label == "as trained" else f"{run} ({label})"] = s
-    if args.ensemble and len(systems) > 1:
+    if args.ensemble:
         for label, mirror_order in [("ensemble", None)] + ([("ensemble, mirror", mirror)] if mirror else []):
 
             def mean_image(batch, order=mirror_order):

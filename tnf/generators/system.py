@@ -106,8 +106,7 @@ class GeneratorSystem(L.LightningModule):
         spec = generator_spec(generator)
         if decay_epochs < 0 or decay_epochs > epochs:
             raise TnfError(f"decay_epochs must be in [0, epochs={epochs}], got {decay_epochs}")
-        if ema_decay is not None and not 0.0 < float(ema_decay) < 1.0:
-            raise TnfError(f"ema_decay must be in (0, 1) (e.g. 0.999), or null for no average; got {ema_decay}")
+        ema_decay = _decay(ema_decay)
         self.save_hyperparameters(
             {
                 "generator": spec,
@@ -115,7 +114,7 @@ class GeneratorSystem(L.LightningModule):
                 "decay_epochs": decay_epochs,
                 "grid_rows": grid_rows,
                 "finite_check_every": finite_check_every,
-                "ema_decay": None if ema_decay is None else float(ema_decay),
+                "ema_decay": ema_decay,
             }
         )
         self.grid_dir = grid_dir
@@ -404,6 +403,19 @@ class GeneratorSystem(L.LightningModule):
             )
         system.reset_average()
         return system.to(device)
+
+
+def _decay(value: Any) -> float | None:
+    """``ema_decay`` as a float in (0, 1), or None; anything else is a TnfError."""
+    if value is None:
+        return None
+    try:
+        decay = float(value)
+    except (TypeError, ValueError):
+        decay = float("nan")
+    if isinstance(value, bool) or not 0.0 < decay < 1.0:
+        raise TnfError(f"ema_decay must be in (0, 1) (e.g. 0.999), or null for no average; got {value!r}")
+    return decay
 
 
 def _load_state(module: torch.nn.Module, state: Mapping[str, torch.Tensor]) -> tuple[list[str], list[str]]:

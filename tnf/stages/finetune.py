@@ -58,7 +58,7 @@ def run(cfg: Any) -> dict[str, Any]:
         "decay_epochs": int(f.decay_epochs),
         "grid_rows": int(f.grid_rows),
         "finite_check_every": int(f.finite_check_every),
-        "ema_decay": None if f.ema_decay is None else float(f.ema_decay),
+        "ema_decay": f.ema_decay,
     }
     overrides = {"lr": float(f.lr)} if f.lr is not None else {}
     source: dict[str, Any] = {}

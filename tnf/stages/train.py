@@ -56,7 +56,7 @@ def run(cfg: Any) -> dict[str, Any]:
         decay_epochs=int(t.decay_epochs),
         grid_rows=int(t.grid_rows),
         finite_check_every=int(t.finite_check_every),
-        ema_decay=None if t.ema_decay is None else float(t.ema_decay),
+        ema_decay=t.ema_decay,
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
     summary = fit(
