@@ -37,6 +37,12 @@ def main() -> None:
     ap.add_argument("--uniform-per-object", type=int, default=200)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--device", default="cpu")
+    ap.add_argument(
+        "--real-fraction",
+        default="config",
+        help="share of each Sim + GT uniform batch drawn from Sim: a number, 'none' (uniform over the set) or "
+        "'config' (evaluate.classifier.real_fraction of conf/evaluate/default.yaml)",
+    )
     a = ap.parse_args()
 
     import torch
@@ -46,7 +52,11 @@ def main() -> None:
     from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
 
     conf = Path(__file__).resolve().parents[1] / "conf" / "evaluate" / "default.yaml"
-    cfg = ClassifierConfig.from_dict(OmegaConf.to_container(OmegaConf.load(conf).classifier))
+    params = dict(OmegaConf.to_container(OmegaConf.load(conf).classifier))
+    if a.real_fraction != "config":
+        params["real_fraction"] = None if a.real_fraction == "none" else float(a.real_fraction)
+    cfg = ClassifierConfig.from_dict(params)
+    print(f"classifier real_fraction: {cfg.real_fraction}")
     root = Path(a.data) / "touch" / a.sensor / a.source
     uroot = Path(a.uniform) / "touch" / a.sensor / a.source
     objects = sorted(p.name for p in root.iterdir() if (p / "manifest.json").is_file()) if root.is_dir() else []
@@ -55,12 +65,14 @@ def main() -> None:
     if missing := [o for o in objects if not (uroot / o / "manifest.json").is_file()]:
         raise TnfError(f"no whole-sphere touches under {uroot} for {', '.join(missing)}; see the commands above")
 
-    def load(folder: Path, split: str, limit: int | None = None, seed: int = 0) -> LabelledImages:
-        """Every object's touches of one split, labelled by the object's index."""
+    def load(folder: Path, split: str, limit: int | None = None, seed: int = 0, added: bool = False) -> LabelledImages:
+        """Every object's touches of one split, labelled by the object's index; ``added``: they stand in for
+        generated images (the classifier's ``real_fraction`` treats them as such)."""
         sets = []
         for label, o in enumerate(objects):
             x = load_touch_images(folder / o, cfg.image_size, [split], limit, seed)
-            sets.append(LabelledImages(x, torch.full((len(x),), label, dtype=torch.long)))
+            mark = torch.full((len(x),), added, dtype=torch.bool)
+            sets.append(LabelledImages(x, torch.full((len(x),), label, dtype=torch.long), mark))
         return LabelledImages.concat(sets)
 
     # The full training set and the test set do not depend on the seed: loaded once.
@@ -68,7 +80,7 @@ def main() -> None:
     results: dict[str, list[float]] = {}
     for seed in a.seeds:
         sim = load(root, "train", a.sim_per_object, seed)
-        uniform = load(uroot, "train", a.uniform_per_object, seed)
+        uniform = load(uroot, "train", a.uniform_per_object, seed, added=True)
         rows = {
             f"Sim ({a.sim_per_object}/object)": sim,
             f"Sim (all {len(all_) // len(objects)}/object)": all_,

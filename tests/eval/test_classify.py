@@ -100,3 +100,44 @@ def test_load_touch_images_filters_splits_and_subsamples(tmp_path):
     (folder / "images" / "00000.png").unlink()
     with pytest.raises(TnfError, match="00000.png"):
         load_touch_images(folder, 32)
+
+
+def test_real_fraction_draws_each_batch_from_both_kinds_and_leaves_one_kind_sets_alone():
+    from tnf.eval.classify import _batch_sources
+
+    cfg = ClassifierConfig(image_size=32, width=4, steps=5, batch_size=8, real_fraction=0.25)
+    generated = torch.zeros(30, dtype=torch.bool)
+    generated[6:] = True  # 6 ground-truth images, 24 generated
+    sources = _batch_sources(30, generated, cfg, torch.Generator().manual_seed(0))
+    seen_real = []
+    for _ in range(12):
+        idx = torch.cat([s.next() for s in sources])
+        assert len(idx) == 8 and int((~generated[idx]).sum()) == 2  # a quarter of each batch
+        seen_real += idx[~generated[idx]].tolist()
+    # every ground-truth image once per epoch of the ground truth (3 batches of 2), never twice in one
+    for epoch in range(4):
+        assert sorted(seen_real[6 * epoch : 6 * epoch + 6]) == list(range(6))
+    # a set of one kind is drawn as without real_fraction: the same classifier, weight for weight
+    train = _separable(6, seed=5)
+    plain = ClassifierConfig(image_size=32, width=4, steps=5, batch_size=8)
+    a = train_classifier(train.images, train.labels, 3, plain, seed=1)
+    for mask in (None, torch.ones(len(train), dtype=torch.bool)):
+        b = train_classifier(train.images, train.labels, 3, cfg, seed=1, generated=mask)
+        for pa, pb in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
+            assert torch.equal(pa, pb)
+    mixed = torch.arange(len(train)) % 2 == 0
+    c = train_classifier(train.images, train.labels, 3, cfg, seed=1, generated=mixed)
+    assert any(not torch.equal(pa, pc) for pa, pc in zip(a.state_dict().values(), c.state_dict().values()))
+
+
+def test_labelled_images_keep_which_are_generated_through_concat():
+    real = _separable(2, seed=6)
+    fake = LabelledImages(real.images, real.labels, torch.ones(len(real), dtype=torch.bool))
+    both = LabelledImages.concat([real, fake])
+    assert both.generated is not None and both.generated.tolist() == [False] * 6 + [True] * 6
+
+
+@pytest.mark.parametrize("bad", [0, 1, 1.5, -0.2, True, "half"])
+def test_real_fraction_must_be_a_share(bad):
+    with pytest.raises(TnfError, match="real_fraction must be null or a number in"):
+        ClassifierConfig.from_dict({"real_fraction": bad})

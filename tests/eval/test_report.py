@@ -199,6 +199,33 @@ def test_tnf_evaluate_classification_and_report(data_root, capsys):
     assert (data_root / "reports/collected/table1b_accuracy.csv").is_file()
 
 
+def test_tnf_evaluate_draws_a_share_of_each_mixed_batch_from_the_ground_truth(data_root, monkeypatch):
+    import tnf.eval.classify as classify
+    from tnf.stages.evaluate import run
+
+    _touch_data(data_root)
+    masks = []
+    real_train = classify.train_classifier
+
+    def spy(images, labels, *args, **kwargs):
+        masks.append(None if (g := args[-1] if len(args) == 6 else kwargs.get("generated")) is None else g.clone())
+        return real_train(images, labels, *args, **kwargs)
+
+    monkeypatch.setattr(classify, "train_classifier", spy)
+    over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.model=fake", "evaluate.splits=[]", "seed=0"]
+    over.append("evaluate.classifier.steps=8")
+    uniform = run(compose("evaluate", [*over, "evaluate.name=uniform"]))["results"]
+    half = run(compose("evaluate", [*over, "evaluate.name=half", "evaluate.classifier.real_fraction=0.5"]))["results"]
+    # rows Sim, Sim + T-N, T-N only, twice: the mixed row knows its 16 generated images among 24
+    assert [int(m.sum()) for m in masks] == [0, 16, 16] * 2 and [len(m) for m in masks] == [8, 24, 16] * 2
+    assert (uniform["classify"]["real_fraction"], half["classify"]["real_fraction"]) == (None, 0.5)
+    assert half["accuracy"]["Sim"] == uniform["accuracy"]["Sim"]  # one kind of image: drawn as before
+    md = (data_root / "reports/half/report.md").read_text()
+    assert "Rows that add generated images draw 50% of each batch from the ground-truth touches." in md
+    md = (data_root / "reports/uniform/report.md").read_text()
+    assert "draw each batch uniformly from all their images" in md
+
+
 def test_tnf_evaluate_refuses_missing_inputs(data_root):
     from tnf.errors import TnfError
     from tnf.stages.evaluate import run

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -46,6 +46,10 @@ class ClassifierConfig:
     """AdamW weight decay."""
     shift: int = 4
     """Augmentation: random translation of each batch by up to this many pixels (0 = none)."""
+    real_fraction: float | None = None
+    """In a training set that mixes ground-truth and generated images (``Sim + G``), the share of each batch drawn
+    from the ground truth; None draws batches uniformly from the whole set, so adding generated images also cuts
+    how often each ground-truth image is seen. Sets of one kind (``Sim``, ``G only``) are drawn as with None."""
 
     def validate(self) -> None:
         if self.image_size < 16:
@@ -57,6 +61,14 @@ class ClassifierConfig:
             raise TnfError(f"evaluate.classifier.lr must be > 0, got {self.lr}")
         if not 0 <= self.shift < self.image_size // 2:
             raise TnfError(f"evaluate.classifier.shift must be in [0, image_size/2), got {self.shift}")
+        if self.real_fraction is not None and not (
+            isinstance(self.real_fraction, (int, float))
+            and not isinstance(self.real_fraction, bool)
+            and 0 < self.real_fraction < 1
+        ):
+            raise TnfError(
+                f"evaluate.classifier.real_fraction must be null or a number in (0, 1), got {self.real_fraction!r}"
+            )
 
     @classmethod
     def from_dict(cls, params: Mapping[str, Any]) -> ClassifierConfig:
@@ -128,8 +140,12 @@ def train_classifier(
     seed: int = 0,
     device: str = "cpu",
     on_step: Callable[[int], None] | None = None,
+    generated: torch.Tensor | None = None,
 ) -> TactileClassifier:
     """Train a fresh classifier on uint8 images ``[N, 3, H, W]`` with labels ``[N]`` (0..num_classes-1).
+
+    ``generated`` (bool ``[N]``) marks generated images; with ``cfg.real_fraction`` set and both kinds present,
+    each batch takes that share from the rest (the ground truth) and the remainder from the generated images.
 
     The initial weights, batch order and augmentation depend only on ``seed``, and on a GPU cuDNN runs its
     deterministic kernels and matrix products stay in full fp32 (``reproducible_kernels``), so the same images
@@ -140,8 +156,45 @@ def train_classifier(
         raise TnfError("classifier training set is empty; check the touch and generated datasets")
     if images.dtype != torch.uint8 or images.ndim != 4:
         raise ValueError(f"images must be uint8 [N, 3, H, W], got {images.dtype} {tuple(images.shape)}")
+    if generated is not None and generated.shape != labels.shape:
+        raise ValueError(f"generated must be a bool mask of shape {tuple(labels.shape)}, got {tuple(generated.shape)}")
     with reproducible_kernels():
-        return _train(images, labels, num_classes, cfg, seed, device, on_step)
+        return _train(images, labels, num_classes, cfg, seed, device, on_step, generated)
+
+
+class _Batches:
+    """Batches of indices into one group of a training set, in a fresh random order each epoch.
+
+    A batch never spans two epochs: when fewer than ``size`` indices are left, the group is reshuffled first.
+    """
+
+    def __init__(self, indices: torch.Tensor, size: int, gen: torch.Generator):
+        self.indices, self.size, self.gen = indices, size, gen
+        self.order, self.pos = self._shuffled(), 0
+
+    def _shuffled(self) -> torch.Tensor:
+        return self.indices[torch.randperm(len(self.indices), generator=self.gen)]
+
+    def next(self) -> torch.Tensor:
+        if self.pos + self.size > len(self.indices) and self.pos > 0:
+            self.order, self.pos = self._shuffled(), 0
+        batch = self.order[self.pos : self.pos + self.size]
+        self.pos += self.size
+        return batch
+
+
+def _batch_sources(
+    n: int, generated: torch.Tensor | None, cfg: ClassifierConfig, gen: torch.Generator
+) -> list[_Batches]:
+    """One source of the whole set, or (cfg.real_fraction with both kinds present) one per kind."""
+    if cfg.real_fraction is None or generated is None or not 0 < int(generated.sum()) < n:
+        return [_Batches(torch.arange(n), cfg.batch_size, gen)]
+    n_real = min(cfg.batch_size - 1, max(1, round(cfg.real_fraction * cfg.batch_size)))
+    mask = generated.bool().cpu()
+    return [
+        _Batches(torch.nonzero(~mask).flatten(), n_real, gen),
+        _Batches(torch.nonzero(mask).flatten(), cfg.batch_size - n_real, gen),
+    ]
 
 
 def _train(
@@ -152,6 +205,7 @@ def _train(
     seed: int,
     device: str,
     on_step: Callable[[int], None] | None,
+    generated: torch.Tensor | None = None,
 ) -> TactileClassifier:
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -161,14 +215,9 @@ def _train(
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 0.5 * (1 + math.cos(math.pi * i / cfg.steps)))
     model.train()
-    n = len(x_all)
-    order = torch.randperm(n, generator=gen)
-    pos = 0
+    sources = _batch_sources(len(x_all), generated, cfg, gen)
     for step in range(cfg.steps):
-        if pos + cfg.batch_size > n and pos > 0:  # reshuffle each epoch; a batch never spans two epochs
-            order, pos = torch.randperm(n, generator=gen), 0
-        idx = order[pos : pos + cfg.batch_size].to(device)
-        pos += cfg.batch_size
+        idx = torch.cat([s.next() for s in sources]).to(device)
         x = _to_input(x_all[idx], cfg.image_size)
         if cfg.shift > 0:
             dx, dy = (torch.randint(-cfg.shift, cfg.shift + 1, (2,), generator=gen)).tolist()
@@ -206,14 +255,24 @@ def accuracy(model: TactileClassifier, images: torch.Tensor, labels: torch.Tenso
 
 @dataclass
 class LabelledImages:
-    """A classification set: uint8 images ``[N, 3, S, S]`` and labels ``[N]`` (indices into the class list)."""
+    """A classification set: uint8 images ``[N, 3, S, S]``, labels ``[N]`` (indices into the class list) and which
+    images are generated (bool ``[N]``; None: none are)."""
 
     images: torch.Tensor
     labels: torch.Tensor
+    generated: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.generated is None:
+            self.generated = torch.zeros(len(self.labels), dtype=torch.bool)
 
     @staticmethod
     def concat(sets: Sequence[LabelledImages]) -> LabelledImages:
-        return LabelledImages(torch.cat([s.images for s in sets]), torch.cat([s.labels for s in sets]))
+        return LabelledImages(
+            torch.cat([s.images for s in sets]),
+            torch.cat([s.labels for s in sets]),
+            torch.cat([cast(torch.Tensor, s.generated) for s in sets]),
+        )
 
     def __len__(self) -> int:
         return len(self.labels)
@@ -231,7 +290,7 @@ def run_rows(
     """Train one classifier per row of ``train_sets`` (same seed and schedule) -> accuracy in percent per row."""
     return {
         row: accuracy(
-            train_classifier(s.images, s.labels, num_classes, cfg, seed, device, on_step),
+            train_classifier(s.images, s.labels, num_classes, cfg, seed, device, on_step, s.generated),
             test.images,
             test.labels,
             cfg.image_size,

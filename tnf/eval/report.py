@@ -187,6 +187,20 @@ def against_paper(table: str, data: TableData) -> list[tuple[str, str, str]]:
     return out
 
 
+def batch_sampling(runs: Sequence[dict[str, Any]]) -> str | None:
+    """How the rows that add generated images drew their batches (``evaluate.classifier.real_fraction``)."""
+    fractions = {r["classify"].get("real_fraction") for r in runs if isinstance(r.get("classify"), dict)}
+    if not fractions:
+        return None
+    if len(fractions) > 1:
+        shown = ", ".join("uniform" if f is None else f"{f:g}" for f in sorted(fractions, key=lambda f: f or 0))
+        return f"**The runs drew their batches differently** (real_fraction: {shown}); their rows do not compare."
+    (f,) = fractions
+    if f is None:
+        return "Rows that add generated images draw each batch uniformly from all their images."
+    return f"Rows that add generated images draw {f:.0%} of each batch from the ground-truth touches."
+
+
 def render_markdown(
     name: str, tables: dict[str, TableData], figures: dict[str, list[tuple[str, str]]], notes: str | None = None
 ) -> str:
@@ -228,11 +242,10 @@ def render_markdown(
         for r in accuracy_rows(table, data):
             n = r["ours"].n if r["ours"] else "-"
             lines.append(f"| {r['row']} | {fmt_stat(r['ours'], 'acc')} | {fmt_stat(r['paper'], 'acc')} | {n} |")
-        lines += [
-            "",
-            "Test set: held-out ground-truth touches only; same classifier, schedule and test set per row.",
-            "",
-        ]
+        lines += ["", "Test set: held-out ground-truth touches only; same classifier, schedule and test set per row."]
+        lines.append("")
+        if sampling := batch_sampling(data.runs):
+            lines += [sampling, ""]
         for caption, path in figures.get(table, []):
             lines += [f"**{caption}**", "", f"![{caption}]({path})", ""]
         cks = checks(table, data)

@@ -307,7 +307,8 @@ def classification(cfg: Any, store: Any, method: str, device: str, bar: Any) -> 
         test.append(labelled(load_touch_images(folder, size, list(ccfg.test_splits), ccfg.test_per_object, seed)))
         gfolder = store.path("generated", generated_run, source, obj)
         if (gfolder / "manifest.json").is_file():
-            gen.append(labelled(load_touch_images(gfolder, size, None, ccfg.generated_per_object, seed)))
+            x = load_touch_images(gfolder, size, None, ccfg.generated_per_object, seed)
+            gen.append(LabelledImages(x, torch.full((len(x),), label), torch.ones(len(x), dtype=torch.bool)))
         else:
             warnings.append(f"no generated touches for {obj} in {gfolder}")
         bar.advance(load)
@@ -328,6 +329,7 @@ def classification(cfg: Any, store: Any, method: str, device: str, bar: Any) -> 
         "test_images": len(test_set),
         "sensor": sensor,
         "generated": generated_run,
+        "real_fraction": clf.real_fraction,
     }
     return acc, info, warnings
 
