@@ -137,6 +137,7 @@ def checks(table: str, data: TableData) -> list[tuple[str, str, str]]:
             compare(f"{PRIMARY} SSIM > {b} SSIM ({name})", img(ts, PRIMARY, "ssim"), img(ts, b, "ssim"), True, "ssim")
             compare(f"{PRIMARY} MSE < {b} MSE ({name})", img(ts, PRIMARY, "mse"), img(ts, b, "mse"), False, "mse")
         compare(f"{PRIMARY} SSIM > BG SSIM ({name})", img(ts, PRIMARY, "ssim"), img(ts, BG, "ssim"), True, "ssim")
+        compare(f"{PRIMARY} MSE < BG MSE ({name})", img(ts, PRIMARY, "mse"), img(ts, BG, "mse"), False, "mse")
         if f"{PRIMARY}+" in others and ts == "novel_object":
             compare(
                 f"{PRIMARY}+ SSIM > {PRIMARY} SSIM ({name})",
