@@ -1,8 +1,8 @@
 """How much can added touches lift the classification task? Ground truth in place of generated images.
 
 The evaluation's classification rows (``Sim``, ``Sim + G``) train on 20 simulated touches per object and test
-on the novel-view touches. This script trains the same classifier (``conf/evaluate/default.yaml``'s
-``classifier``) on ground truth only, to show what a perfect generator could add:
+on the novel-view touches. This script trains the same classifier (the experiment's ``evaluate.classifier``,
+sim_digit's by default) on ground truth only, to show what a perfect generator could add:
 
 - ``Sim``: the ``--sim-per-object`` training touches per object (as in the evaluation);
 - ``Sim (all)``: every training touch (500 per object in sim_digit), all outside the novel-view cone;
@@ -16,9 +16,10 @@ on the novel-view touches. This script trains the same classifier (``conf/evalua
         touch.n_novel_view=0 touch.novel_view_cone=0                         # TNF_DATA=B
     python bench/classify_ceiling.py --data A --uniform B [--device cuda] [--seeds 0 1 2]
 
-``--real-fraction 0.5`` draws half of each ``Sim + GT uniform`` batch from ``Sim``, as sim_digit's evaluation
-does (``evaluate.classifier.real_fraction``). ``--rows sim mixed`` trains only the two rows whose gap that
-changes: each row is one classifier run per seed, about 7 minutes on 2 CPU cores.
+``Sim + GT uniform`` draws its batches as the experiment's evaluation does (sim_digit: half of each from
+``Sim``, ``evaluate.classifier.real_fraction``); ``--real-fraction none`` or a number overrides it.
+``--rows sim mixed`` trains only the two rows that this separates; each row is one classifier run per seed,
+about 7 minutes on 2 CPU cores.
 """
 
 from __future__ import annotations
@@ -44,11 +45,12 @@ def main() -> None:
     ap.add_argument("--uniform-per-object", type=int, default=200)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--experiment", default="sim_digit", help="experiment whose evaluate.classifier is used")
     ap.add_argument(
         "--real-fraction",
         default="config",
         help="share of each Sim + GT uniform batch drawn from Sim: a number, 'none' (uniform over the set) or "
-        "'config' (evaluate.classifier.real_fraction of conf/evaluate/default.yaml)",
+        "'config' (the experiment's evaluate.classifier.real_fraction)",
     )
     ap.add_argument(
         "--rows",
@@ -65,9 +67,9 @@ def main() -> None:
 
     from tnf.errors import TnfError
     from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
+    from tnf.testing import compose
 
-    conf = Path(__file__).resolve().parents[1] / "conf" / "evaluate" / "default.yaml"
-    params = dict(OmegaConf.to_container(OmegaConf.load(conf).classifier))
+    params = dict(OmegaConf.to_container(compose("evaluate", [f"experiment={a.experiment}"]).evaluate.classifier))
     if a.real_fraction != "config":
         params["real_fraction"] = None if a.real_fraction == "none" else float(a.real_fraction)
     cfg = ClassifierConfig.from_dict(params)
