@@ -35,19 +35,30 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 ROWS = ("sim", "all", "mixed", "added")
 
 
+def _real_fraction(value: str) -> str:
+    """``--real-fraction``: 'config', 'none' or a number (its range is checked with the classifier's config)."""
+    if value not in ("config", "none"):
+        try:
+            float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, 'none' or 'config', got {value!r}") from None
+    return value
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="data root with touch/SENSOR/SOURCE/OBJECT/ (train, novel_view)")
     ap.add_argument("--uniform", required=True, help="data root with touches from the whole sphere (split train)")
     ap.add_argument("--sensor", default="digit")
     ap.add_argument("--source", default="builtin")
-    ap.add_argument("--sim-per-object", type=int, default=20)
+    ap.add_argument("--sim-per-object", type=int, help="default: the experiment's evaluate.classify.sim_per_object")
     ap.add_argument("--uniform-per-object", type=int, default=200)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--experiment", default="sim_digit", help="experiment whose evaluate.classifier is used")
     ap.add_argument(
         "--real-fraction",
+        type=_real_fraction,
         default="config",
         help="share of each Sim + GT uniform batch drawn from Sim: a number, 'none' (uniform over the set) or "
         "'config' (the experiment's evaluate.classifier.real_fraction)",
@@ -63,13 +74,22 @@ def main() -> None:
     a = ap.parse_args()
 
     import torch
+    from hydra.errors import HydraException
     from omegaconf import OmegaConf
 
+    from tnf.env import conf_dir
     from tnf.errors import TnfError
     from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
     from tnf.testing import compose
 
-    params = dict(OmegaConf.to_container(compose("evaluate", [f"experiment={a.experiment}"]).evaluate.classifier))
+    try:
+        evaluate = compose("evaluate", [f"experiment={a.experiment}"]).evaluate
+    except HydraException:
+        known = ", ".join(sorted(p.stem for p in (Path(conf_dir()) / "experiment").glob("*.yaml")))
+        raise TnfError(f"unknown experiment {a.experiment!r}; experiments: {known}") from None
+    params = dict(OmegaConf.to_container(evaluate.classifier))
+    if a.sim_per_object is None:
+        a.sim_per_object = int(evaluate.classify.sim_per_object)
     if a.real_fraction != "config":
         params["real_fraction"] = None if a.real_fraction == "none" else float(a.real_fraction)
     cfg = ClassifierConfig.from_dict(params)
