@@ -102,6 +102,16 @@ def conditions(batch: dict[str, torch.Tensor], inputs: tuple[str, ...]) -> dict[
     return {k: DERIVED[k](batch["depth"]) if k in DERIVED else batch[k] for k in inputs}
 
 
+def coordinate_grid(size: int) -> torch.Tensor:
+    """[1, 2, size, size]: each pixel centre's x (along the width) and y (down the rows), from -1 + 1/size to
+    1 - 1/size. Appended to an input (``coords``), they tell the convolutions where in the gel a pixel lies: the
+    gel's sag and the lights' directions, which an imprint's shading follows, depend on it, and a convolution
+    alone cannot tell one place from another."""
+    c = (torch.arange(size, dtype=torch.float32) * 2 + 1) / size - 1
+    y, x = torch.meshgrid(c, c, indexing="ij")
+    return torch.stack([x, y])[None]
+
+
 def level_channels(ngf: int, level: int) -> int:
     """Feature channels at encoder level ``level`` (0 = first, half resolution): ngf, 2ngf, 4ngf, 8ngf, 8ngf..."""
     return ngf * min(2**level, 8)
@@ -217,6 +227,9 @@ class MultiEncoderUNet(nn.Module):
     With ``residual`` the network's last layer has no tanh and its output is added to the background image (the
     simulator's own image formation: the background plus a change where the gel is pressed), so where nothing
     touches the gel the output is the background from the start; in eval mode the sum is clipped to [-1, 1].
+
+    The inputs named in ``coords`` get two more channels, the pixel's position (``coordinate_grid``), before
+    their encoder and, for skip inputs, in the head.
     """
 
     def __init__(
@@ -231,15 +244,22 @@ class MultiEncoderUNet(nn.Module):
         kernel: int = 4,
         full_res_head: bool = False,
         residual: bool = False,
+        coords: tuple[str, ...] | list[str] = (),
     ):
         super().__init__()
         if residual and "background" not in inputs:
             raise ValueError(f"residual output adds to the background image: inputs {inputs} must include background")
+        if not set(coords) <= set(inputs):
+            raise ValueError(f"coords {list(coords)} must be a subset of inputs {list(inputs)}")
         self.residual = residual
         self.inputs = tuple(inputs)
         self.skips = tuple(skips)
+        self.coords = tuple(coords)
         n = num_downs
-        self.encoders = nn.ModuleDict({k: Encoder(CHANNELS[k], ngf, n, norm, kernel) for k in self.inputs})
+        # Not saved in checkpoints: made again from the image size.
+        self.register_buffer("coordinate_grid", coordinate_grid(2**n), persistent=False)
+        ch = {k: CHANNELS[k] + 2 * (k in self.coords) for k in self.inputs}
+        self.encoders = nn.ModuleDict({k: Encoder(ch[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
         dec_out = ngf if full_res_head else 3
@@ -258,7 +278,7 @@ class MultiEncoderUNet(nn.Module):
         )
         self.head: nn.Module | None = None
         if full_res_head:
-            cin = ngf + sum(CHANNELS[k] for k in self.skips)
+            cin = ngf + sum(ch[k] for k in self.skips)
             self.head = nn.Sequential(
                 nn.ReLU(True),
                 nn.Conv2d(cin, ngf, 3, 1, 1, bias=norm != "batch"),
@@ -283,6 +303,13 @@ class MultiEncoderUNet(nn.Module):
         return self.head[2:](y)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        background = inputs.get("background")
+        if self.coords:
+            grid = self.coordinate_grid
+            inputs = {
+                k: torch.cat([v, grid.to(v.dtype).expand(len(v), -1, -1, -1)], 1) if k in self.coords else v
+                for k, v in inputs.items()
+            }
         feats = {k: self.encoders[k](inputs[k]) for k in self.inputs}
         bottleneck = torch.cat([feats[k][-1] for k in self.inputs], 1)
         n = len(next(iter(feats.values())))
@@ -292,7 +319,8 @@ class MultiEncoderUNet(nn.Module):
             out = self._head(out, [inputs[k] for k in self.skips])
         if not self.residual:
             return out
-        out = inputs["background"] + out
+        assert background is not None  # checked in __init__
+        out = background + out
         # Training sees the unclipped sum, so that the L1 and SSIM terms still pull back a pixel that overshoots.
         return out if self.training else out.clamp(-1, 1)
 
@@ -367,6 +395,10 @@ class TNcGAN(Generator):
         residual: bool = True
         """Add the network's output to the background image instead of making the image outright (needs
         background in inputs): only the change that the press makes is learned."""
+        coords: list[str] = field(default_factory=list)
+        """Inputs that also get each pixel's x and y position as two channels (``coordinate_grid``), for their
+        encoder and, if skipped, the head: where on the gel a pixel lies changes how a press there looks (the
+        gel's sag, the lights' directions). Empty: the network sees positions only through its borders."""
         lr: float = 2e-4
         """Adam learning rate of generator and discriminator."""
         beta1: float = 0.5
@@ -384,6 +416,9 @@ class TNcGAN(Generator):
                 raise ValueError(f"inputs must be a non-empty subset of {list(CHANNELS)}, got {self.inputs}")
             if len(set(self.inputs)) != len(self.inputs):
                 raise ValueError(f"inputs has duplicates: {self.inputs}")
+            stray = [k for k in self.coords if k not in self.inputs]
+            if stray:
+                raise ValueError(f"coords {stray} are not in inputs {self.inputs}; set coords to a subset of inputs")
             extra = [k for k in self.skips if k not in self.inputs]
             if extra:
                 raise ValueError(f"skips {extra} are not in inputs {self.inputs}; set skips to a subset of inputs")
@@ -426,6 +461,7 @@ class TNcGAN(Generator):
             cfg.dropout_blocks,
             full_res_head=cfg.full_res_head,
             residual=cfg.residual,
+            coords=cfg.coords,
         )
         cond_ch = sum(CHANNELS[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
