@@ -257,7 +257,8 @@ class MultiEncoderUNet(nn.Module):
         self.coords = tuple(coords)
         n = num_downs
         # Not saved in checkpoints: made again from the image size.
-        self.register_buffer("coordinate_grid", coordinate_grid(2**n), persistent=False)
+        self.position_grid: torch.Tensor
+        self.register_buffer("position_grid", coordinate_grid(2**n), persistent=False)
         ch = {k: CHANNELS[k] + 2 * (k in self.coords) for k in self.inputs}
         self.encoders = nn.ModuleDict({k: Encoder(ch[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
@@ -305,7 +306,7 @@ class MultiEncoderUNet(nn.Module):
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         background = inputs.get("background")
         if self.coords:
-            grid = self.coordinate_grid
+            grid = self.position_grid
             inputs = {
                 k: torch.cat([v, grid.to(v.dtype).expand(len(v), -1, -1, -1)], 1) if k in self.coords else v
                 for k, v in inputs.items()
