@@ -418,7 +418,8 @@ def test_tn_cgan_coords_append_the_pixel_position():
     enc = g.net_g.encoders
     assert enc["depth_and_slope"].blocks[0].in_channels == 5 and enc["rgb"].blocks[0].in_channels == 3
     assert g.net_g.head[1].in_channels == 4 + 3 + 5  # features, background, depth with slopes and position
-    assert "net_g.position_grid" in dict(g.named_buffers()) and "net_g.position_grid" not in g.state_dict()  # made again from the image size, not checkpointed
+    # The position channels are made again from the image size, not checkpointed.
+    assert "net_g.position_grid" in dict(g.named_buffers()) and "net_g.position_grid" not in g.state_dict()
     batch = make_pairs(2, 32)
     seen = []
     hook = enc["depth_and_slope"].register_forward_pre_hook(lambda m, i: seen.append(i[0].clone()))
