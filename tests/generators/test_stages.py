@@ -1,6 +1,7 @@
 """`tnf train` and `tnf finetune` on a real paired dataset (written in the tnf.data format) with the tiny config."""
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -61,6 +62,19 @@ def test_train_stage_writes_a_loadable_run(data_root):
     assert train.run(cfg)["skipped"]
     with pytest.raises(TnfError, match="another config"):
         train.run(compose("train", [*TINY, "generator.lambda_l1=10", "train.resume=true"]))
+
+
+def test_train_stage_prints_no_lightning_advice(data_root, recwarn, caplog):
+    """Lightning's notices about a non-empty run folder (tnf writes the manifest there first) and its cloud
+    logger advertisement are not shown; Lightning's own start-up lines still are."""
+    from tnf.stages import train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    caplog.set_level(logging.INFO)
+    train.run(compose("train", TINY))
+    shown = [str(w.message) for w in recwarn] + [r.getMessage() for r in caplog.records]
+    assert not [m for m in shown if "exists and is not empty" in m or "litlogger" in m]
+    assert any("GPU available" in r.getMessage() for r in caplog.records)
 
 
 def test_train_stage_with_the_mirror_augmentation(data_root):

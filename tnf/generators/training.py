@@ -9,6 +9,7 @@ config, written when it starts, so a resumed run can be checked against it) and,
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 import warnings
@@ -191,6 +192,7 @@ def fit(
     callbacks: list[Any] = [checkpoint, latest, ProcessSetup(tf32=on_gpu)]
     if progress:
         callbacks.append(RichProgressBar(leave=True))
+    _quiet_trainer_start()
     trainer = L.Trainer(
         default_root_dir=str(run_dir),
         max_epochs=system.hparams["epochs"],
@@ -292,11 +294,32 @@ def merge_metrics_parts(run_dir: Path) -> None:
 
 def quiet_advice() -> None:
     """Silence Lightning advice that does not apply to GAN training here: small datasets and CPU runs (few
-    loader workers, short epochs), and DDP's per-epoch training losses, which are process 0's (averaging them
-    over processes would synchronise every step)."""
+    loader workers, short epochs), DDP's per-epoch training losses, which are process 0's (averaging them
+    over processes would synchronise every step), and a run folder that is not empty, which tnf made itself
+    (``prepare_run_dir``: the manifest first, and on resuming the metrics it merges back). Also Lightning's
+    use of torch's deprecated ``LeafSpec`` (a FutureWarning that is Lightning's to fix, not the user's)."""
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
     warnings.filterwarnings("ignore", ".*smaller than the logging interval.*")
     warnings.filterwarnings("ignore", ".*when logging on epoch level in distributed setting.*")
+    warnings.filterwarnings("ignore", ".*(Experiment logs|Checkpoint) directory .* exists and is not empty.*")
+    warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", FutureWarning)
+
+
+class _NoAdvert(logging.Filter):
+    """Drops Lightning's advertisement for its cloud logger, printed at every Trainer's start."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "litlogger" not in record.getMessage()
+
+
+_NO_ADVERT = _NoAdvert()
+
+
+def _quiet_trainer_start() -> None:
+    """Install ``_NoAdvert`` on the logger Lightning prints its start-up notices with (once per process)."""
+    logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    if _NO_ADVERT not in logger.filters:
+        logger.addFilter(_NO_ADVERT)
 
 
 class ProcessSetup(Callback):
