@@ -23,6 +23,9 @@ def test_pair_after_real_stages(data_root):
     assert len(a) == touches > 0 and a.manifest["counts"]["novel_object"] == 0
     assert a.manifest["counts"]["train"] > 0 and a.manifest["counts"]["novel_view"] > 0
     depth = a.depth.astype(np.float32)
-    assert (depth[:, 63:65, 63:65].min(axis=(1, 2)) < 0.6).mean() > 0.5  # the centre ray mostly hits the ball
+    assert (depth[:, 63:65, 63:65].min(axis=(1, 2)) < 1).mean() > 0.5  # the centre ray mostly hits the ball
+    # Depth is measured from each touch's first contact, which pair.depth_norm=contact (the default) maps to 0.5:
+    # the nearest surface of a crop lies there.
+    assert np.median(depth.min(axis=(1, 2))) == pytest.approx(0.5, abs=0.1)
     item = PairDataset(a.folder)[0]
     assert item["tactile"].shape == (3, 128, 128)

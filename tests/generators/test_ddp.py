@@ -29,8 +29,8 @@ def tnf(*args, root):
     return out
 
 
-def epoch_rows(run_dir, column):
-    with open(run_dir / "metrics.csv") as f:
+def epoch_rows(run_dir, column, name="metrics.csv"):
+    with open(run_dir / name) as f:
         return [r for r in csv.DictReader(f) if r.get(column)]
 
 
@@ -90,11 +90,18 @@ def test_killed_ddp_run_resumes_from_its_last_checkpoint(data_root):
     assert done < 2
     tnf("train", *TINY, "train.epochs=3", "train.decay_epochs=0", root=data_root)
     manifest = json.loads((run_dir / "manifest.json").read_text())
-    assert manifest["epochs"] == 3 and manifest["global_step"] == 3 * 2 and manifest["world_size"] == 2
-    # The rerun trained only the epochs after the saved one, each on all 8 pairs split between the processes.
+    # One generator step per batch (no adversarial term, the default), one batch per process and epoch.
+    assert manifest["epochs"] == 3 and manifest["global_step"] == 3 and manifest["world_size"] == 2
+    # metrics.csv holds the run's whole history once: the epochs up to the saved one from the killed run (whose
+    # own file stays as metrics.part1.csv), then those the rerun trained, each on all 8 pairs split between the
+    # processes.
     rows = epoch_rows(run_dir, "train/samples")
-    assert [int(r["epoch"]) for r in rows] == list(range(done + 1, 3))
+    assert [int(r["epoch"]) for r in rows] == [0, 1, 2]
     assert all(float(r["train/samples"]) == 8 and float(r["train/rank_samples"]) == 4 for r in rows)
+    killed = {
+        int(r["epoch"]): r["train/loss_g_epoch"] for r in epoch_rows(run_dir, "train/samples", "metrics.part1.csv")
+    }
+    assert [r["train/loss_g_epoch"] for r in rows[: done + 1]] == [killed[e] for e in range(done + 1)]
     assert torch.load(run_dir / "last.ckpt", weights_only=True)["epoch"] == 2
 
 
@@ -126,7 +133,7 @@ def test_ddp_with_processes_started_by_torchrun(data_root):
     assert out.stdout.count("tn_cgan_digit-hashgrid: 2 epochs") == 1  # the summary, from process 0 alone
     run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
     manifest = json.loads((run_dir / "manifest.json").read_text())
-    assert manifest["world_size"] == 2 and manifest["epochs"] == 2 and manifest["global_step"] == 4
+    assert manifest["world_size"] == 2 and manifest["epochs"] == 2 and manifest["global_step"] == 2
     rows = epoch_rows(run_dir, "train/samples")
     assert all(float(r["train/samples"]) == 8 and float(r["train/rank_samples"]) == 4 for r in rows)
     assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".")]

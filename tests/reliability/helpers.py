@@ -134,12 +134,22 @@ def tree_bytes(folder: Path, skip=("manifest.json",)) -> dict[str, bytes]:
     }
 
 
-def same_arrays(a: Path, b: Path) -> None:
-    """The ``.npy`` files under two folders are equal."""
+def same_arrays(a: Path, b: Path, rounding: bool = False) -> None:
+    """The ``.npy`` files under two folders are equal.
+
+    ``rounding``: uint8 images may differ by one level in at most one element in 10,000 (a rendered value that
+    lands on a rounding boundary can round either way in another process); a resume that mixed up touches or
+    rows changes far more than that. Other arrays must be equal.
+    """
     names = sorted(str(p.relative_to(a)) for p in a.rglob("*.npy"))
     assert names == sorted(str(p.relative_to(b)) for p in b.rglob("*.npy"))
     for n in names:
-        np.testing.assert_array_equal(np.load(a / n), np.load(b / n), err_msg=n)
+        x, y = np.load(a / n), np.load(b / n)
+        if rounding and x.dtype == np.uint8 and x.shape == y.shape:
+            diff = np.abs(x.astype(np.int16) - y.astype(np.int16))
+            assert diff.max() <= 1 and (diff > 0).mean() <= 1e-4, f"{n}: {int((diff > 0).sum())} elements differ"
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=n)
 
 
 # -- what a killed run leaves behind -----------------------------------------------------------------------

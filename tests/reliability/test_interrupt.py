@@ -121,7 +121,7 @@ def test_pair_killed_after_first_cache_resumes(tmp_path):
     before[first] = (first.stat().st_mtime_ns, manifest(first.parent)["created"])
     run_to_end(root, *PAIR)
     assert first.stat().st_mtime_ns == before[first][0], "the finished render cache was recomputed"
-    same_arrays(root / "pairs" / "digit-mesh", ref / "pairs" / "digit-mesh")
+    same_arrays(root / "pairs" / "digit-mesh", ref / "pairs" / "digit-mesh", rounding=True)
     assert manifest(root / "pairs/digit-mesh")["config_hash"] == manifest(ref / "pairs/digit-mesh")["config_hash"]
     assert partials(root) == []
 
