@@ -74,19 +74,17 @@ def main() -> None:
     a = ap.parse_args()
 
     import torch
-    from hydra.errors import HydraException
+    from hydra.errors import MissingConfigException
     from omegaconf import OmegaConf
 
-    from tnf.env import conf_dir
     from tnf.errors import TnfError
     from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
     from tnf.testing import compose
 
     try:
         evaluate = compose("evaluate", [f"experiment={a.experiment}"]).evaluate
-    except HydraException:
-        known = ", ".join(sorted(p.stem for p in (Path(conf_dir()) / "experiment").glob("*.yaml")))
-        raise TnfError(f"unknown experiment {a.experiment!r}; experiments: {known}") from None
+    except MissingConfigException as e:  # an unknown name; a broken experiment's own error is shown as it is
+        raise TnfError(f"unknown experiment {a.experiment!r}; experiments: {', '.join(e.options or [])}") from None
     params = dict(OmegaConf.to_container(evaluate.classifier))
     if a.sim_per_object is None:
         a.sim_per_object = int(evaluate.classify.sim_per_object)

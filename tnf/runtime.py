@@ -1,9 +1,10 @@
-"""Run-wide helpers every stage uses: the compute device, seeding and progress bars."""
+"""Run-wide helpers every stage uses: the compute device, seeding, progress bars and warning filters."""
 
 from __future__ import annotations
 
 import contextlib
 import random
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -64,3 +65,9 @@ def progress(enabled: bool = True, transient: bool = False) -> Iterator[Any]:
     )
     with p:
         yield p
+
+
+def ignore_lightning_deprecations() -> None:
+    """Silence Lightning's use of torch's deprecated ``LeafSpec`` (a FutureWarning that is Lightning's to fix,
+    not the user's), in the current warning filters."""
+    warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", FutureWarning)

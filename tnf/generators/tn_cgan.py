@@ -249,8 +249,6 @@ class MultiEncoderUNet(nn.Module):
         super().__init__()
         if residual and "background" not in inputs:
             raise ValueError(f"residual output adds to the background image: inputs {inputs} must include background")
-        if not set(coords) <= set(inputs):
-            raise ValueError(f"coords {list(coords)} must be a subset of inputs {list(inputs)}")
         self.residual = residual
         self.inputs = tuple(inputs)
         self.skips = tuple(skips)

@@ -21,6 +21,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_json
 from tnf.errors import TnfError
+from tnf.runtime import ignore_lightning_deprecations
 
 RUN_FILE = "run.json"
 
@@ -296,13 +297,13 @@ def quiet_advice() -> None:
     """Silence Lightning advice that does not apply to GAN training here: small datasets and CPU runs (few
     loader workers, short epochs), DDP's per-epoch training losses, which are process 0's (averaging them
     over processes would synchronise every step), and a run folder that is not empty, which tnf made itself
-    (``prepare_run_dir``: the manifest first, and on resuming the metrics it merges back). Also Lightning's
-    use of torch's deprecated ``LeafSpec`` (a FutureWarning that is Lightning's to fix, not the user's)."""
+    (``prepare_run_dir``: the manifest first, and on resuming the metrics it merges back); and Lightning's own
+    deprecations (``tnf.runtime.ignore_lightning_deprecations``)."""
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
     warnings.filterwarnings("ignore", ".*smaller than the logging interval.*")
     warnings.filterwarnings("ignore", ".*when logging on epoch level in distributed setting.*")
     warnings.filterwarnings("ignore", ".*(Experiment logs|Checkpoint) directory .* exists and is not empty.*")
-    warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", FutureWarning)
+    ignore_lightning_deprecations()
 
 
 class _NoAdvert(logging.Filter):

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from tnf.errors import TnfError
+from tnf.runtime import ignore_lightning_deprecations
 from tnf.scenes.render import FieldScene, camera_rays
 
 if TYPE_CHECKING:
@@ -268,14 +269,14 @@ def _trainer(settings: FitSettings, device: str) -> lightning.Trainer:
 @contextlib.contextmanager
 def _quiet_lightning() -> Iterator[None]:
     """Silence Lightning's per-fit notices (available devices, "max_steps reached"): a stage fits many
-    objects and draws its own progress. Also its use of torch's deprecated ``LeafSpec`` (a FutureWarning
-    that is Lightning's to fix, not the user's)."""
+    objects and draws its own progress. Also Lightning's own deprecations
+    (``tnf.runtime.ignore_lightning_deprecations``)."""
     logger = logging.getLogger("lightning.pytorch")
     level = logger.level
     logger.setLevel(logging.WARNING)
     try:
         with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", FutureWarning)
+            ignore_lightning_deprecations()
             yield
     finally:
         logger.setLevel(level)
