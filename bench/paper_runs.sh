@@ -19,6 +19,9 @@ export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 out=${OUT:-$TNF_DATA/out}
 seeds=${SEEDS:-0}
 fit_workers=${FIT_WORKERS:-6}
+# On a machine of several GPUs, GPUS=N deals the fit workers round-robin over the first N (CUDA_VISIBLE_DEVICES);
+# the other phases run on the GPU that CUDA_VISIBLE_DEVICES names (run one digit-models per GPU to use them all).
+gpus=${GPUS:-1}
 # More overrides for every command, and the objects dealt to the fit workers (default: sim_digit's). A dry run
 # on a CPU: DEVICE=cpu TRAINER=cpu FIT_WORKERS=2 OBJECTS="ball box can mug" EXTRA="debug=tiny object_names=[...] ..."
 extra=(${EXTRA:-})
@@ -36,7 +39,10 @@ parallel() {  # parallel NAME CMD-TEMPLATE... with {} replaced by each of the re
   local cmd=() pids=() i=0
   while [[ $1 != -- ]]; do cmd+=("$1"); shift; done; shift
   for w in "$@"; do
-    ( timed "$name-$i" "${cmd[@]//\{\}/$w}" ) & pids+=($!); i=$((i + 1))
+    (
+      ((gpus > 1)) && export CUDA_VISIBLE_DEVICES=$((i % gpus))
+      timed "$name-$i" "${cmd[@]//\{\}/$w}"
+    ) & pids+=($!); i=$((i + 1))
   done
   local rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
   return $rc
