@@ -19,9 +19,13 @@ export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 out=${OUT:-$TNF_DATA/out}
 seeds=${SEEDS:-0}
 fit_workers=${FIT_WORKERS:-6}
-# On a machine of several GPUs, GPUS=N deals the fit workers round-robin over the first N (CUDA_VISIBLE_DEVICES);
-# the other phases run on the GPU that CUDA_VISIBLE_DEVICES names (run one digit-models per GPU to use them all).
+# On a machine of several GPUs, GPUS=N deals the parallel processes of digit-scenes (the fit workers),
+# digit-models and transfer (one per generator and seed) round-robin over the first N (CUDA_VISIBLE_DEVICES);
+# capture, touch and pair run on the GPU that CUDA_VISIBLE_DEVICES names.
 gpus=${GPUS:-1}
+on_gpu() {  # on_gpu I: in a subshell, pin it to GPU I mod N when GPUS=N > 1
+  if ((gpus > 1)); then export CUDA_VISIBLE_DEVICES=$(($1 % gpus)); fi
+}
 # More overrides for every command, and the objects dealt to the fit workers (default: sim_digit's). A dry run
 # on a CPU: DEVICE=cpu TRAINER=cpu FIT_WORKERS=2 OBJECTS="ball box can mug" EXTRA="debug=tiny object_names=[...] ..."
 extra=(${EXTRA:-})
@@ -39,10 +43,7 @@ parallel() {  # parallel NAME CMD-TEMPLATE... with {} replaced by each of the re
   local cmd=() pids=() i=0
   while [[ $1 != -- ]]; do cmd+=("$1"); shift; done; shift
   for w in "$@"; do
-    (
-      ((gpus > 1)) && export CUDA_VISIBLE_DEVICES=$((i % gpus))
-      timed "$name-$i" "${cmd[@]//\{\}/$w}"
-    ) & pids+=($!); i=$((i + 1))
+    ( on_gpu $i; timed "$name-$i" "${cmd[@]//\{\}/$w}" ) & pids+=($!); i=$((i + 1))
   done
   local rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
   return $rc
@@ -101,8 +102,10 @@ case "$1" in
       jobs+=("$j")
     done; done
     run_one() { tnf pipeline "${digit[@]}" "pipeline.stages=[train,generate,evaluate]" $1; }
-    pids=()
-    for j in "${jobs[@]}"; do w=($j); ( timed "model-${w[0]#generator=}-${w[1]}" run_one "$j" ) & pids+=($!); done
+    pids=() i=0
+    for j in "${jobs[@]}"; do
+      w=($j); ( on_gpu $i; timed "model-${w[0]#generator=}-${w[1]}" run_one "$j" ) & pids+=($!); i=$((i + 1))
+    done
     rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
     echo "digit-models: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     exit $rc
@@ -113,9 +116,9 @@ case "$1" in
     timed omnitact-touch tnf touch "${omni[@]}"
     timed omnitact-pair tnf pair "${omni[@]}"
     run_one() { tnf pipeline "${omni[@]}" "pipeline.stages=[finetune,generate,evaluate]" $1; }
-    pids=()
+    pids=() i=0
     for s in $seeds; do for v in tn tn_plus fs; do
-      ( timed "transfer-$v-seed$s" run_one "transfer=$v seed=$s" ) & pids+=($!)
+      ( on_gpu $i; timed "transfer-$v-seed$s" run_one "transfer=$v seed=$s" ) & pids+=($!); i=$((i + 1))
     done; done
     rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
     echo "transfer: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
