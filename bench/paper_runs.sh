@@ -8,6 +8,8 @@
 #                 process each (on one H100, one seed's three generators take 701-712 s, three tn_cgan seeds of 45
 #                 epochs 610-760 s: a 10-minute job stops them, and the next resumes them)
 #   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
+#   train-scaling tn_cgan on sim_digit's pairs (after digit-data) for SCALING_EPOCHS epochs on 1 GPU, then with
+#                 trainer=ddp on 2, 4, ... up to GPUS GPUs, one run at a time; wall times and each run's figures
 #   report        rebuild both reports from every run present and copy them to $OUT
 # Artifacts go to $TNF_DATA (default /tmp/tnf-paper); logs, stage times and reports go to $OUT when it is set.
 # The end-to-end time of sim_digit for one seed is the sum of the digit-data and digit-models stage times.
@@ -123,6 +125,28 @@ case "$1" in
     rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
     echo "transfer: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     exit $rc
+    ;;
+  train-scaling)
+    # Wall times include start-up (reading the pairs, starting DDP's processes); bf16 on every run, as trainer=gpu.
+    # A dry run on a CPU: the dry run of digit-data above, then GPUS=2 DDP_ACCELERATOR=cpu DDP_PRECISION=32-true.
+    ep=${SCALING_EPOCHS:-6}
+    base=(experiment=sim_digit device=${DEVICE:-cuda} progress=false "${extra[@]}" seed=0 train.epochs=$ep train.decay_epochs=0
+      train.force=true)
+    for ((n = 1; n <= gpus; n *= 2)); do
+      tr=(trainer=${TRAINER:-gpu})
+      ((n > 1)) && tr=(trainer=ddp trainer.accelerator=${DDP_ACCELERATOR:-gpu} trainer.devices=$n
+        trainer.precision=${DDP_PRECISION:-bf16-mixed})
+      timed "train-scaling-${n}gpu" tnf train "${base[@]}" "${tr[@]}" train.run_name=scaling_${n}gpu || continue
+      python - "$TNF_DATA/models/scaling_${n}gpu" <<'PY' | tee -a "$out/stage_times.txt"
+import csv, json, sys
+from pathlib import Path
+run = Path(sys.argv[1])
+m = json.loads((run / "manifest.json").read_text())
+rows = [r for r in csv.DictReader(open(run / "metrics.csv")) if r.get("train/samples")]
+print(f"  {m['world_size']} device(s): {m['epochs']} epochs of {float(rows[-1]['train/samples']):.0f} pairs, "
+      f"{m['global_step']} steps, last val SSIM {m['last']['val_ssim']:.4f}, best val L1 {m['best_val_l1']:.4f}")
+PY
+    done
     ;;
   report)
     # Jobs that ran in parallel each rebuilt the report; rebuild it once more from every run present.
