@@ -130,13 +130,16 @@ case "$1" in
     # Wall times include start-up (reading the pairs, starting DDP's processes); bf16 on every run, as trainer=gpu.
     # A dry run on a CPU: the dry run of digit-data above, then GPUS=2 DDP_ACCELERATOR=cpu DDP_PRECISION=32-true.
     ep=${SCALING_EPOCHS:-6}
-    base=(experiment=sim_digit device=${DEVICE:-cuda} progress=false "${extra[@]}" seed=0 train.epochs=$ep train.decay_epochs=0
-      train.force=true)
+    base=(experiment=sim_digit device=${DEVICE:-cuda} progress=false "${extra[@]}" seed=0 train.epochs=$ep
+      train.decay_epochs=0)
+    rc=0
     for ((n = 1; n <= gpus; n *= 2)); do
       tr=(trainer=${TRAINER:-gpu})
       ((n > 1)) && tr=(trainer=ddp trainer.accelerator=${DDP_ACCELERATOR:-gpu} trainer.devices=$n
         trainer.precision=${DDP_PRECISION:-bf16-mixed})
-      timed "train-scaling-${n}gpu" tnf train "${base[@]}" "${tr[@]}" train.run_name=scaling_${n}gpu || continue
+      rm -rf "$TNF_DATA/models/scaling_${n}gpu"  # this phase's own runs: each starts afresh
+      timed "train-scaling-${n}gpu" tnf train "${base[@]}" "${tr[@]}" train.run_name=scaling_${n}gpu ||
+        { rc=1; continue; }
       python - "$TNF_DATA/models/scaling_${n}gpu" <<'PY' | tee -a "$out/stage_times.txt"
 import csv, json, sys
 from pathlib import Path
@@ -147,6 +150,7 @@ print(f"  {m['world_size']} device(s): {m['epochs']} epochs of {float(rows[-1]['
       f"{m['global_step']} steps, last val SSIM {m['last']['val_ssim']:.4f}, best val L1 {m['best_val_l1']:.4f}")
 PY
     done
+    exit $rc
     ;;
   report)
     # Jobs that ran in parallel each rebuilt the report; rebuild it once more from every run present.
