@@ -13,7 +13,8 @@ writes every pair's SSIM per column to a CSV (split, object, touch index in its 
 ``bench/pose_distance.py``. Runs trained with a weight average (``train.ema_decay``) are scored with it; their
 rows ``no average`` (and ``no avg, mirror avg``) score the same checkpoint's weights as trained. ``--ensemble`` adds
 the row of the mean image of all runs (mirror-averaged too with ``--mirror-average``): what averaging independent
-models would give.
+models would give. Datasets made with ``pair.prior=true`` add the row ``prior``: the simulator's image of each
+depth crop, scored as it is (``tnf.data.prior``).
 """
 
 from __future__ import annotations
@@ -74,7 +75,7 @@ def write_per_pair(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("runs", nargs="+", help="run folders under <data-root>/models/")
+    ap.add_argument("runs", nargs="*", help="run folders under <data-root>/models/ (none: BG and prior only)")
     ap.add_argument("--data-root", default="tnf-data")
     ap.add_argument("--dataset", default="digit-hashgrid", help="paired dataset under <data-root>/pairs/")
     ap.add_argument("--split", default="val", choices=["val", "train"], help="never a test split")
@@ -139,6 +140,10 @@ def main() -> None:
     s, m, object_id = score(lambda b: b["background"], loader, args.device)
     print(f"{'BG':<28} {'-':<20} {s.mean():7.4f} {m.mean():7.1f}")
     columns["BG"] = s
+    if ds.arrays.prior is not None:  # pair.prior: the simulator's image of the depth crop, as it is
+        s, m, _ = score(lambda b: b["prior"], loader, args.device)
+        print(f"{'prior':<28} {'-':<20} {s.mean():7.4f} {m.mean():7.1f}")
+        columns["prior"] = s
     if args.per_pair:
         write_per_pair(Path(args.per_pair), columns, ds, object_id, args.split)
     if args.per_object:

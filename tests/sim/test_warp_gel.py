@@ -131,3 +131,29 @@ def test_mirrored_object_gives_the_mirrored_image():
     # without the channel swap is off by about the energy itself.
     assert np.abs(diff[:, ::-1][..., order] - diff_m).mean() < 0.02 * energy
     assert np.abs(diff[:, ::-1] - diff_m).mean() > 0.5 * energy
+
+
+def test_press_heights_of_the_ray_cast_gives_the_mesh_press(sphere):
+    # The sphere's exact height field under the sensor (gap from each undeformed gel point along -z to the
+    # sphere) pressed through press_heights: the same touch as pressing the sphere's mesh from that pose.
+    s, sim = _sim(noise_std=0.0, width=60, height=80)
+    start = _above(R + 0.022 + 0.005 + 0.004)  # 4 mm in front of the gel's 5 mm bulge
+    mesh_touch = sim.press(sphere, start, 3.0)
+    p = s.gel_points()
+    lateral = p[..., 0] ** 2 + p[..., 1] ** 2
+    top = start[0, 2, 3] - np.sqrt(np.clip(R**2 - lateral, 0, None))  # camera-to-sphere-top, along -z
+    gaps = np.where(lateral < R**2, top - (-p[..., 2]), np.inf)
+    out = sim.press_heights(gaps[None], 3.0)
+    assert out.hit[0] and out.penetration[0] == pytest.approx(mesh_touch.penetration[0], rel=1e-3)
+    assert out.advance[0] == pytest.approx(mesh_touch.advance[0], abs=1e-5)
+    assert (out.contact[0] != mesh_touch.contact[0]).mean() < 0.002
+    # The two differ only by the mesh's facets: at most one level anywhere, against a press image that
+    # differs from the background by 7.7 levels on average.
+    diff = np.abs(out.images[0].astype(int) - mesh_touch.images[0].astype(int))
+    assert diff.mean() < 0.05 and diff.max() <= 1
+    assert np.abs(mesh_touch.images[0].astype(int) - sim.background.astype(int)).mean() > 5
+    # No surface under any pixel: the untouched gel, the background.
+    empty = sim.press_heights(np.full((1, 80, 60), np.inf), 3.0)
+    assert not empty.hit[0] and np.array_equal(empty.images[0], sim.background)
+    with pytest.raises(Exception, match=r"gaps must be \[B, 80, 60\]"):
+        sim.press_heights(gaps, 3.0)

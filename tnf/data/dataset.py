@@ -156,7 +156,8 @@ class PairDataset(Dataset):
     Items (``ds[i]``) and batches (``ds.__getitems__(indices)``, which ``DataLoader`` calls with a whole
     batch of indices) are dicts of float32 tensors in [-1, 1]: ``rgb`` [3, 128, 128], ``depth``
     [1, 128, 128] (-1 nearest, 1 far or empty), ``background`` [3, 128, 128], ``tactile`` [3, 128, 128];
-    plus ``object_id`` (long; index into ``object_names``). Batches have a leading batch dimension; when all
+    plus ``object_id`` (long; index into ``object_names``), and ``prior`` [3, 128, 128] in datasets that hold
+    it (``pair.prior=true``). Batches have a leading batch dimension; when all
     pairs of a batch share one background (one sensor), ``background`` is a stride-0 expanded view of it:
     read it freely, but call ``.contiguous()`` before writing into it in place.
 
@@ -236,7 +237,7 @@ class PairDataset(Dataset):
         object_id = self._id_map[self._object_id[rows_t]]
         bg_index = self._bg_index[rows_t]
         if self.compact:
-            return PairBatch(
+            out = PairBatch(
                 {
                     "rgb": _take_rows(a.rgb, rows),
                     "depth": _take_rows(a.depth, rows),
@@ -245,12 +246,17 @@ class PairDataset(Dataset):
                     "object_id": object_id,
                 }
             )
+            if a.prior is not None:
+                out["prior"] = _take_rows(a.prior, rows)
+            return out
         # Rows gathered out of the page cache (the memory maps) as stored, then converted in cache-sized steps.
         rgb = _to_unit_range(a.rgb, rows)
         tactile = _to_unit_range(a.tactile, rows)
         depth = _depth_to_unit_range(a.depth, rows)
         background = _gather_backgrounds(self._backgrounds, bg_index)
         batch = PairBatch(rgb=rgb, depth=depth, background=background, tactile=tactile, object_id=object_id)
+        if a.prior is not None:
+            batch["prior"] = _to_unit_range(a.prior, rows)
         if self.augment:
             augment_batch(batch, self.augment, self.mirror)
         return batch
@@ -268,7 +274,9 @@ def to_float_batch(batch: Batch) -> Batch:
     Float batches pass through unchanged, so it is safe to call on any batch.
     """
     out = dict(batch)
-    for k in ("rgb", "background", "tactile"):
+    for k in ("rgb", "background", "tactile", "prior"):
+        if k not in batch:
+            continue
         x = batch[k]
         if x.dtype == torch.uint8:
             if x.ndim == 4 and len(x) > 1 and x.stride(0) == 0:  # one background expanded: convert it once
@@ -349,8 +357,10 @@ def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool = True) -
     return channels
 
 
-MIRRORED_IMAGES = ("rgb", "depth", "background", "tactile")
-"""Batch keys that the mirror flips left-right; of these, ``background`` and ``tactile`` also reorder channels."""
+MIRRORED_IMAGES = ("rgb", "depth", "background", "tactile", "prior")
+"""Batch keys that the mirror flips left-right; the sensor's images (``SENSOR_IMAGES``) also reorder channels."""
+SENSOR_IMAGES = ("background", "tactile", "prior")
+"""Batch keys holding the sensor's own images (``prior``: the simulator's image of the depth, ``tnf.data.prior``)."""
 
 
 def mirror_batch(batch: Mapping[str, torch.Tensor], mirror: Sequence[int]) -> dict[str, torch.Tensor]:
@@ -362,7 +372,7 @@ def mirror_batch(batch: Mapping[str, torch.Tensor], mirror: Sequence[int]) -> di
         if k not in batch:
             continue
         x = batch[k].flip(-1)
-        if k in ("background", "tactile"):
+        if k in SENSOR_IMAGES:
             x = x.index_select(1, torch.tensor(list(mirror), device=x.device))
         out[k] = x
     return out

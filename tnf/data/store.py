@@ -10,6 +10,8 @@
 - ``object_id.npy`` int32 [N] (index into the manifest's ``objects``), ``split.npy`` int8 [N] (index into
   ``splits``), ``touch_index.npy`` int32 [N] (the touch's index in its touch manifest), ``sensor_id.npy``
   int16 [N] (index into ``sensors``);
+- ``prior.npy`` uint8 [N, 128, 128, 3], only in datasets made with ``pair.prior=true`` (the manifest's
+  ``prior`` says how): the simulator's image of the pair's depth crop (``tnf.data.prior``);
 - ``manifest.json``: provenance and counts; ``previews/``: a few pairs as PNG.
 
 Arrays are written in place through ``np.lib.format.open_memmap`` so a dataset of any size is built with
@@ -44,16 +46,19 @@ PAIR_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
     "touch_index": ("int32", ()),
     "sensor_id": ("int16", ()),
 }
+OPTIONAL_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {"prior": ("uint8", (SIZE, SIZE, 3))}
+"""Arrays a dataset holds only when its manifest names them (``prior``: ``pair.prior=true``)."""
 
 
 class PairWriter:
     """Fills the arrays of a dataset of ``n`` pairs chunk by chunk, straight into memory-mapped files.
 
     ``with PairWriter(folder, n, backgrounds) as w: w.write(start, rgb=..., depth=..., ...)``; then write the
-    manifest with ``write_manifest``. Memory use is that of the chunks passed in.
+    manifest with ``write_manifest``. Memory use is that of the chunks passed in. ``optional`` names the arrays
+    of ``OPTIONAL_ARRAYS`` this dataset has (each ``write`` must then give them too).
     """
 
-    def __init__(self, folder: str | os.PathLike[str], n: int, backgrounds: np.ndarray):
+    def __init__(self, folder: str | os.PathLike[str], n: int, backgrounds: np.ndarray, optional: tuple[str, ...] = ()):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.n = int(n)
@@ -61,19 +66,23 @@ class PairWriter:
         if bg.ndim != 4 or bg.shape[1:] != (SIZE, SIZE, 3) or bg.dtype != np.uint8:
             raise ValueError(f"backgrounds must be uint8 [K, {SIZE}, {SIZE}, 3], got {bg.dtype} {bg.shape}")
         np.save(self.folder / "backgrounds.npy", bg)
+        unknown = [k for k in optional if k not in OPTIONAL_ARRAYS]
+        if unknown:
+            raise ValueError(f"unknown optional arrays {unknown}; known: {sorted(OPTIONAL_ARRAYS)}")
+        self.layout = {**PAIR_ARRAYS, **{k: OPTIONAL_ARRAYS[k] for k in optional}}
         self.arrays = {
             name: np.lib.format.open_memmap(
                 self.folder / f"{name}.npy", mode="w+", dtype=np.dtype(dt), shape=(self.n, *shape)
             )
-            for name, (dt, shape) in PAIR_ARRAYS.items()
+            for name, (dt, shape) in self.layout.items()
         }
         self.written = np.zeros(self.n, dtype=bool)
 
     def write(self, start: int, **chunk: np.ndarray) -> None:
-        """Write rows ``start : start + len`` of every array (all arrays of ``PAIR_ARRAYS`` must be given)."""
-        missing = set(PAIR_ARRAYS) - set(chunk)
-        if missing:
-            raise ValueError(f"missing arrays: {sorted(missing)}")
+        """Write rows ``start : start + len`` of every array (all arrays of the layout must be given)."""
+        missing, extra = set(self.layout) - set(chunk), set(chunk) - set(self.layout)
+        if missing or extra:
+            raise ValueError(f"missing arrays: {sorted(missing)}; unexpected: {sorted(extra)}")
         k = len(chunk["rgb"])
         for name, arr in chunk.items():
             self.arrays[name][start : start + k] = arr
@@ -124,6 +133,7 @@ class PairArrays:
     split: np.ndarray
     touch_index: np.ndarray
     sensor_id: np.ndarray
+    prior: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.rgb)
@@ -151,6 +161,8 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
         raise TnfError(f"dataset {folder}: the manifest's 'objects' must be a non-empty list of object names")
     arrays: dict[str, np.ndarray] = {}
     expected = {**PAIR_ARRAYS, "backgrounds": ("uint8", (SIZE, SIZE, 3))}
+    if manifest.get("prior"):
+        expected.update(OPTIONAL_ARRAYS)
     for name, (dtype, shape) in expected.items():
         path = folder / f"{name}.npy"
         try:
@@ -169,7 +181,7 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
                 + "; rebuild it with `tnf pair`"
             )
     n = len(arrays["rgb"])
-    for name in PAIR_ARRAYS:
+    for name in (k for k in expected if k != "backgrounds"):
         if len(arrays[name]) != n:
             raise TnfError(f"dataset {folder} is inconsistent: {name}.npy has {len(arrays[name])} rows, rgb.npy {n}")
     count = manifest.get("count")

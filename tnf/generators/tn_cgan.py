@@ -41,9 +41,10 @@ from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
 from tnf.registry import GENERATORS
 
-CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2, "depth_and_slope": 3}
+CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2, "depth_and_slope": 3, "prior": 3}
 """Channels of each condition a generator may take. ``depth_slope`` and ``depth_and_slope`` (the depth image
-with its slopes, for one encoder to see both) are derived from ``depth`` (``conditions``)."""
+with its slopes, for one encoder to see both) are derived from ``depth`` (``conditions``); ``prior``, the
+simulator's image of the depth crop (``tnf.data.prior``), comes with datasets made with ``pair.prior=true``."""
 
 SLOPE_GAIN = 64.0
 """``depth_slope`` = this times the depth image's change per pixel, clipped to [-1, 1]. At sim_digit's framing
@@ -245,11 +246,13 @@ class MultiEncoderUNet(nn.Module):
         full_res_head: bool = False,
         residual: bool = False,
         coords: tuple[str, ...] | list[str] = (),
+        residual_on: str = "background",
     ):
         super().__init__()
-        if residual and "background" not in inputs:
-            raise ValueError(f"residual output adds to the background image: inputs {inputs} must include background")
+        if residual and residual_on not in inputs:
+            raise ValueError(f"residual output adds to the {residual_on} image: inputs {inputs} must include it")
         self.residual = residual
+        self.residual_on = residual_on
         self.inputs = tuple(inputs)
         self.skips = tuple(skips)
         self.coords = tuple(coords)
@@ -302,7 +305,7 @@ class MultiEncoderUNet(nn.Module):
         return self.head[2:](y)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
-        background = inputs.get("background")
+        base = inputs.get(self.residual_on)
         if self.coords:
             grid = self.position_grid
             inputs = {
@@ -318,8 +321,8 @@ class MultiEncoderUNet(nn.Module):
             out = self._head(out, [inputs[k] for k in self.skips])
         if not self.residual:
             return out
-        assert background is not None  # checked in __init__
-        out = background + out
+        assert base is not None  # checked in __init__
+        out = base + out
         # Training sees the unclipped sum, so that the L1 and SSIM terms still pull back a pixel that overshoots.
         return out if self.training else out.clamp(-1, 1)
 
@@ -392,8 +395,11 @@ class TNcGAN(Generator):
         """End the decoder in two 3 x 3 convolutions at full resolution that also see the skip inputs' own
         images (the 128 px depth, say); false: the decoder's last transposed convolution makes the image."""
         residual: bool = True
-        """Add the network's output to the background image instead of making the image outright (needs
-        background in inputs): only the change that the press makes is learned."""
+        """Add the network's output to an input image (``residual_on``) instead of making the image outright:
+        only the change that the press makes (or what the prior gets wrong) is learned."""
+        residual_on: str = "background"
+        """The input image the residual output adds to: background, or prior (the simulator's image of the depth
+        crop, ``pair.prior=true``). It must be in inputs."""
         coords: list[str] = field(default_factory=list)
         """Inputs that also get each pixel's x and y position as two channels (``coordinate_grid``), for their
         encoder and, if skipped, the head: where on the gel a pixel lies changes how a press there looks (the
@@ -438,10 +444,12 @@ class TNcGAN(Generator):
                 )
             if self.lambda_gan == self.lambda_l1 == self.lambda_ssim == 0:
                 raise ValueError("lambda_gan, lambda_l1 and lambda_ssim are all 0: the generator has no loss")
-            if self.residual and "background" not in self.inputs:
+            if self.residual_on not in ("background", "prior"):
+                raise ValueError(f"residual_on must be background or prior, got {self.residual_on!r}")
+            if self.residual and self.residual_on not in self.inputs:
                 raise ValueError(
-                    f"residual adds to the background image: inputs {self.inputs} must include background "
-                    "(or set generator.residual=false)"
+                    f"residual adds to the {self.residual_on} image: inputs {self.inputs} must include "
+                    f"{self.residual_on} (or set generator.residual=false)"
                 )
             if self.ngf < 1 or self.ndf < 1:
                 raise ValueError(f"ngf and ndf must be >= 1, got {self.ngf}, {self.ndf}")
@@ -461,6 +469,7 @@ class TNcGAN(Generator):
             full_res_head=cfg.full_res_head,
             residual=cfg.residual,
             coords=cfg.coords,
+            residual_on=cfg.residual_on,
         )
         cond_ch = sum(CHANNELS[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)

@@ -656,24 +656,57 @@ class WarpGel:
             seed: seed of the image noise.
             host: copy results to NumPy (``False`` leaves them on the device and returns None; for benchmarks).
         """
-        s = self.sensor
         self._last = time.perf_counter()
         c2w = np.asarray(start_c2w, dtype=np.float32).reshape(-1, 4, 4)
+        meshes = self._mesh_arrays(mesh)
+        return self._split(c2w, force, host, lambda c, f, part, b0: self._press(c, f, seed, host, part, b0, meshes))
+
+    def press_heights(self, gaps: np.ndarray, force: float | np.ndarray, seed: int = 0) -> TouchBatch:
+        """Press the sensor with a constant normal force onto B surfaces given as height fields in its own
+        pixel grid, instead of a mesh: steps 2-4 of ``press`` on a ray cast that was done elsewhere.
+
+        Args:
+            gaps: ``[B, H, W]`` metres from each pixel's undeformed gel point (``Sensor.gel_points``) along the
+                sensor's axis (-z) to the surface; non-finite where the pixel sees no surface. Only differences
+                matter: a constant added to a touch's gaps changes nothing.
+            force: target normal force, newtons (scalar or ``[B]``).
+            seed: seed of the image noise.
+
+        Returns:
+            The touches as ``press`` returns them, with the sensor frame as the world frame: the start pose is
+            the identity, and ``advance`` is the smallest gap.
+        """
+        s = self.sensor
+        self._last = time.perf_counter()
+        g = np.asarray(gaps, dtype=np.float32)
+        if g.ndim != 3 or g.shape[1:] != (s.height, s.width):
+            shape = f"[B, {s.height}, {s.width}]"
+            raise TnfError(f"press_heights: gaps must be {shape} (the sensor's pixels), got {list(g.shape)}")
+        t = np.where(np.isfinite(g) & s.gel_mask()[None], g, MISS).astype(np.float32)
+        c2w = np.broadcast_to(np.eye(4, dtype=np.float32), (len(t), 4, 4)).copy()
+        out = self._split(
+            c2w, force, True, lambda c, f, part, b0: self._press(c, f, seed, True, part, b0, gaps=t[b0 : b0 + len(c)])
+        )
+        assert out is not None
+        return out
+
+    def _split(self, c2w: np.ndarray, force: float | np.ndarray, host: bool, run: Any) -> TouchBatch | None:
+        """``run(c2w, forces, part, b0)`` over the batch, split over ``cpu_threads`` threads on the CPU."""
+        s = self.sensor
         batch = c2w.shape[0]
         forces = np.broadcast_to(np.asarray(force, dtype=np.float32), (batch,)).copy()
         for f in np.unique(forces):
             s.check_force(float(f))
-        meshes = self._mesh_arrays(mesh)
         parts = min(batch, self.cfg.cpu_threads) if self.device.is_cpu else 1
-        if parts == 1:
-            return self._press(meshes, c2w, forces, seed, host, 0, 0)
+        if parts <= 1:
+            return run(c2w, forces, 0, 0)
         # Warp releases the GIL during a CPU launch: parts of the batch run concurrently, one thread each.
         from concurrent.futures import ThreadPoolExecutor
 
         bounds = np.linspace(0, batch, parts + 1).astype(int)
         with ThreadPoolExecutor(parts) as pool:
             jobs = [
-                pool.submit(self._press, meshes, c2w[b0:b1], forces[b0:b1], seed, host, i, int(b0))
+                pool.submit(run, c2w[b0:b1], forces[b0:b1], i, int(b0))
                 for i, (b0, b1) in enumerate(zip(bounds[:-1], bounds[1:]))
             ]
             outs = [j.result() for j in jobs]
@@ -682,16 +715,24 @@ class WarpGel:
         return TouchBatch(**{f: np.concatenate([getattr(o, f) for o in outs]) for f in TouchBatch.__dataclass_fields__})
 
     def _press(
-        self, meshes: tuple, c2w: np.ndarray, forces: np.ndarray, seed: int, host: bool, part: int, b0: int
+        self,
+        c2w: np.ndarray,
+        forces: np.ndarray,
+        seed: int,
+        host: bool,
+        part: int,
+        b0: int,
+        meshes: tuple | None = None,
+        gaps: np.ndarray | None = None,
     ) -> TouchBatch | None:
-        """Simulate touches ``b0 .. b0 + len(c2w)`` of a batch with the buffers of ``part``."""
+        """Simulate touches ``b0 .. b0 + len(c2w)`` of a batch with the buffers of ``part``: ray cast against
+        ``meshes`` (``_mesh_arrays``), or from the given ``gaps`` (``press_heights``; MISS where none)."""
         s = self.sensor
         batch = c2w.shape[0]
         hh, ww = s.height, s.width
         k = self.cfg.coarse_factor
         hc, wc = -(-hh // k), -(-ww // k)
         dev = self.device
-        wmesh, verts, tris = meshes
         dx, dy = s.pixel_size()
         nb = self.cfg.histogram_bins
         bin_width = 0.5 * s.cfg.max_penetration / nb
@@ -720,21 +761,12 @@ class WarpGel:
         hist.zero_()
         point.fill_(wp.vec3(float("nan")))
 
-        max_t = self.cfg.max_distance
-        rot = c2w[:, :3, :3].astype(np.float64)
-        rigid = np.allclose(rot.transpose(0, 2, 1) @ rot, np.eye(3), atol=1e-4) and np.allclose(
-            c2w[:, 3], (0, 0, 0, 1), atol=1e-6
-        )
-        if rigid:
-            # Rays are orthographic in the sensor frame: rasterise the mesh there (same hits as a ray cast).
-            t.fill_(MISS)
-            w2c = wp.array(np.linalg.inv(c2w.astype(np.float64)).astype(np.float32), dtype=wp.mat44, device=dev)
-            ntri = tris.shape[0] // 3
-            args = [verts, tris, w2c, self._points, self._gel, self._to_px, self._z_front, max_t, t, t_min]
-            wp.launch(_rasterize, (batch, ntri), args, device=dev)
+        if gaps is not None:
+            t.assign(gaps)
+            t_min.assign(gaps.reshape(batch, -1).min(1))
         else:
-            args = [wmesh.id, poses, self._points, self._gel, max_t, t, t_min]
-            wp.launch(_raycast, (batch, hh, ww), args, device=dev)
+            assert meshes is not None
+            self._cast(meshes, c2w, poses, t, t_min)
         self._phase(part, "ray cast")
         rows = (batch, hh, nblk)
         wp.launch(_gap_histogram, rows, [t, t_min, bin_width, poses, self._points, span, hist, point], device=dev)
@@ -794,6 +826,28 @@ class WarpGel:
         )
         self._phase(part, "host copy")
         return out
+
+    def _cast(self, meshes: tuple, c2w: np.ndarray, poses: wp.array, t: wp.array, t_min: wp.array) -> None:
+        """Step 1: the distance ``t`` from each gel pixel along the sensor's axis to the mesh, and its minimum."""
+        dev = self.device
+        batch = c2w.shape[0]
+        hh, ww = self.sensor.height, self.sensor.width
+        wmesh, verts, tris = meshes
+        max_t = self.cfg.max_distance
+        rot = c2w[:, :3, :3].astype(np.float64)
+        rigid = np.allclose(rot.transpose(0, 2, 1) @ rot, np.eye(3), atol=1e-4) and np.allclose(
+            c2w[:, 3], (0, 0, 0, 1), atol=1e-6
+        )
+        if rigid:
+            # Rays are orthographic in the sensor frame: rasterise the mesh there (same hits as a ray cast).
+            t.fill_(MISS)
+            w2c = wp.array(np.linalg.inv(c2w.astype(np.float64)).astype(np.float32), dtype=wp.mat44, device=dev)
+            ntri = tris.shape[0] // 3
+            args = [verts, tris, w2c, self._points, self._gel, self._to_px, self._z_front, max_t, t, t_min]
+            wp.launch(_rasterize, (batch, ntri), args, device=dev)
+        else:
+            args = [wmesh.id, poses, self._points, self._gel, max_t, t, t_min]
+            wp.launch(_raycast, (batch, hh, ww), args, device=dev)
 
     def _shade_on_host(self, u: wp.array) -> wp.array:
         """Shading through an overridden ``Sensor.shade`` (NumPy, per touch)."""

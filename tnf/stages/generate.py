@@ -100,6 +100,8 @@ def run(cfg: Any) -> dict[str, Any]:
             else f"generate: {sensor.name} has no mirror symmetry; images are not mirror-averaged"
         )
     prep = _preprocessing(cfg, store, model_dir)
+    # A generator that takes the prior (pair.prior) gets it made here the way `tnf pair` made it for training.
+    needs_prior = "prior" in (system.hparams["generator"].get("inputs") or ())
     file_poses = read_poses(g.poses_file) if g.poses_file else None
     scene_name = str(cfg.scene.name)
     settings = OmegaConf.to_container(g, resolve=True)
@@ -107,6 +109,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     # Check every input before any rendering.
     jobs = []
+    prior: Any = None
     for obj in names:
         scene_dir = store.path("scenes", scene_name, src, obj)
         if not (scene_dir / "scene.pt").is_file():
@@ -128,6 +131,11 @@ def run(cfg: Any) -> dict[str, Any]:
         framing = Framing.from_settings(
             prep["framing"], crop_px=crop, footprint_distance=prep["footprint_distance"]
         ).with_sensor(sensor)
+        if needs_prior and prior is None:
+            from tnf.data.prior import DepthPrior
+            from tnf.runtime import warp_device
+
+            prior = DepthPrior(sensor, cfg.simulator, framing, device=warp_device(device))
         seed = (int(cfg.seed) * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
         poses = (
             file_poses
@@ -186,6 +194,9 @@ def run(cfg: Any) -> dict[str, Any]:
                         "depth": torch.from_numpy(depth01.astype(np.float32)).to(device)[:, None].mul(2).sub(1),
                         "background": bg_t.expand(b, -1, -1, -1),
                     }
+                    if prior is not None:
+                        p8 = prior(depth01, float(cfg.touch.force))
+                        batch["prior"] = torch.from_numpy(p8).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1)
                     tactile = system.generate(batch, mirror)
                     images = ((tactile.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
                     images = images.permute(0, 2, 3, 1).cpu().numpy()

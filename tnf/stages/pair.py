@@ -35,7 +35,7 @@ def run(cfg: Any) -> None:
     from tnf.data.store import PairWriter, dataset_name, write_manifest
     from tnf.objects import select
     from tnf.registry import SENSORS, config_to_dict, split_spec
-    from tnf.runtime import progress, resolve_device, seed_everything
+    from tnf.runtime import progress, resolve_device, seed_everything, warp_device
 
     p = cast(dict[str, Any], OmegaConf.to_container(cfg.pair, resolve=True))
     assert isinstance(p, dict)
@@ -101,6 +101,7 @@ def run(cfg: Any) -> None:
                 raise TnfError(f"object {obj!r}: {e} (the capture camera's image)") from None
 
     # -- step 1: per-object render caches -----------------------------------------------------------------
+    optional = ("prior",) if p["prior"] else ()
     cache_keys: dict[str, dict[str, Any]] = {}
     for obj, i in inputs.items():
         key = {
@@ -114,6 +115,8 @@ def run(cfg: Any) -> None:
             "focal": list(i["focal"]),
             "size": SIZE,
         }
+        if p["prior"]:
+            key["prior"] = _plain_json(cfg.simulator)
         cache_keys[obj] = key
     # A finished dataset made from the same inputs needs nothing, not even its (deleted) render caches.
     novel = choose_novel_objects(names, p["novel_objects"], int(p["num_novel_objects"]), int(cfg.seed))
@@ -125,6 +128,12 @@ def run(cfg: Any) -> None:
     n_render = sum(len(inputs[o]["item"].touches) for o in todo)
     if todo:
         console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p['scene_source']})")
+    prior = None
+    if p["prior"]:
+        from tnf.data.prior import DepthPrior
+
+        prior = DepthPrior(sensor, cfg.simulator, framing, device=warp_device(device))
+        console.print(f"pair: with the prior, {cfg.simulator.name}'s image of each depth crop (pair.prior)")
     with progress(bool(cfg.progress)) as bar:
         task = bar.add_task(f"render {name}", total=n_render)
         for obj in todo:
@@ -142,12 +151,16 @@ def run(cfg: Any) -> None:
                 on_batch=lambda k: bar.advance(task, k),
             )
             del scene
+            if prior is not None:
+                # Each touch's recorded force (imported touches may record none: touch.force then).
+                forces = [t.get("force") or float(cfg.touch.force) for t in i["item"].touches]
+                arrays["prior"] = prior(arrays["depth"], np.asarray(forces, np.float32))
             labels = [t["split"] for t in i["item"].touches]
             assign_splits(labels, novel_object=False)  # validates the labels before caching
             with store.writing(
                 "pairs", ".cache", name, src, obj, config=cache_keys[obj], info={"splits": labels}
             ) as tmp:
-                for k in ("rgb", "depth", "tactile", "background", "touch_index"):
+                for k in ("rgb", "depth", "tactile", "background", "touch_index", *optional):
                     np.save(tmp / f"{k}.npy", arrays[k])
             del arrays
 
@@ -168,7 +181,7 @@ def run(cfg: Any) -> None:
     split_counts = dict.fromkeys(SPLITS, 0)
     with store.writing("pairs", name, config=dataset_key) as tmp:
         start = 0
-        with PairWriter(tmp, n, np.stack(backgrounds)) as writer:
+        with PairWriter(tmp, n, np.stack(backgrounds), optional=optional) as writer:
             for oid, o in enumerate(names):
                 labels = (store.manifest("pairs", ".cache", name, src, o) or {})["splits"]
                 codes = assign_splits(labels, novel_object=o in novel)
@@ -176,7 +189,7 @@ def run(cfg: Any) -> None:
                     split_counts[SPLITS[c]] += 1
                 arr = {
                     k: np.load(caches[o] / f"{k}.npy", mmap_mode="r")
-                    for k in ("rgb", "depth", "tactile", "touch_index")
+                    for k in ("rgb", "depth", "tactile", "touch_index", *optional)
                 }
                 for s in range(0, counts[o], ASSEMBLE_CHUNK):
                     end = min(s + ASSEMBLE_CHUNK, counts[o])
@@ -191,6 +204,7 @@ def run(cfg: Any) -> None:
                         object_id=np.full(n_chunk, oid, np.int32),
                         split=codes[s:end],
                         sensor_id=np.zeros(n_chunk, np.int16),
+                        **{k: arr[k][s:end] for k in optional},
                     )
                 start += counts[o]
         first = inputs[names[0]]["item"].manifest
@@ -209,6 +223,8 @@ def run(cfg: Any) -> None:
                 "simulator": _plain_json(first.get("config", {}).get("simulator", cfg.get("simulator"))),
                 "touch_config_hashes": {o: inputs[o]["item"].manifest.get("config_hash") for o in names},
                 "scene_source": p["scene_source"],
+                # pair.prior: the simulator that made prior.npy from the depth crops (tnf.data.prior).
+                "prior": {"simulator": _plain_json(cfg.simulator)} if p["prior"] else None,
                 "scene": _plain_json(cfg.scene) if p["scene_source"] == "fitted" else {"name": "mesh"},
                 "scene_checkpoints": {
                     o: (str(inputs[o]["scene_dir"] / "scene.pt") if p["scene_source"] == "fitted" else None)
