@@ -146,10 +146,13 @@ class GeneratorSystem(L.LightningModule):
         """The generator that validates and generates: the weights' average where one is kept."""
         return self.generator_ema if self.generator_ema is not None else self.generator
 
-    def on_fit_start(self) -> None:
+    def configure_model(self) -> None:
         # Channels-last convolutions are markedly faster with cuDNN (tensor cores); the datasets' float
-        # batches are channels-last already. The state dict is the same in either layout.
-        if self.device.type == "cuda":
+        # batches are channels-last already. The state dict is the same in either layout. Converted here,
+        # before the strategy wraps the model: DDP lays out its gradient buckets after the parameters as they
+        # are then, and parameters converted later made every step copy gradients between the two layouts
+        # (torch's "Grad strides do not match bucket view strides" warning).
+        if self.trainer.strategy.root_device.type == "cuda":
             self.to(memory_format=torch.channels_last)
 
     # -- generation -------------------------------------------------------------------------------------
