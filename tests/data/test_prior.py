@@ -151,3 +151,22 @@ def test_generate_feeds_a_prior_model_the_prior_of_its_renders(mesh_pairs):
     assert np.abs(images.astype(int) - expect.numpy().astype(int)).max() <= 1
     # The prior shows a press here (the sphere is touched), and the model's images follow it.
     assert np.abs(prior.astype(int) - background.astype(int)).mean() > 2
+
+
+def test_mixing_datasets_with_and_without_the_prior_serves_it_from_none(mesh_pairs, tmp_path):
+    import shutil
+
+    from tnf.artifacts import MANIFEST, read_json, write_json
+    from tnf.data.dataset import MixedPairDataset
+
+    plain = tmp_path / "plain"
+    shutil.copytree(mesh_pairs, plain)
+    (plain / "prior.npy").unlink()
+    m = read_json(plain / MANIFEST, "manifest")
+    write_json(plain / MANIFEST, {**m, "prior": None})
+    both = MixedPairDataset([PairDataset(mesh_pairs), PairDataset(plain)])
+    n = len(both.datasets[0])
+    for rows in ([0, 1], [n, n + 1], [0, n]):  # from one dataset, the other, and both
+        batch = both.__getitems__(rows)
+        assert "prior" not in batch and batch["tactile"].shape == (2, 3, 128, 128)
+    assert "prior" in MixedPairDataset([PairDataset(mesh_pairs), PairDataset(mesh_pairs)]).__getitems__([0, n])

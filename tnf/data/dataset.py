@@ -407,13 +407,16 @@ def augment_batch(batch: Batch, augment: Sequence[str], mirror: Sequence[int] | 
 
 
 class MixedPairDataset(Dataset):
-    """Several ``PairDataset``s served as one (e.g. simulated and generated touches); batches as above."""
+    """Several ``PairDataset``s served as one (e.g. simulated and generated touches); batches as above, with
+    ``prior`` only when every dataset holds it."""
 
     def __init__(self, datasets: Sequence[PairDataset]):
         if not datasets:
             raise TnfError("no datasets to mix")
         self.datasets = list(datasets)
         self.offsets = np.cumsum([0] + [len(d) for d in self.datasets])
+        with_prior = [d.arrays.prior is not None for d in self.datasets]
+        self._drop = ("prior",) if any(with_prior) and not all(with_prior) else ()
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
@@ -426,10 +429,15 @@ class MixedPairDataset(Dataset):
         which = np.searchsorted(self.offsets, idx, side="right") - 1
         parts = [(np.flatnonzero(which == d), idx[which == d] - self.offsets[d]) for d in np.unique(which)]
         if len(parts) == 1:
-            return self.datasets[int(which[0])].__getitems__(parts[0][1])
+            one = self.datasets[int(which[0])].__getitems__(parts[0][1])
+            for k in self._drop:
+                one.pop(k, None)
+            return one
         fetched = [self.datasets[int(which[pos[0]])].__getitems__(local) for pos, local in parts]
         out: Batch = {}
         for k, v in fetched[0].items():
+            if k in self._drop:
+                continue
             # Same memory layout as the parts (channels-last float images), so the copies below do not transpose.
             fmt = torch.channels_last if v.ndim == 4 and v.is_contiguous(memory_format=torch.channels_last) else None
             out[k] = torch.empty((len(idx), *v.shape[1:]), dtype=v.dtype, memory_format=fmt or torch.contiguous_format)
