@@ -42,6 +42,11 @@ def test_prior_of_the_mesh_depth_is_the_simulated_touch(mesh_pairs):
     a = open_pairs(mesh_pairs)
     assert a.manifest["prior"]["simulator"]["name"] == "warp_gel"
     assert a.prior is not None and a.prior.shape == a.tactile.shape and a.prior.dtype == np.uint8
+    # The previews show it after the tactile image: RGB | depth | background | tactile | prior.
+    preview = sorted((mesh_pairs / "previews").glob("pair_*.png"))[0]
+    row = int(preview.name.split("_")[1])
+    strip = np.asarray(Image.open(preview))
+    assert strip.shape == (128, 5 * 128, 3) and np.array_equal(strip[:, 4 * 128 :], a.prior[row])
     tactile, prior = _images(a.tactile), _images(a.prior)
     background = _images(a.backgrounds[a.background_index])
     pressed = metrics.mse(background, tactile) > 20  # touches whose image shows a press

@@ -288,7 +288,8 @@ def _load_scene(kind: str, scene_dir: Path, source: Any, obj: str, device: str) 
 
 
 def _write_previews(folder: Path, names: list[str], k: int, seed: int) -> None:
-    """``previews/pair_XXXXX.png``: RGB | depth | background | tactile of ``k`` pairs (objects in turn)."""
+    """``previews/pair_XXXXX.png``: RGB | depth | background | tactile of ``k`` pairs (objects in turn), and the
+    prior after the tactile image where the dataset holds it (``pair.prior``)."""
     import numpy as np
     from PIL import Image
 
@@ -308,9 +309,8 @@ def _write_previews(folder: Path, names: list[str], k: int, seed: int) -> None:
     out.mkdir(exist_ok=True)
     for r in sorted(set(picks)):
         depth = (np.asarray(a.depth[r], np.float32) * 255).round().astype(np.uint8)
-        strip = np.concatenate(
-            [a.rgb[r], np.repeat(depth[..., None], 3, -1), a.backgrounds[a.background_index[r]], a.tactile[r]], axis=1
-        )
+        panels = [a.rgb[r], np.repeat(depth[..., None], 3, -1), a.backgrounds[a.background_index[r]], a.tactile[r]]
+        strip = np.concatenate(panels + ([a.prior[r]] if a.prior is not None else []), axis=1)
         Image.fromarray(strip).save(out / f"pair_{r:05d}_{names[oid[r]]}.png")
 
 
