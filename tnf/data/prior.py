@@ -45,6 +45,11 @@ class DepthPrior:
         # The prior is the mean image: without the sensor's pixel noise.
         noiseless = type(sensor)(replace(sensor.cfg, noise_std=0.0)) if sensor.cfg.noise_std else sensor
         self.sim = SIMULATORS.build(simulator, sensor=noiseless, device=device)
+        if not callable(getattr(self.sim, "press_heights", None)):
+            raise TnfError(
+                f"pair.prior presses the gel onto height fields (press_heights), which simulator "
+                f"{type(self.sim).__name__} does not offer; warp_gel does"
+            )
         self.sensor = noiseless
         self.window = float(framing.depth_window)
         self.batch = int(batch)
