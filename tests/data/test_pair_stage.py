@@ -118,6 +118,7 @@ def test_crop_larger_than_image(data_root):
         ("pair.render_px=0", "render_px must be at least 1 pixel"),
         ("pair.crop_extent=gel", "crop_extent must be one of footprint, sensor, got 'gel'"),
         ("pair.crop_extent=sensor pair.crop_px=32", "crop_extent=sensor frames each view at its contact"),
+        ("pair.prior=true", "pair.prior needs crops pixel-aligned with the tactile image"),
     ],
 )
 def test_bad_framing_is_refused_before_anything_is_written(data_root, override, expected):

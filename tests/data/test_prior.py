@@ -133,6 +133,10 @@ def test_generate_feeds_a_prior_model_the_prior_of_its_renders(mesh_pairs):
     save_scene(SphereScene(SphereScene.Config(radius=0.04)), root / "scenes" / "hashgrid" / "builtin" / "ball")
     gen = [*base, "object=ball", "generate.model=prior", "generate.n_poses=3", "generate.radius=0.1"]
     assert generate.run(compose("generate", gen))["written"] == {"ball": 3}
+    # The prior's settings are part of what the images depend on: another force makes them again.
+    assert generate.run(compose("generate", gen))["written"] == {}
+    assert generate.run(compose("generate", [*gen, "touch.force=4.0"]))["written"] == {"ball": 3}
+    assert generate.run(compose("generate", gen))["written"] == {"ball": 3}
 
     folder = root / "generated" / "prior" / "builtin" / "ball"
     item = TouchItem.load(folder)

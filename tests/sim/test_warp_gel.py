@@ -5,6 +5,7 @@ import pytest
 import trimesh
 import warp as wp
 
+from tnf.errors import TnfError
 from tnf.registry import SENSORS, SIMULATORS
 
 R = 0.01  # sphere radius, metres
@@ -155,5 +156,5 @@ def test_press_heights_of_the_ray_cast_gives_the_mesh_press(sphere):
     # No surface under any pixel: the untouched gel, the background.
     empty = sim.press_heights(np.full((1, 80, 60), np.inf), 3.0)
     assert not empty.hit[0] and np.array_equal(empty.images[0], sim.background)
-    with pytest.raises(Exception, match=r"gaps must be \[B, 80, 60\]"):
+    with pytest.raises(TnfError, match=r"gaps must be \[B, 80, 60\]"):
         sim.press_heights(gaps, 3.0)

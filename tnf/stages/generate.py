@@ -156,6 +156,12 @@ def run(cfg: Any) -> dict[str, Any]:
                 k: v for k, v in settings.items() if k not in ("force", "batch_size", "render_chunk", "run_name")
             },
             "seed": int(cfg.seed),
+            # What makes the prior of a model that takes it: other settings make other images.
+            "prior": (
+                {"simulator": OmegaConf.to_container(cfg.simulator, resolve=True), "force": float(cfg.touch.force)}
+                if needs_prior
+                else None
+            ),
         }
         if not g.force and store.is_done("generated", run_name, src, obj, config=config):
             console.print(f"generate: {run_name}/{src}/{obj} is up to date")
