@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import csv
 import functools
+import json
 from pathlib import Path
 
 import numpy as np
@@ -93,7 +94,12 @@ def main() -> None:
     missing = [r for r in args.runs if not (root / "models" / r / "best.ckpt").is_file()]
     if missing:
         raise SystemExit(f"no best.ckpt under {root / 'models'} for: {', '.join(missing)}")
-    ds = PairDataset(root / "pairs" / args.dataset, [args.split])
+    # Object ids as the first run was trained with (a surface field knows objects by their training ids).
+    first = root / "models" / args.runs[0] / "manifest.json"
+    vocabulary = json.loads(first.read_text()).get("object_names") or [] if first.is_file() else []
+    own = json.loads((root / "pairs" / args.dataset / "manifest.json").read_text())["objects"]
+    names = vocabulary + [o for o in own if o not in vocabulary] if vocabulary else None
+    ds = PairDataset(root / "pairs" / args.dataset, [args.split], object_names=names)
     if len(ds) == 0:
         raise SystemExit(f"dataset {args.dataset} has no {args.split} pairs")
     loader = DataLoader(ds, batch_size=args.batch, shuffle=False, collate_fn=collate_pairs)

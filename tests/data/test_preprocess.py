@@ -121,7 +121,7 @@ def test_contact_crops_keep_the_gel_scale_at_any_start_distance(crop_distance):
     framing = Framing(crop_distance=crop_distance, footprint_distance=0.09, crop_margin=1.5, depth_norm="contact")
     axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     c2w = torch.tensor(np.stack([look_at(axis * 0.1), look_at(axis * 0.16)]), dtype=torch.float32)
-    rgb, depth, contact = render_rgbd_crops(scene, c2w, (60.0, 60.0), (0.02, 0.03), framing)
+    rgb, depth, contact, _ = render_rgbd_crops(scene, c2w, (60.0, 60.0), (0.02, 0.03), framing)
     np.testing.assert_allclose(contact, [0.06, 0.12], atol=2e-4)
     # First contact at 0.5: the sphere's nearest point is on the axis.
     assert depth[:, 62:66, 62:66].astype(np.float32).min() == pytest.approx(0.5, abs=2e-3)
@@ -158,7 +158,7 @@ def test_sensor_extent_crops_are_pixel_aligned_with_the_tactile_image(extent):
     framing = Framing(crop_distance="contact", footprint_distance=0.05, crop_extent=extent).with_sensor(sensor)
     assert (framing.view_size is not None) == (extent == "sensor")
     scene = SphereScene(SphereScene.Config(0.01))
-    _, depth, contact = render_rgbd_crops(
+    _, depth, contact, _ = render_rgbd_crops(
         scene, torch.tensor(c2w[None], dtype=torch.float32), (60.0, 60.0), gel_size_m(sensor), framing
     )
     assert contact[0] == pytest.approx(0.05, abs=1e-4)  # first contact: the sphere's top, 50 mm below

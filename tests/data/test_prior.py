@@ -147,7 +147,7 @@ def test_generate_feeds_a_prior_model_the_prior_of_its_renders(mesh_pairs):
     cam = read_json(root / "capture" / "builtin" / "ball" / "transforms.json", "capture")
     c2w = torch.as_tensor(item.start_poses(), dtype=torch.float32)
     scene = SphereScene(SphereScene.Config(radius=0.04))
-    rgb, depth, _ = render_rgbd_crops(scene, c2w, (cam["fl_x"], cam["fl_y"]), gel_size_m(sensor), framing)
+    rgb, depth, _, _ = render_rgbd_crops(scene, c2w, (cam["fl_x"], cam["fl_y"]), gel_size_m(sensor), framing)
     prior = DepthPrior(sensor, cfg.simulator, framing)(depth, float(cfg.touch.force))
     background = resize_uint8(sensor.background())[None].repeat(3, 0)
     unit = lambda x: _images(x).float() / 127.5 - 1  # noqa: E731

@@ -156,8 +156,9 @@ class PairDataset(Dataset):
     Items (``ds[i]``) and batches (``ds.__getitems__(indices)``, which ``DataLoader`` calls with a whole
     batch of indices) are dicts of float32 tensors in [-1, 1]: ``rgb`` [3, 128, 128], ``depth``
     [1, 128, 128] (-1 nearest, 1 far or empty), ``background`` [3, 128, 128], ``tactile`` [3, 128, 128];
-    plus ``object_id`` (long; index into ``object_names``), and ``prior`` [3, 128, 128] in datasets that hold
-    it (``pair.prior=true``). Batches have a leading batch dimension; when all
+    plus ``object_id`` (long; index into ``object_names``), ``prior`` [3, 128, 128] in datasets that hold
+    it (``pair.prior=true``) and ``points`` [3, 128, 128] (metres, NaN where no surface) in those that hold
+    them (``pair.points=true``). Batches have a leading batch dimension; when all
     pairs of a batch share one background (one sensor), ``background`` is a stride-0 expanded view of it:
     read it freely, but call ``.contiguous()`` before writing into it in place.
 
@@ -248,6 +249,8 @@ class PairDataset(Dataset):
             )
             if a.prior is not None:
                 out["prior"] = _take_rows(a.prior, rows)
+            if a.points is not None:
+                out["points"] = _take_rows(a.points, rows)
             return out
         # Rows gathered out of the page cache (the memory maps) as stored, then converted in cache-sized steps.
         rgb = _to_unit_range(a.rgb, rows)
@@ -257,6 +260,8 @@ class PairDataset(Dataset):
         batch = PairBatch(rgb=rgb, depth=depth, background=background, tactile=tactile, object_id=object_id)
         if a.prior is not None:
             batch["prior"] = _to_unit_range(a.prior, rows)
+        if a.points is not None:
+            batch["points"] = _points_chw(_take_rows(a.points, rows))
         if self.augment:
             augment_batch(batch, self.augment, self.mirror)
         return batch
@@ -286,7 +291,15 @@ def to_float_batch(batch: Batch) -> Batch:
     d = batch["depth"]
     if d.ndim == 3:
         out["depth"] = _depth_to_unit_range(d)
+    p = batch.get("points")
+    if p is not None and p.shape[-1] == 3 and p.shape[1] != 3:
+        out["points"] = _points_chw(p)
     return out
+
+
+def _points_chw(points: torch.Tensor) -> torch.Tensor:
+    """Surface points [B, H, W, 3] as stored -> [B, 3, H, W] float32 (channels-last in memory, as the images)."""
+    return points.float().permute(0, 3, 1, 2)
 
 
 def _subsample_touches(
@@ -357,8 +370,10 @@ def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool = True) -
     return channels
 
 
-MIRRORED_IMAGES = ("rgb", "depth", "background", "tactile", "prior")
-"""Batch keys that the mirror flips left-right; the sensor's images (``SENSOR_IMAGES``) also reorder channels."""
+MIRRORED_IMAGES = ("rgb", "depth", "background", "tactile", "prior", "points")
+"""Batch keys that the mirror flips left-right; the sensor's images (``SENSOR_IMAGES``) also reorder channels.
+The surface points flip with the image and keep their values: the mirrored pair is a touch of the mirrored
+object, whose surface point under a pixel is the mirror image of the object's own."""
 SENSOR_IMAGES = ("background", "tactile", "prior")
 """Batch keys holding the sensor's own images (``prior``: the simulator's image of the depth, ``tnf.data.prior``)."""
 
@@ -408,15 +423,16 @@ def augment_batch(batch: Batch, augment: Sequence[str], mirror: Sequence[int] | 
 
 class MixedPairDataset(Dataset):
     """Several ``PairDataset``s served as one (e.g. simulated and generated touches); batches as above, with
-    ``prior`` only when every dataset holds it."""
+    ``prior`` and ``points`` only when every dataset holds them."""
 
     def __init__(self, datasets: Sequence[PairDataset]):
         if not datasets:
             raise TnfError("no datasets to mix")
         self.datasets = list(datasets)
         self.offsets = np.cumsum([0] + [len(d) for d in self.datasets])
-        with_prior = [d.arrays.prior is not None for d in self.datasets]
-        self._drop = ("prior",) if any(with_prior) and not all(with_prior) else ()
+        self._drop = tuple(
+            k for k in ("prior", "points") if not all(getattr(d.arrays, k) is not None for d in self.datasets)
+        )
 
     def __len__(self) -> int:
         return int(self.offsets[-1])

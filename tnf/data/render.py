@@ -17,13 +17,21 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from tnf.artifacts import MANIFEST, read_json
-from tnf.data.preprocess import SIZE, contact_depth, footprint_px, gel_size_m, preprocess_rgbd, resize_uint8
+from tnf.data.preprocess import (
+    SIZE,
+    contact_depth,
+    footprint_px,
+    gel_size_m,
+    preprocess_rgbd,
+    resize,
+    resize_uint8,
+)
 from tnf.errors import TnfError
 
 
@@ -234,6 +242,15 @@ def render_intrinsics(
     return size, (fx * s, fy * s, size / 2, size / 2)
 
 
+class Crops(NamedTuple):
+    """What ``render_rgbd_crops`` returns (see there)."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    contact: np.ndarray
+    points: np.ndarray | None = None
+
+
 def render_rgbd_crops(
     scene: Any,
     c2w: torch.Tensor,
@@ -242,7 +259,8 @@ def render_rgbd_crops(
     framing: Framing,
     chunk: int | None = None,
     measure_contact: bool = False,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    with_points: bool = False,
+) -> Crops:
     """Render and preprocess the RGB-D crops of B sensor poses, framed by ``framing``.
 
     Args:
@@ -253,11 +271,13 @@ def render_rgbd_crops(
         framing: the crop and depth settings.
         chunk: rays per chunk inside the scene renderer.
         measure_contact: find the first-contact depth even when the framing does not need it.
+        with_points: also return each crop pixel's surface point (``crop_points``).
 
     Returns:
-        ``rgb`` uint8 [B, 128, 128, 3], ``depth`` float16 [B, 128, 128] in [0, 1], and ``contact`` float64
-        [B]: the depth in metres at which the gel first meets the surface (NaN where no surface lies in the
-        footprint; all NaN unless the crop, the depth normalisation or ``measure_contact`` needs it).
+        ``Crops``: ``rgb`` uint8 [B, 128, 128, 3], ``depth`` float16 [B, 128, 128] in [0, 1], ``contact``
+        float64 [B], the depth in metres at which the gel first meets the surface (NaN where no surface lies in
+        the footprint; all NaN unless the crop, the depth normalisation or ``measure_contact`` needs it), and
+        with ``with_points`` ``points`` float32 [B, 128, 128, 3].
     """
     b, dev = len(c2w), c2w.device
     fx, fy = focal
@@ -294,7 +314,38 @@ def render_rgbd_crops(
         r["rgb"], r["depth"], r.get("opacity"), crop_px=size,
         depth_norm=framing.depth_norm, depth_window=framing.depth_window, contact=ref,  # type: ignore[arg-type]
     )  # fmt: skip
-    return rgb8, depth01, contact.double().cpu().numpy()
+    points = crop_points(r["depth"], r.get("opacity"), c2w, intr.float()) if with_points else None
+    return Crops(rgb8, depth01, contact.double().cpu().numpy(), points)
+
+
+def crop_points(
+    depth: torch.Tensor, opacity: torch.Tensor | None, c2w: torch.Tensor, intrinsics: torch.Tensor, out: int = SIZE
+) -> np.ndarray:
+    """The surface point that each pixel of rendered crops sees, in the object's (the scene's) frame.
+
+    Args:
+        depth: [B, S, S] z-depth in metres, 0 where no surface was hit.
+        opacity: [B, S, S] accumulated opacity (pixels under 0.5 count as empty), or None.
+        c2w: [B, 4, 4] the cameras that rendered them (OpenGL: looking along -z).
+        intrinsics: [B, 4] their ``(fx, fy, cx, cy)`` in pixels.
+        out: output side in pixels (bilinear, as the crops' depth).
+
+    Returns:
+        float32 [B, out, out, 3] in metres; NaN where no surface was hit (or a resized pixel mixes in one).
+        Unlike the normalised depth, they say where on the object the crop lies, the same for every view.
+    """
+    from tnf.scenes.render import camera_rays
+
+    b, h, w = depth.shape
+    origins, dirs, z_scale = camera_rays(c2w, intrinsics, w, h)
+    hit = depth > 0
+    if opacity is not None:
+        hit &= opacity >= 0.5
+    p = origins + dirs * (depth / z_scale)[..., None]
+    p = torch.where(hit[..., None], p, torch.full_like(p, math.nan))
+    if (h, w) != (out, out):  # NaN spreads to every output pixel that mixes an empty one in
+        p = resize(p.permute(0, 3, 1, 2), out).permute(0, 2, 3, 1)
+    return p.float().cpu().numpy()
 
 
 def render_pairs_for_touches(
@@ -309,6 +360,7 @@ def render_pairs_for_touches(
     render_batch: int = 64,
     render_chunk: int | None = None,
     on_batch: Callable[[int], None] | None = None,
+    with_points: bool = False,
 ) -> dict[str, np.ndarray]:
     """Render and preprocess the RGB-D image of each touch of one object, and load its tactile images.
 
@@ -323,6 +375,8 @@ def render_pairs_for_touches(
         render_batch: touches rendered per batch (bounds renderer memory).
         render_chunk: rays per chunk inside the scene renderer.
         on_batch: called with the number of touches after each rendered batch (progress).
+        with_points: also return ``points`` float32 [N, 128, 128, 3], each pixel's surface point
+            (``crop_points``).
 
     Returns:
         ``rgb`` uint8 [N, 128, 128, 3], ``depth`` float16 [N, 128, 128] in [0, 1], ``tactile`` uint8
@@ -334,15 +388,19 @@ def render_pairs_for_touches(
     poses = item.start_poses()
     rgb_out = np.empty((len(rows), SIZE, SIZE, 3), np.uint8)
     depth_out = np.empty((len(rows), SIZE, SIZE), np.float16)
+    points_out = np.empty((len(rows), SIZE, SIZE, 3), np.float32) if with_points else None
     for s in range(0, len(rows), render_batch):
         sel = rows[s : s + render_batch]
         c2w = torch.as_tensor(poses[sel], dtype=torch.float32, device=device)
         with torch.no_grad():
-            rgb, depth, _ = render_rgbd_crops(scene, c2w, focal, gel, framing, chunk=render_chunk)
-        rgb_out[s : s + len(sel)], depth_out[s : s + len(sel)] = rgb, depth
+            crops = render_rgbd_crops(scene, c2w, focal, gel, framing, chunk=render_chunk, with_points=with_points)
+        rgb_out[s : s + len(sel)], depth_out[s : s + len(sel)] = crops.rgb, crops.depth
+        if points_out is not None:
+            points_out[s : s + len(sel)] = crops.points
         if on_batch is not None:
             on_batch(len(sel))
     return {
+        **({"points": points_out} if points_out is not None else {}),
         "rgb": rgb_out,
         "depth": depth_out,
         "tactile": item.tactile(rows) if rows else np.empty((0, SIZE, SIZE, 3), np.uint8),

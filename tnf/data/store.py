@@ -12,6 +12,8 @@
   int16 [N] (index into ``sensors``);
 - ``prior.npy`` uint8 [N, 128, 128, 3], only in datasets made with ``pair.prior=true`` (the manifest's
   ``prior`` says how): the simulator's image of the pair's depth crop (``tnf.data.prior``);
+- ``points.npy`` float32 [N, 128, 128, 3], only in datasets made with ``pair.points=true`` (the manifest's
+  ``points``): the surface point each RGB-D pixel sees, in the object's frame (metres; NaN where none);
 - ``manifest.json``: provenance and counts; ``previews/``: a few pairs as PNG.
 
 Arrays are written in place through ``np.lib.format.open_memmap`` so a dataset of any size is built with
@@ -46,8 +48,12 @@ PAIR_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
     "touch_index": ("int32", ()),
     "sensor_id": ("int16", ()),
 }
-OPTIONAL_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {"prior": ("uint8", (SIZE, SIZE, 3))}
-"""Arrays a dataset holds only when its manifest names them (``prior``: ``pair.prior=true``)."""
+OPTIONAL_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
+    "prior": ("uint8", (SIZE, SIZE, 3)),
+    "points": ("float32", (SIZE, SIZE, 3)),
+}
+"""Arrays a dataset holds only when its manifest names them (``prior``: ``pair.prior=true``; ``points``:
+``pair.points=true``)."""
 
 
 class PairWriter:
@@ -134,6 +140,7 @@ class PairArrays:
     touch_index: np.ndarray
     sensor_id: np.ndarray
     prior: np.ndarray | None = None
+    points: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.rgb)
@@ -161,8 +168,7 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
         raise TnfError(f"dataset {folder}: the manifest's 'objects' must be a non-empty list of object names")
     arrays: dict[str, np.ndarray] = {}
     expected = {**PAIR_ARRAYS, "backgrounds": ("uint8", (SIZE, SIZE, 3))}
-    if manifest.get("prior"):
-        expected.update(OPTIONAL_ARRAYS)
+    expected.update({k: v for k, v in OPTIONAL_ARRAYS.items() if manifest.get(k)})
     for name, (dtype, shape) in expected.items():
         path = folder / f"{name}.npy"
         try:

@@ -91,6 +91,7 @@ class Generator(nn.Module):
                 f"generator {type(self).__name__} needs batch keys {sorted(keys)}; missing {missing} "
                 f"(batch has {sorted(batch)})"
                 + ("; the prior comes with datasets made with pair.prior=true" if "prior" in missing else "")
+                + ("; surface points come with datasets made with pair.points=true" if "points" in missing else "")
             )
 
     def freeze(self, prefixes: Iterable[str]) -> list[str]:

@@ -38,13 +38,16 @@ from torch import nn
 from tnf.errors import TnfError
 from tnf.eval import metrics
 from tnf.generators.base import Generator, Optimisation
+from tnf.generators.field import SurfaceField
 from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
 from tnf.registry import GENERATORS
 
-CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2, "depth_and_slope": 3, "prior": 3}
+CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2, "depth_and_slope": 3, "prior": 3, "surface": 0}
 """Channels of each condition a generator may take. ``depth_slope`` and ``depth_and_slope`` (the depth image
 with its slopes, for one encoder to see both) are derived from ``depth`` (``conditions``); ``prior``, the
-simulator's image of the depth crop (``tnf.data.prior``), comes with datasets made with ``pair.prior=true``."""
+simulator's image of the depth crop (``tnf.data.prior``), comes with datasets made with ``pair.prior=true``;
+``surface``, the features of a learned field over the trained objects' surfaces (``tnf.generators.field``), is
+looked up at the surface points of datasets made with ``pair.points=true`` (its channels: the field's)."""
 
 SLOPE_GAIN = 64.0
 """``depth_slope`` = this times the depth image's change per pixel, clipped to [-1, 1]. At sim_digit's framing
@@ -94,13 +97,28 @@ DERIVED: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
 
 
 def needed_keys(inputs: tuple[str, ...]) -> tuple[str, ...]:
-    """The batch keys that ``inputs`` are made from (the derived ones from ``depth``)."""
-    return tuple(dict.fromkeys("depth" if k in DERIVED else k for k in inputs))
+    """The batch keys that ``inputs`` are made from (the derived ones from ``depth``, ``surface`` from the surface
+    points and the object)."""
+    keys: list[str] = []
+    for k in inputs:
+        keys += ["depth"] if k in DERIVED else ["points", "object_id"] if k == "surface" else [k]
+    return tuple(dict.fromkeys(keys))
 
 
-def conditions(batch: dict[str, torch.Tensor], inputs: tuple[str, ...]) -> dict[str, torch.Tensor]:
-    """The condition images named in ``inputs``, from a batch (derived ones computed from theirs)."""
-    return {k: DERIVED[k](batch["depth"]) if k in DERIVED else batch[k] for k in inputs}
+def conditions(
+    batch: dict[str, torch.Tensor], inputs: tuple[str, ...], field: SurfaceField | None = None
+) -> dict[str, torch.Tensor]:
+    """The condition images named in ``inputs``, from a batch (derived ones computed from theirs; ``surface``
+    looked up in ``field``)."""
+    out = {}
+    for k in inputs:
+        if k == "surface":
+            if field is None:
+                raise TnfError("the surface input needs the generator's surface field")
+            out[k] = field(batch["points"], batch["object_id"]).to(batch["depth"].dtype)
+        else:
+            out[k] = DERIVED[k](batch["depth"]) if k in DERIVED else batch[k]
+    return out
 
 
 def coordinate_grid(size: int) -> torch.Tensor:
@@ -230,7 +248,8 @@ class MultiEncoderUNet(nn.Module):
     touches the gel the output is the background from the start; in eval mode the sum is clipped to [-1, 1].
 
     The inputs named in ``coords`` get two more channels, the pixel's position (``coordinate_grid``), before
-    their encoder and, for skip inputs, in the head.
+    their encoder and, for skip inputs, in the head. ``channels`` gives the channels of inputs whose count is
+    not fixed (``surface``).
     """
 
     def __init__(
@@ -247,6 +266,7 @@ class MultiEncoderUNet(nn.Module):
         residual: bool = False,
         coords: tuple[str, ...] | list[str] = (),
         residual_on: str = "background",
+        channels: dict[str, int] | None = None,
     ):
         super().__init__()
         if residual and residual_on not in inputs:
@@ -260,7 +280,8 @@ class MultiEncoderUNet(nn.Module):
         # Not saved in checkpoints: made again from the image size.
         self.position_grid: torch.Tensor
         self.register_buffer("position_grid", coordinate_grid(2**n), persistent=False)
-        ch = {k: CHANNELS[k] + 2 * (k in self.coords) for k in self.inputs}
+        channels = {**CHANNELS, **(channels or {})}
+        ch = {k: channels[k] + 2 * (k in self.coords) for k in self.inputs}
         self.encoders = nn.ModuleDict({k: Encoder(ch[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
@@ -404,6 +425,22 @@ class TNcGAN(Generator):
         """Inputs that also get each pixel's x and y position as two channels (``coordinate_grid``), for their
         encoder and, if skipped, the head: where on the gel a pixel lies changes how a press there looks (the
         gel's sag, the lights' directions). Empty: the network sees positions only through its borders."""
+        surface_levels: int = 5
+        """With ``surface`` in inputs: the surface field's grid levels (``tnf.generators.field``)."""
+        surface_features: int = 2
+        """With ``surface``: features per grid vertex and level (the input has levels x features channels)."""
+        surface_coarsest: float = 0.008
+        """With ``surface``: the coarsest grid cell, metres."""
+        surface_finest: float = 0.0005
+        """With ``surface``: the finest grid cell, metres."""
+        surface_log2_table: int = 20
+        """With ``surface``: hash table entries per level, as a power of two."""
+        surface_dropout: float = 0.25
+        """With ``surface``: the share of training pairs whose field features are zeroed, so that the generator
+        also works for objects the field never saw."""
+        surface_lr: float = 0.005
+        """With ``surface``: Adam learning rate of the field's table (hash grids learn at far larger rates than
+        convolutions)."""
         lr: float = 2e-4
         """Adam learning rate of generator and discriminator."""
         beta1: float = 0.5
@@ -458,6 +495,17 @@ class TNcGAN(Generator):
         super().__init__()
         self.cfg = cfg
         self.inputs = tuple(cfg.inputs)
+        self.field: SurfaceField | None = None
+        if "surface" in self.inputs:
+            self.field = SurfaceField(
+                cfg.surface_levels,
+                cfg.surface_features,
+                cfg.surface_coarsest,
+                cfg.surface_finest,
+                cfg.surface_log2_table,
+                dropout=cfg.surface_dropout,
+            )
+        channels = {"surface": self.field.channels if self.field is not None else 0}
         self.net_g = MultiEncoderUNet(
             cfg.inputs,
             cfg.skips,
@@ -470,8 +518,9 @@ class TNcGAN(Generator):
             residual=cfg.residual,
             coords=cfg.coords,
             residual_on=cfg.residual_on,
+            channels=channels,
         )
-        cond_ch = sum(CHANNELS[k] for k in self.inputs)
+        cond_ch = sum({**CHANNELS, **channels}[k] for k in self.inputs)
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
         init_weights(self.net_g)
         init_weights(self.net_d)
@@ -480,17 +529,22 @@ class TNcGAN(Generator):
                 m.always_on = cfg.dropout_at_generation
 
     def condition(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat(list(conditions(batch, self.inputs).values()), 1)
+        return torch.cat(list(conditions(batch, self.inputs, self.field).values()), 1)
 
     def generate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         self.check_batch(batch, needed_keys(self.inputs))
-        return self.net_g(conditions(batch, self.inputs))
+        return self.net_g(conditions(batch, self.inputs, self.field))
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         betas = (self.cfg.beta1, self.cfg.beta2)
         fused = next(self.parameters()).is_cuda  # one kernel per step instead of several per tensor
-        nets = [self.net_g, self.net_d] if self.cfg.lambda_gan > 0 else [self.net_g]  # no game, no D optimiser
-        return [torch.optim.Adam(self.trainable(n), lr=self.cfg.lr, betas=betas, fused=fused) for n in nets]
+        groups: list[dict[str, Any]] = [{"params": self.trainable(self.net_g)}]
+        if self.field is not None:
+            groups.append({"params": self.trainable(self.field), "lr": self.cfg.surface_lr})
+        opts: list[torch.optim.Optimizer] = [torch.optim.Adam(groups, lr=self.cfg.lr, betas=betas, fused=fused)]
+        if self.cfg.lambda_gan > 0:  # no game, no D optimiser
+            opts.append(torch.optim.Adam(self.trainable(self.net_d), lr=self.cfg.lr, betas=betas, fused=fused))
+        return opts
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:
         self.check_batch(batch, (*needed_keys(self.inputs), "tactile"))

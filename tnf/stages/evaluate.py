@@ -230,8 +230,15 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     examples = None
     splits = list(ecfg.splits)
     example_split = "novel_object" if "novel_object" in splits else splits[-1]
+    # Object ids as in training (a surface field, tnf.generators.field, knows objects by their training ids);
+    # the dataset's other objects come after them.
+    vocabulary = list((store.manifest("models", str(ecfg.model)) or {}).get("object_names") or [])
+    own = list(read_json(pairs / MANIFEST, "dataset manifest").get("objects") or [])
+    object_names = vocabulary + [o for o in own if o not in vocabulary] if vocabulary else None
     for split in splits:
-        ds = PairDataset(pairs, splits=[split], per_object=ecfg.per_object, seed=int(cfg.seed))
+        ds = PairDataset(
+            pairs, splits=[split], per_object=ecfg.per_object, seed=int(cfg.seed), object_names=object_names
+        )
         names = _object_names(ds)
         if len(ds) == 0:
             raise TnfError(f"split {split!r} of dataset {pairs} is empty; check evaluate.splits")

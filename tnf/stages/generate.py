@@ -102,6 +102,12 @@ def run(cfg: Any) -> dict[str, Any]:
     prep = _preprocessing(cfg, store, model_dir)
     # A generator that takes the prior (pair.prior) gets it made here the way `tnf pair` made it for training.
     needs_prior = "prior" in (system.hparams["generator"].get("inputs") or ())
+    # A generator with a surface field (tnf.generators.field) gets each pixel's surface point and the object's
+    # index in its training vocabulary (-1 for an object it never touched: the field then adds nothing).
+    needs_points = "surface" in (system.hparams["generator"].get("inputs") or ())
+    vocabulary = list((store.manifest("models", str(g.model)) or {}).get("object_names") or [])
+    if needs_points and not vocabulary:
+        raise TnfError(f"model {g.model} has a surface field but its manifest lists no object_names; retrain it")
     file_poses = read_poses(g.poses_file) if g.poses_file else None
     scene_name = str(cfg.scene.name)
     settings = OmegaConf.to_container(g, resolve=True)
@@ -192,14 +198,19 @@ def run(cfg: Any) -> dict[str, Any]:
                     c2w = torch.as_tensor(poses[s : s + batch_size], dtype=torch.float32, device=device)
                     b = len(c2w)
                     with torch.no_grad():
-                        rgb8, depth01, contact = render_rgbd_crops(
-                            scene, c2w, focal, gel, framing, chunk=g.render_chunk, measure_contact=True
-                        )
+                        rgb8, depth01, contact, points = render_rgbd_crops(
+                            scene, c2w, focal, gel, framing, chunk=g.render_chunk, measure_contact=True,
+                            with_points=needs_points,
+                        )  # fmt: skip
                     batch = {
                         "rgb": torch.from_numpy(rgb8).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1),
                         "depth": torch.from_numpy(depth01.astype(np.float32)).to(device)[:, None].mul(2).sub(1),
                         "background": bg_t.expand(b, -1, -1, -1),
                     }
+                    if points is not None:
+                        batch["points"] = torch.from_numpy(points).to(device).permute(0, 3, 1, 2)
+                        batch["object_id"] = torch.full((b,), vocabulary.index(obj) if obj in vocabulary else -1,
+                                                        dtype=torch.long, device=device)  # fmt: skip
                     if prior is not None:
                         p8 = prior(depth01, float(cfg.touch.force))
                         batch["prior"] = torch.from_numpy(p8).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1)
