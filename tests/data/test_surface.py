@@ -77,11 +77,11 @@ def test_the_dataset_stores_and_serves_the_points(point_pairs):
     b = ds.__getitems__([0, 1, 2])
     want = torch.from_numpy(np.array(a.points[ds.index[:3]])).permute(0, 3, 1, 2)
     assert b["points"].shape == (3, 3, 128, 128) and _same(b["points"], want)
+    # Compact batches (converted on the training device) serve them the same way: they are float32 as stored.
     compact = PairDataset(point_pairs, splits=("train", "val"), compact=True).__getitems__([0, 1, 2])
-    assert compact["points"].shape == (3, 128, 128, 3)
     from tnf.data.dataset import to_float_batch
 
-    assert _same(to_float_batch(compact)["points"], want)
+    assert _same(compact["points"], want) and _same(to_float_batch(compact)["points"], want)
     # The mirror flips the points with the image and keeps their values (no channel reordering).
     m = mirror_batch(b, SENSORS.build({"name": "digit"}).mirror_channels())
     assert _same(m["points"], b["points"].flip(-1))
@@ -128,6 +128,19 @@ def test_a_surface_generator_trains_generates_and_names_what_it_needs(point_pair
     save_scene(SphereScene(SphereScene.Config(radius=0.04)), root / "scenes" / "hashgrid" / "builtin" / trained)
     args = [*base, f"object={trained}", "generate.model=surface", "generate.n_poses=3", "generate.radius=0.1"]
     assert generate.run(compose("generate", args))["written"] == {trained: 3}
+    # Fine-tuning keeps the field's object ids: on data of the same objects it runs and records them; on data
+    # that orders them otherwise it stops before training, rather than teach the field the wrong objects.
+    from tnf.artifacts import read_json
+    from tnf.stages import finetune
+
+    ft = [*base, "data.datasets=[digit-mesh]", "finetune.checkpoint=surface", "finetune.epochs=1"]
+    finetune.run(compose("finetune", [*ft, "finetune.decay_epochs=0", "finetune.run_name=surface_ft"]))
+    assert read_json(root / "models" / "surface_ft" / "manifest.json", "manifest")["object_names"] == names
+    swapped = ["pair.name=swapped", f"object_names=[{','.join(reversed(names))}]"]
+    assert main(["pair", f"data_root={root}", *MESH, "pair.points=true", *swapped]) == 0
+    with pytest.raises(TnfError, match="same objects in the same order"):
+        finetune.run(compose("finetune", [*ft, "data.datasets=[swapped]", "finetune.run_name=surface_swapped"]))
+    assert not (root / "models" / "surface_swapped").exists()
     # The test splits are scored with the ids the field was trained with.
     ev = [*base, "evaluate.model=surface", "evaluate.dataset=digit-mesh", "evaluate.classify.enabled=false"]
     results = evaluate.run(compose("evaluate", ev))["results"]

@@ -173,7 +173,8 @@ class PairDataset(Dataset):
         augment: augmentations of each batch, from ``AUGMENTATIONS``: ``mirror`` (the sensor's mirror
             symmetry, which the dataset's manifest records) and ``jitter`` (RGB brightness and contrast).
         compact: serve batches as stored (``rgb``, ``background``, ``tactile`` uint8 [B, 128, 128, 3],
-            ``depth`` float16 [B, 128, 128]), 4x fewer bytes to load, pin and copy; ``to_float_batch``
+            ``depth`` float16 [B, 128, 128]; ``points`` as in float batches), 4x fewer bytes to load, pin and
+            copy; ``to_float_batch``
             turns them into the float form, best on the GPU after the copy. ``augment`` is then not applied
             here (apply ``augment_batch`` after ``to_float_batch``).
     """
@@ -249,8 +250,8 @@ class PairDataset(Dataset):
             )
             if a.prior is not None:
                 out["prior"] = _take_rows(a.prior, rows)
-            if a.points is not None:
-                out["points"] = _take_rows(a.points, rows)
+            if a.points is not None:  # float32 either way: served as the float batches serve them
+                out["points"] = _points_chw(_take_rows(a.points, rows))
             return out
         # Rows gathered out of the page cache (the memory maps) as stored, then converted in cache-sized steps.
         rgb = _to_unit_range(a.rgb, rows)
@@ -291,9 +292,6 @@ def to_float_batch(batch: Batch) -> Batch:
     d = batch["depth"]
     if d.ndim == 3:
         out["depth"] = _depth_to_unit_range(d)
-    p = batch.get("points")
-    if p is not None and p.shape[-1] == 3 and p.shape[1] != 3:
-        out["points"] = _points_chw(p)
     return out
 
 

@@ -24,9 +24,10 @@ import torch
 from torch import nn
 
 from tnf.errors import TnfError
+from tnf.scenes.hashgrid import PRIMES, gather_rows
 
-_PRIMES = (1, 2_654_435_761, 805_459_861, 3_674_653_429)
-"""Hash multipliers of x, y, z and the object (Instant-NGP's spatial hash, with the object as a fourth axis)."""
+OBJECT_PRIME = 3_674_653_429
+"""Hash multiplier of the object, a fourth axis beside the scenes' spatial hash (``PRIMES`` for x, y and z)."""
 
 
 class SurfaceField(nn.Module):
@@ -101,7 +102,7 @@ class SurfaceField(nn.Module):
         x = points.float().permute(0, 2, 3, 1).reshape(-1, 3)
         valid = torch.isfinite(x).all(1) & known.repeat_interleave(h * w)
         x = torch.where(valid[:, None], x, torch.zeros_like(x))
-        salt = obj.clamp_min(0).repeat_interleave(h * w) * _PRIMES[3]
+        salt = obj.clamp_min(0).repeat_interleave(h * w) * OBJECT_PRIME
         mask = self.table.shape[1] - 1
         out = []
         for level in range(self.levels):
@@ -110,16 +111,16 @@ class SurfaceField(nn.Module):
             frac = p - p0
             i0 = p0.long()
             # Per axis, the hash term and the interpolation weight of the cell's lower (0) and upper (1) vertex.
-            hx, hy, hz = ([i0[:, a] * _PRIMES[a], (i0[:, a] + 1) * _PRIMES[a]] for a in range(3))
+            hx, hy, hz = ([i0[:, a] * PRIMES[a], (i0[:, a] + 1) * PRIMES[a]] for a in range(3))
             wx, wy, wz = ([1 - frac[:, a], frac[:, a]] for a in range(3))
             acc = x.new_zeros(len(x), self.features)
             for cx in (0, 1):  # the eight vertices one at a time: no [N, 8, 3] index tensor in memory
                 for cy in (0, 1):
                     for cz in (0, 1):
                         index = (hx[cx] ^ hy[cy] ^ hz[cz] ^ salt) & mask
-                        # index_select, whose gradient is an atomic index_add: indexing's sorts its indices first,
-                        # some 10x slower on a GPU for a batch's million points.
-                        rows = self.table[level].index_select(0, index)
+                        # The scenes' gather: its gradient is an index_add (on a GPU; a bincount on a CPU), where
+                        # indexing's sorts the indices first, far slower for a batch's million points.
+                        rows = gather_rows(self.table[level], index)
                         acc = acc + rows * (wx[cx] * wy[cy] * wz[cz])[:, None]
             out.append(acc)
         feats = torch.cat(out, 1) * valid[:, None]

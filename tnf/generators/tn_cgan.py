@@ -381,7 +381,9 @@ class TNcGAN(Generator):
         inputs: list[str] = field(default_factory=lambda: ["rgb", "depth_and_slope", "background"])
         """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations),
         depth_slope, the depth image's x and y slopes (``depth_slope``), which a lit gel's image follows, and
-        depth_and_slope, the two together for one encoder (the default, in place of the paper's depth)."""
+        depth_and_slope, the two together for one encoder (the default, in place of the paper's depth); prior,
+        the simulator's image of the depth crop (datasets made with ``pair.prior=true``), and surface, the
+        features of a surface field learned with the generator (datasets made with ``pair.points=true``)."""
         skips: list[str] = field(default_factory=lambda: ["background", "depth_and_slope"])
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only). Depth
         skips place the imprint's edges from the depth image at every scale, not from the 1 x 1 bottleneck."""
@@ -539,8 +541,9 @@ class TNcGAN(Generator):
         betas = (self.cfg.beta1, self.cfg.beta2)
         fused = next(self.parameters()).is_cuda  # one kernel per step instead of several per tensor
         groups: list[dict[str, Any]] = [{"params": self.trainable(self.net_g)}]
-        if self.field is not None:
-            groups.append({"params": self.trainable(self.field), "lr": self.cfg.surface_lr})
+        field = self.trainable(self.field) if self.field is not None else []
+        if field:  # (a frozen field has nothing to train)
+            groups.append({"params": field, "lr": self.cfg.surface_lr})
         opts: list[torch.optim.Optimizer] = [torch.optim.Adam(groups, lr=self.cfg.lr, betas=betas, fused=fused)]
         if self.cfg.lambda_gan > 0:  # no game, no D optimiser
             opts.append(torch.optim.Adam(self.trainable(self.net_d), lr=self.cfg.lr, betas=betas, fused=fused))

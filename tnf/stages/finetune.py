@@ -91,6 +91,15 @@ def run(cfg: Any) -> dict[str, Any]:
 
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)
+    if source and getattr(system.generator, "field", None) is not None:
+        # A surface field (tnf.generators.field) knows objects by their ids in the source model's training data.
+        trained = (store.manifest("models", ckpt.parent.name) or {}).get("object_names")
+        if trained is not None and list(trained) != list(dm.object_names):
+            raise TnfError(
+                f"the surface field of {ckpt} knows objects by their order in its training data, {list(trained)}; "
+                f"the fine-tuning data's objects are {list(dm.object_names)}: fine-tune on datasets of the same "
+                "objects in the same order (object_names), or from scratch"
+            )
     what = f"from {source['checkpoint']}" if source else "from scratch"
     console.print(
         f"fine-tuning [bold]{spec['name']}[/] {what} on {', '.join(datasets)} -> {run_dir}"
@@ -109,7 +118,13 @@ def run(cfg: Any) -> dict[str, Any]:
         limit_val_batches=f.limit_val_batches,
         log_every_n_steps=int(f.log_every_n_steps),
         checkpoint_every_s=float(f.checkpoint_every_s),
-        info={"generator": spec["name"], "datasets": datasets, "source": source, "frozen": frozen},
+        info={
+            "generator": spec["name"],
+            "datasets": datasets,
+            "source": source,
+            "frozen": frozen,
+            "object_names": dm.object_names,
+        },
     )
     last = summary.get("last", {})
     console.print(
