@@ -46,7 +46,9 @@ def sphere_directions(
     rng: np.random.Generator, n: int, axis: Sequence[float], cone_deg: float, inside: bool
 ) -> np.ndarray:
     """``[n, 3]`` unit vectors uniform on the sphere, inside (or outside) a cone of half-angle ``cone_deg``
-    around ``axis`` (rejection sampling; ``cone_deg <= 0`` with ``inside=False`` means the whole sphere)."""
+    around ``axis`` (rejection sampling). ``cone_deg == 0`` holds nothing out: the whole sphere either way."""
+    if not 0.0 <= cone_deg < 180.0:
+        raise TnfError(f"the held-out cone's half-angle must be in [0, 180) degrees, got {cone_deg}")
     a = np.asarray(axis, dtype=np.float64)
     a /= np.linalg.norm(a)
     cos_c = np.cos(np.radians(cone_deg))
@@ -54,7 +56,7 @@ def sphere_directions(
     while sum(len(o) for o in out) < n:
         v = rng.normal(size=(max(4 * n, 64), 3))
         v /= np.linalg.norm(v, axis=1, keepdims=True)
-        ok = (v @ a >= cos_c) if inside else (v @ a < cos_c if cone_deg > 0 else np.ones(len(v), bool))
+        ok = np.ones(len(v), bool) if cone_deg == 0 else (v @ a >= cos_c) if inside else (v @ a < cos_c)
         out.append(v[ok])
     return np.concatenate(out)[:n]
 
