@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from tnf.data import PairDataset, collate_pairs, sensor_mirror
+from tnf.data import PairDataset, collate_pairs, sensor_mirror, training_order
 from tnf.errors import TnfError
 from tnf.eval import metrics
 from tnf.generators import load_generator
@@ -96,9 +96,9 @@ def main() -> None:
         raise SystemExit(f"no best.ckpt under {root / 'models'} for: {', '.join(missing)}")
     # Object ids as the first run was trained with (a surface field knows objects by their training ids).
     first = root / "models" / args.runs[0] / "manifest.json"
-    vocabulary = json.loads(first.read_text()).get("object_names") or [] if first.is_file() else []
+    trained = json.loads(first.read_text()).get("object_names") if first.is_file() else None
     own = json.loads((root / "pairs" / args.dataset / "manifest.json").read_text())["objects"]
-    names = vocabulary + [o for o in own if o not in vocabulary] if vocabulary else None
+    names = training_order(trained, own)
     ds = PairDataset(root / "pairs" / args.dataset, [args.split], object_names=names)
     if len(ds) == 0:
         raise SystemExit(f"dataset {args.dataset} has no {args.split} pairs")

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tnf.cli import main
-from tnf.data import PairDataset, open_pairs
+from tnf.data import PairDataset, open_pairs, training_order
 from tnf.data.dataset import MixedPairDataset, mirror_batch
 from tnf.data.render import Framing, render_rgbd_crops
 from tnf.errors import TnfError
@@ -147,3 +147,10 @@ def test_a_surface_generator_trains_generates_and_names_what_it_needs(point_pair
     for split, objects in (("novel_view", {trained}), ("novel_object", set(novel))):
         row = results["image"][split]["T-N"]
         assert set(row["per_object"]) == objects and row["n"] == 4 and 0 < row["ssim"] <= 1
+
+
+def test_object_ids_follow_the_models_training_order():
+    # A model trained on [mug, ball] scores a dataset of [ball, cup, mug]: its objects keep their training ids,
+    # the new one comes after; a model that records no order leaves the dataset's own.
+    assert training_order(["mug", "ball"], ["ball", "cup", "mug"]) == ["mug", "ball", "cup"]
+    assert training_order(None, ["ball", "cup"]) is None and training_order([], ["ball"]) is None

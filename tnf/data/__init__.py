@@ -16,6 +16,7 @@ from tnf.data.dataset import (
     mirror_batch,
     sensor_mirror,
     to_float_batch,
+    training_order,
 )
 from tnf.data.preprocess import SIZE, crop_for_sensor, preprocess_rgbd, resize_uint8
 from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
@@ -44,6 +45,7 @@ __all__ = [
     "resize_uint8",
     "sensor_mirror",
     "to_float_batch",
+    "training_order",
     "write_manifest",
 ]
 

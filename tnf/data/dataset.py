@@ -300,6 +300,15 @@ def _points_chw(points: torch.Tensor) -> torch.Tensor:
     return points.float().permute(0, 3, 1, 2)
 
 
+def training_order(trained: Sequence[str] | None, own: Sequence[str]) -> list[str] | None:
+    """Object names for ``PairDataset(object_names=...)`` so that ids match a model's training data: the objects it
+    was trained on (its manifest's ``object_names``) in that order, then the dataset's others. None (the dataset's
+    own order) for a model that records none. A surface field (``tnf.generators.field``) knows objects by these ids."""
+    if not trained:
+        return None
+    return list(trained) + [o for o in own if o not in trained]
+
+
 def _subsample_touches(
     rows: np.ndarray, object_id: np.ndarray, touch_index: np.ndarray, per_object: int, seed: int
 ) -> np.ndarray:

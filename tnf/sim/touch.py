@@ -48,7 +48,9 @@ def sphere_directions(
     """``[n, 3]`` unit vectors uniform on the sphere, inside (or outside) a cone of half-angle ``cone_deg``
     around ``axis`` (rejection sampling). ``cone_deg == 0`` holds nothing out: the whole sphere either way."""
     if not 0.0 <= cone_deg < 180.0:
-        raise TnfError(f"the held-out cone's half-angle must be in [0, 180) degrees, got {cone_deg}")
+        raise TnfError(
+            f"the held-out cone's half-angle (touch.novel_view_cone) must be in [0, 180) degrees, got {cone_deg}"
+        )
     a = np.asarray(axis, dtype=np.float64)
     a /= np.linalg.norm(a)
     cos_c = np.cos(np.radians(cone_deg))

@@ -194,7 +194,7 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     from torch.utils.data import DataLoader
 
     from tnf.artifacts import MANIFEST, read_json
-    from tnf.data import PairDataset, collate_pairs, sensor_mirror
+    from tnf.data import PairDataset, collate_pairs, sensor_mirror, training_order
     from tnf.data.datamodule import resolve_dataset
     from tnf.eval.scoring import BG, score_batches
 
@@ -232,9 +232,10 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
     example_split = "novel_object" if "novel_object" in splits else splits[-1]
     # Object ids as in training (a surface field, tnf.generators.field, knows objects by their training ids);
     # the dataset's other objects come after them.
-    vocabulary = list((store.manifest("models", str(ecfg.model)) or {}).get("object_names") or [])
-    own = list(read_json(pairs / MANIFEST, "dataset manifest").get("objects") or [])
-    object_names = vocabulary + [o for o in own if o not in vocabulary] if vocabulary else None
+    object_names = training_order(
+        (store.manifest("models", str(ecfg.model)) or {}).get("object_names"),
+        read_json(pairs / MANIFEST, "dataset manifest").get("objects") or [],
+    )
     for split in splits:
         ds = PairDataset(
             pairs, splits=[split], per_object=ecfg.per_object, seed=int(cfg.seed), object_names=object_names

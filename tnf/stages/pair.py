@@ -101,7 +101,7 @@ def run(cfg: Any) -> None:
                 raise TnfError(f"object {obj!r}: {e} (the capture camera's image)") from None
 
     # -- step 1: per-object render caches -----------------------------------------------------------------
-    optional = tuple(k for k in ("prior", "points") if p.get(k))
+    optional = tuple(k for k in ("prior", "points") if p[k])
     cache_keys: dict[str, dict[str, Any]] = {}
     for obj, i in inputs.items():
         key = {
@@ -117,7 +117,7 @@ def run(cfg: Any) -> None:
         }
         if p["prior"]:
             key["prior"] = _plain_json(cfg.simulator)
-        if p.get("points"):
+        if p["points"]:
             key["points"] = True
         cache_keys[obj] = key
     # A finished dataset made from the same inputs needs nothing, not even its (deleted) render caches.
@@ -151,7 +151,7 @@ def run(cfg: Any) -> None:
                 render_batch=int(p["render_batch"]),
                 render_chunk=p.get("render_chunk"),
                 on_batch=lambda k: bar.advance(task, k),
-                with_points=bool(p.get("points")),
+                with_points=bool(p["points"]),
             )
             del scene
             if prior is not None:
@@ -229,7 +229,7 @@ def run(cfg: Any) -> None:
                 # pair.prior: the simulator that made prior.npy from the depth crops (tnf.data.prior).
                 "prior": {"simulator": _plain_json(cfg.simulator)} if p["prior"] else None,
                 # pair.points: points.npy holds each RGB-D pixel's surface point (tnf.data.render.crop_points).
-                "points": {"frame": "object", "unit": "m"} if p.get("points") else None,
+                "points": {"frame": "object", "unit": "m"} if p["points"] else None,
                 "scene": _plain_json(cfg.scene) if p["scene_source"] == "fitted" else {"name": "mesh"},
                 "scene_checkpoints": {
                     o: (str(inputs[o]["scene_dir"] / "scene.pt") if p["scene_source"] == "fitted" else None)
