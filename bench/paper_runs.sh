@@ -5,7 +5,7 @@
 #   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU); every scene's figures to scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
-#                 process each (on one H100, one seed's three generators take 701-712 s, three tn_cgan seeds of 45
+#                 process each (on one H100, one seed's three generators take 664-712 s, three tn_cgan seeds of 45
 #                 epochs 610-760 s: a 10-minute job stops them, and the next resumes them)
 #   transfer      OmniTact touches and pairs, then T-N, T-N+ and FS fine-tuned in parallel for each of SEEDS
 #   train-scaling tn_cgan on sim_digit's pairs (after digit-data) for SCALING_EPOCHS epochs on 1 GPU, then with
