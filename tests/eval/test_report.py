@@ -82,6 +82,9 @@ def test_report_tables_checks_and_figures(tmp_path):
     assert "## Table 1" in md and "## Table 2" in md
     assert "| Novel view | T-N | 0.970 ± 0.000 | 0.980 ± 0.001 | 20.0 ± 0.0 | 14.5 ± 0.8 | 3 |" in md
     assert "| Sim + T-N | 96.0 ± 0.6 | 96.0 ± 2.0 | 3 |" in md
+    # one seed has no spread to state: its value alone, beside the paper's mean ± se
+    assert "| Novel view | FS | 0.800 | 0.829 ± 0.002 | 900 | 950 ± 20.0 | 1 |" in md
+    assert "| Sim + FS | 81.0 | 82.0 ± 1.0 | 1 |" in md
     assert "| T-N SSIM > Lee SSIM (novel view) | holds |" in md
     assert "| Sim + T-N accuracy > Sim + Cycle | holds |" in md
     assert "| T-N SSIM > BG SSIM (novel object) | holds |" in md

@@ -49,9 +49,11 @@ def _fmt(x: float, kind: str) -> str:
 
 
 def fmt_stat(st: Stat | tuple[float, float] | None, kind: str) -> str:
-    """'mean ± se' (or '-' when missing)."""
+    """'mean ± se', the value alone for one seed (no spread to state), or '-' when missing."""
     if st is None:
         return "-"
+    if isinstance(st, Stat) and st.n == 1:
+        return _fmt(st.mean, kind)
     m, se = (st.mean, st.se) if isinstance(st, Stat) else st
     return f"{_fmt(m, kind)} ± {_fmt(se, kind)}"
 
@@ -212,8 +214,9 @@ def render_markdown(
         f"# tnf evaluation report: {name}",
         "",
         f"Written {time.strftime('%Y-%m-%d %H:%M')} from {n_runs} evaluated run(s). Every number is the mean ± "
-        "standard error over seeds (column `seeds`); the paper's figures are beside ours. SSIM (Gaussian window "
-        "11, sigma 1.5, data range 255, mean over RGB) and MSE (0-255 scale) on 8-bit images at 128 x 128. "
+        "standard error over seeds (column `seeds`; one seed: its value alone); the paper's figures are beside "
+        "ours. SSIM (Gaussian window 11, sigma 1.5, data range 255, mean over RGB) and MSE (0-255 scale) on 8-bit "
+        "images at 128 x 128. "
         "BG: the sensor's background image used as the prediction.",
         "",
     ]
