@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import random
 import warnings
 from collections.abc import Iterator
@@ -71,3 +72,16 @@ def ignore_lightning_deprecations() -> None:
     """Silence Lightning's use of torch's deprecated ``LeafSpec`` (a FutureWarning that is Lightning's to fix,
     not the user's), in the current warning filters."""
     warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\)", FutureWarning)
+
+
+def lightning_logs_once() -> None:
+    """Print Lightning's notices once. Importing ``lightning`` gives its package logger a console handler of its
+    own, and the notices also propagate to the root logger; under the ``tnf`` command the root logger already
+    writes to the console and the job's log file (Hydra's job logging), so every notice showed twice. Where the
+    root logger has handlers, Lightning's own console handler is dropped; elsewhere Lightning prints as it does."""
+    if not logging.getLogger().handlers:
+        return
+    lightning_logger = logging.getLogger("lightning")
+    for handler in list(lightning_logger.handlers):
+        if type(handler) is logging.StreamHandler:
+            lightning_logger.removeHandler(handler)

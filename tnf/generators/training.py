@@ -21,7 +21,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_json
 from tnf.errors import TnfError
-from tnf.runtime import ignore_lightning_deprecations
+from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
 
 RUN_FILE = "run.json"
 
@@ -306,21 +306,26 @@ def quiet_advice() -> None:
     ignore_lightning_deprecations()
 
 
-class _NoAdvert(logging.Filter):
-    """Drops Lightning's advertisement for its cloud logger, printed at every Trainer's start."""
+class _NoAdvice(logging.Filter):
+    """Drops two of Lightning's start-up notices: the advertisement for its cloud logger, printed at every
+    Trainer's start, and the advice to set the fp32 matmul precision on GPUs with tensor cores, which tnf sets
+    itself (``ProcessSetup(tf32=True)``) after Lightning has checked."""
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return "litlogger" not in record.getMessage()
+        message = record.getMessage()
+        return "litlogger" not in message and "set_float32_matmul_precision" not in message
 
 
-_NO_ADVERT = _NoAdvert()
+_NO_ADVICE = _NoAdvice()
 
 
 def _quiet_trainer_start() -> None:
-    """Install ``_NoAdvert`` on the logger Lightning prints its start-up notices with (once per process)."""
+    """Install ``_NoAdvice`` on the logger Lightning prints its start-up notices with (once per process), and
+    print each notice once (``tnf.runtime.lightning_logs_once``)."""
     logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
-    if _NO_ADVERT not in logger.filters:
-        logger.addFilter(_NO_ADVERT)
+    if _NO_ADVICE not in logger.filters:
+        logger.addFilter(_NO_ADVICE)
+    lightning_logs_once()
 
 
 class ProcessSetup(Callback):

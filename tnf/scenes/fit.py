@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from tnf.errors import TnfError
-from tnf.runtime import ignore_lightning_deprecations
+from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
 from tnf.scenes.render import FieldScene, camera_rays
 
 if TYPE_CHECKING:
@@ -270,7 +270,8 @@ def _trainer(settings: FitSettings, device: str) -> lightning.Trainer:
 def _quiet_lightning() -> Iterator[None]:
     """Silence Lightning's per-fit notices (available devices, "max_steps reached"): a stage fits many
     objects and draws its own progress. Also Lightning's own deprecations
-    (``tnf.runtime.ignore_lightning_deprecations``)."""
+    (``tnf.runtime.ignore_lightning_deprecations``); its warnings print once (``tnf.runtime.lightning_logs_once``)."""
+    lightning_logs_once()
     logger = logging.getLogger("lightning.pytorch")
     level = logger.level
     logger.setLevel(logging.WARNING)

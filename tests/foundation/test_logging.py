@@ -1,0 +1,55 @@
+"""What the `tnf` command prints: each of Lightning's notices once, without the advice tnf acts on itself, and
+no import-time chatter from PyOpenGL."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+# A `tnf` stage, run by the real command line and Hydra's job logging, that does what a training stage does to
+# the loggers: imports PyOpenGL (the capture renderer's), starts a trainer's logging, and has Lightning speak.
+STAGE = textwrap.dedent(
+    """
+    import logging, sys, types
+    from tnf.cli import main
+
+    def run(cfg):
+        import OpenGL.GL  # noqa: F401
+        import lightning  # noqa: F401
+        from tnf.generators.training import _quiet_trainer_start
+
+        if cfg.seed == 1:
+            _quiet_trainer_start()
+        notices = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+        notices.info("GPU available: probe-notice")
+        notices.info("you should set `torch.set_float32_matmul_precision('medium' | 'high')` probe-advice")
+
+    module = types.ModuleType("tnf.stages.objects")
+    module.run = run
+    sys.modules["tnf.stages.objects"] = module
+    sys.exit(main(["objects", "seed=" + sys.argv[1]]))
+    """
+)
+
+
+def _output(tmp_path, seed: int) -> str:
+    env = {**os.environ, "TNF_DATA": str(tmp_path / "data")}
+    out = subprocess.run([sys.executable, "-c", STAGE, str(seed)], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    return out.stdout + out.stderr
+
+
+def test_lightning_notices_print_once_without_the_advice_tnf_follows(tmp_path):
+    quiet = _output(tmp_path, seed=1)
+    assert quiet.count("probe-notice") == 1
+    assert "probe-advice" not in quiet
+    # the notice also reaches the job's log file, through the root logger
+    (log,) = (tmp_path / "data" / "logs").rglob("*.log")
+    assert "probe-notice" in log.read_text()
+    # as Lightning leaves it, each notice prints twice: its own console handler and the root logger's
+    loud = _output(tmp_path, seed=0)
+    assert loud.count("probe-notice") == 2 and "probe-advice" in loud
+
+
+def test_no_pyopengl_import_chatter(tmp_path):
+    assert "OpenGL_accelerate" not in _output(tmp_path, seed=1)
