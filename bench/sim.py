@@ -29,6 +29,7 @@ import trimesh  # noqa: E402
 import warp as wp  # noqa: E402
 
 from tnf.registry import OBJECTS, SENSORS, SIMULATORS  # noqa: E402
+from tnf.runtime import init_warp  # noqa: E402
 from tnf.sim.touch import sphere_directions, start_poses  # noqa: E402
 
 TACTO_MS = {(120, 160): 43.5, (240, 320): 67.0}  # ms per Digit frame, TACTO on the reference 2-core CPU
@@ -109,8 +110,7 @@ def main() -> None:
     ap.add_argument("--examples", type=Path, default=None, help="write example images into this folder")
     args = ap.parse_args()
     device = "cuda:0" if args.device == "cuda" else args.device
-    wp.config.quiet = True
-    wp.init()
+    init_warp()
     gpu = device.startswith("cuda")
     batch = args.batch or (512 if gpu else 16)
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())

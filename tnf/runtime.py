@@ -85,3 +85,13 @@ def lightning_logs_once() -> None:
     for handler in list(lightning_logger.handlers):
         if type(handler) is logging.StreamHandler:
             lightning_logger.removeHandler(handler)
+
+
+def init_warp() -> None:
+    """Initialise Warp (once per process; a no-op after) without its start-up banner and its notice for every
+    kernel module it loads; its warnings and errors still print."""
+    import warp as wp
+
+    if wp.config.log_level < wp.LOG_WARNING:
+        wp.config.log_level = wp.LOG_WARNING
+    wp.init()

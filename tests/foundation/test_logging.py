@@ -53,3 +53,23 @@ def test_lightning_notices_print_once_without_the_advice_tnf_follows(tmp_path):
 
 def test_no_pyopengl_import_chatter(tmp_path):
     assert "OpenGL_accelerate" not in _output(tmp_path, seed=1)
+
+
+def test_warp_starts_without_its_banner_or_module_notices(tmp_path):
+    """The simulator and the scenes' kernels print none of Warp's start-up lines or per-module load notices."""
+    script = textwrap.dedent(
+        """
+        import torch
+        from tnf.scenes.hash_kernel import hash_encode
+
+        x = torch.rand(5, 3)
+        table = torch.rand(2 * 16, 2)
+        out = hash_encode(x, table, torch.tensor([4.0, 8.0]), n_dense=1, table_size=16)
+        print("features", tuple(out.shape))
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=dict(os.environ))
+    assert out.returncode == 0, out.stderr
+    text = out.stdout + out.stderr
+    assert "features (5, 4)" in text
+    assert "initialized" not in text and "Module tnf." not in text

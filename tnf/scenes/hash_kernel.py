@@ -22,6 +22,8 @@ from typing import Any
 import torch
 import warp as wp
 
+from tnf.runtime import init_warp
+
 wp.set_module_options({"enable_backward": False})  # forward only: rendering takes no gradients
 
 
@@ -155,7 +157,7 @@ def march_select(
     the last sample looked at, and the end; ``occupied`` [G^3] uint8. Samples at or beyond ``far`` are not
     taken (the ray's next number becomes its end). All on one device, contiguous.
     """
-    wp.init()
+    init_warp()
     A = ray.shape[0]
     grid = round(occupied.numel() ** (1.0 / 3.0))
     t_out = torch.empty(A, k, device=ray.device, dtype=torch.float32)
@@ -191,7 +193,7 @@ def available(device: torch.device) -> bool:
     key = str(device)
     if key not in _OK:
         try:
-            wp.init()
+            init_warp()
             wp.get_device(f"cuda:{device.index or 0}" if device.type == "cuda" else "cpu")
             _OK[key] = True
         except Exception:  # no usable Warp device: the PyTorch encoding is used instead
@@ -211,7 +213,7 @@ def hash_encode(
     float32 cells per axis; levels below ``n_dense`` are indexed directly, the others hashed into T rows.
     All tensors on one device (CPU or CUDA); nothing is differentiated.
     """
-    wp.init()  # once per process; a no-op after
+    init_warp()  # once per process; a no-op after
     P, L, F = x.shape[0], resolutions.shape[0], table.shape[1]
     out = torch.empty(P, L * F, device=x.device, dtype=torch.float32)
     if P == 0:

@@ -40,6 +40,7 @@ import warp as wp
 
 from tnf.errors import TnfError
 from tnf.registry import SIMULATORS
+from tnf.runtime import init_warp
 from tnf.sensors.base import Sensor
 
 MISS = 1.0e9  # ray distance stored for pixels that see no object (and pixels outside the gel)
@@ -563,7 +564,7 @@ class WarpGel:
         """``sensor``: the tactile sensor to simulate; ``device``: warp device (``cpu``, ``cuda:0``)."""
         self.cfg = cfg
         self.sensor = sensor
-        wp.init()
+        init_warp()
         self.device = wp.get_device(device)
         s = sensor
         h0 = s.gel_surface().astype(np.float32)
