@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import torch
@@ -200,7 +202,7 @@ def test_jitter_changes_only_rgb_within_range(tmp_path):
         assert torch.equal(aug[k], plain[k])
 
 
-def test_augment_errors(tmp_path):
+def test_augment_errors(tmp_path, caplog):
     from tnf.data import PairDataModule
 
     make_dataset(tmp_path / "digit")
@@ -209,10 +211,15 @@ def test_augment_errors(tmp_path):
         PairDataset(tmp_path / "digit", augment=["rotate"])
     with pytest.raises(TnfError, match="a list of augmentations"):
         PairDataset(tmp_path / "digit", augment=True)
-    with pytest.raises(TnfError, match="'omnitact' .* has no mirror symmetry"):
-        PairDataset(tmp_path / "omnitact", augment=["mirror"])
-    PairDataset(tmp_path / "omnitact", augment=["jitter"])  # jitter needs no symmetry
-    with pytest.raises(TnfError, match="has no mirror symmetry"):
+    # A sensor without a mirror symmetry trains without the mirror, and says so (one config serves every sensor).
+    with caplog.at_level(logging.WARNING, logger="tnf.data.dataset"):
+        ds = PairDataset(tmp_path / "omnitact", augment=["mirror", "jitter"])
+        dm = PairDataModule([tmp_path / "omnitact"], augment=["mirror"])
+    assert ds.augment == ("jitter",) and ds.mirror is None and dm.augment == () and dm.mirror is None
+    assert caplog.text.count("sensor omnitact has no mirror symmetry") == 2
+    assert PairDataset(tmp_path / "digit", augment=["mirror"]).mirror == (1, 0, 2)
+    # Only some of the datasets mirror: a batch cannot mix mirrored and unmirrored pairs.
+    with pytest.raises(TnfError, match="mirror alike.*None: no mirror symmetry"):
         PairDataModule([tmp_path / "digit", tmp_path / "omnitact"], augment=["mirror"])
     # One light on the axis: a Digit whose mirror keeps every channel, unlike the standard one.
     axis = [{"position": [0.0, 0.01, -0.02], "color": [1.0, 1.0, 1.0], "intensity": 1.0}]

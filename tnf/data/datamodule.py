@@ -19,7 +19,7 @@ from tnf.data.dataset import (
     augment_batch,
     check_augment,
     collate_pairs,
-    sensor_mirror,
+    mirror_augment,
     to_float_batch,
 )
 from tnf.errors import TnfError
@@ -52,7 +52,8 @@ class PairDataModule(L.LightningDataModule):
         num_workers: DataLoader worker processes (0 loads in the main process).
         per_object: at most this many touches per object and dataset; None keeps all.
         augment: augmentations of the training batches, from ``tnf.data.AUGMENTATIONS`` (see ``augment_batch``);
-            ``mirror`` needs every dataset to come from sensors with the same mirror symmetry.
+            ``mirror`` needs every dataset to come from sensors with the same mirror symmetry, and is left out
+            (with a warning) where they have none (``tnf.data.dataset.mirror_augment``).
         pin_memory: page-locked batches for faster copies to a GPU.
         seed: seed of the subsample and the training order.
         train_splits, val_splits: splits served by ``train_dataloader`` / ``val_dataloader``.
@@ -102,15 +103,9 @@ class PairDataModule(L.LightningDataModule):
                 if n not in names:
                     names.append(n)
         self.object_names = names
-        self.mirror: tuple[int, ...] | None = None
-        if "mirror" in self.augment:
-            orders = {sensor_mirror(read_json(f / MANIFEST, "dataset manifest"), f) for f in self.folders}
-            if len(orders) > 1:
-                raise TnfError(
-                    "data.augment=[mirror] needs datasets whose sensors mirror alike, but their channel orders "
-                    f"differ ({sorted(orders)}); train on them without it"
-                )
-            self.mirror = orders.pop()
+        self.augment, self.mirror = mirror_augment(
+            self.augment, [(read_json(f / MANIFEST, "dataset manifest"), f) for f in self.folders]
+        )
 
     def dataset(self, splits: Sequence[str], augment: Sequence[str] = ()) -> PairDataset | MixedPairDataset:
         """The pairs of ``splits`` over all folders (one dataset, or a mix)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -14,6 +15,8 @@ from torch.utils.data import Dataset, default_collate, get_worker_info
 from tnf.data.splits import SPLITS, split_code
 from tnf.data.store import PairArrays, open_pairs
 from tnf.errors import TnfError
+
+log = logging.getLogger(__name__)
 
 Batch = dict[str, torch.Tensor]
 
@@ -171,7 +174,8 @@ class PairDataset(Dataset):
         object_names: the object vocabulary ``object_id`` indexes; default this dataset's own object list.
             Datasets that are mixed share one vocabulary so an object keeps its id.
         augment: augmentations of each batch, from ``AUGMENTATIONS``: ``mirror`` (the sensor's mirror
-            symmetry, which the dataset's manifest records) and ``jitter`` (RGB brightness and contrast).
+            symmetry, which the dataset's manifest records; left out, with a warning, for a sensor without one)
+            and ``jitter`` (RGB brightness and contrast).
         compact: serve batches as stored (``rgb``, ``background``, ``tactile`` uint8 [B, 128, 128, 3],
             ``depth`` float16 [B, 128, 128]; ``points`` as in float batches), 4x fewer bytes to load, pin and
             copy; ``to_float_batch``
@@ -193,8 +197,9 @@ class PairDataset(Dataset):
             splits = (splits,)
         self.arrays: PairArrays = open_pairs(folder)
         # Compact batches are augmented after the copy, by PairDataModule (which reads the sensor's mirror itself).
-        self.augment = () if compact else check_augment(augment)
-        self.mirror = sensor_mirror(self.arrays.manifest, folder) if "mirror" in self.augment else None
+        self.augment, self.mirror = mirror_augment(
+            () if compact else check_augment(augment), [(self.arrays.manifest, folder)]
+        )
         self.splits = tuple(splits)
         self.compact = compact
         own = self.arrays.objects
@@ -375,6 +380,34 @@ def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool = True) -
             "not left-right mirror images up to a swap of colour channels); drop 'mirror' from data.augment"
         )
     return channels
+
+
+def mirror_augment(
+    augment: tuple[str, ...], datasets: Sequence[tuple[dict[str, Any], Any]]
+) -> tuple[tuple[str, ...], tuple[int, ...] | None]:
+    """``augment`` and the channel order its ``mirror`` uses (None without ``mirror``), for the datasets given as
+    (manifest, where) pairs: their sensors' common mirror symmetry. Where their sensor has none (the OmniTact),
+    ``mirror`` is left out with a warning, as ``generate.mirror_average`` generates such a sensor's images as they
+    are, so that one experiment config serves every sensor. Datasets whose sensors mirror differently, or of which
+    only some mirror, are a TnfError: a batch cannot mix them."""
+    if "mirror" not in augment:
+        return augment, None
+    orders = {sensor_mirror(manifest, where, required=False) for manifest, where in datasets}
+    if len(orders) > 1:
+        raise TnfError(
+            "data.augment=[mirror] needs datasets whose sensors mirror alike, but their channel orders differ "
+            f"({', '.join(sorted(map(str, orders)))}; None: no mirror symmetry); train on them without it"
+        )
+    order = orders.pop()
+    if order is None:
+        sensors = sorted({str(manifest["sensor"]["name"]) for manifest, _ in datasets})
+        log.warning(
+            "sensor %s has no mirror symmetry (its gel, lights or markers are not left-right mirror images up to a "
+            "swap of colour channels): training without data.augment's mirror",
+            ", ".join(sensors),
+        )
+        return tuple(a for a in augment if a != "mirror"), None
+    return augment, order
 
 
 MIRRORED_IMAGES = ("rgb", "depth", "background", "tactile", "prior", "points")
