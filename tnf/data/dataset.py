@@ -394,9 +394,10 @@ def mirror_augment(
         return augment, None
     orders = {sensor_mirror(manifest, where, required=False) for manifest, where in datasets}
     if len(orders) > 1:
+        none = "; None: no mirror symmetry" if None in orders else ""
         raise TnfError(
             "data.augment=[mirror] needs datasets whose sensors mirror alike, but their channel orders differ "
-            f"({', '.join(sorted(map(str, orders)))}; None: no mirror symmetry); train on them without it"
+            f"({', '.join(sorted(map(str, orders)))}{none}); train on them without it"
         )
     order = orders.pop()
     if order is None:
