@@ -89,9 +89,10 @@ def lightning_logs_once() -> None:
 
 def init_warp() -> None:
     """Initialise Warp (once per process; a no-op after) without its start-up banner and its notice for every
-    kernel module it loads; its warnings and errors still print."""
+    kernel module it loads; its warnings and errors still print. Only Warp's default level (INFO) is raised: a
+    level set before (``warp.config.log_level = warp.LOG_DEBUG`` to see what Warp does) is kept."""
     import warp as wp
 
-    if wp.config.log_level < wp.LOG_WARNING:
+    if wp.config.log_level == wp.LOG_INFO:
         wp.config.log_level = wp.LOG_WARNING
     wp.init()

@@ -73,3 +73,20 @@ def test_warp_starts_without_its_banner_or_module_notices(tmp_path):
     text = out.stdout + out.stderr
     assert "features (5, 4)" in text
     assert "initialized" not in text and "Module tnf." not in text
+
+
+def test_warp_keeps_a_log_level_chosen_before():
+    import warp as wp
+
+    from tnf.runtime import init_warp
+
+    saved = wp.config.log_level
+    try:
+        wp.config.log_level = wp.LOG_DEBUG
+        init_warp()
+        assert wp.config.log_level == wp.LOG_DEBUG
+        wp.config.log_level = wp.LOG_INFO  # Warp's default: raised
+        init_warp()
+        assert wp.config.log_level == wp.LOG_WARNING
+    finally:
+        wp.config.log_level = saved
