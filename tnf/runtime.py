@@ -87,12 +87,54 @@ def lightning_logs_once() -> None:
             lightning_logger.removeHandler(handler)
 
 
+# What Warp's native library prints on a machine without an NVIDIA driver, where tnf runs on the CPU by design.
+_NO_CUDA_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
 def init_warp() -> None:
-    """Initialise Warp (once per process; a no-op after) without its start-up banner and its notice for every
-    kernel module it loads; its warnings and errors still print. Only Warp's default level (INFO) is raised: a
-    level set before (``warp.config.log_level = warp.LOG_DEBUG`` to see what Warp does) is kept."""
+    """Initialise Warp (once per process; a no-op after) without its start-up banner, its notice for every
+    kernel module it loads, or its warning that a CPU-only machine has no CUDA driver (logged at DEBUG instead);
+    its other warnings and errors still print. Only Warp's default level (INFO) is raised: a level set before
+    (``warp.config.log_level = warp.LOG_DEBUG`` to see what Warp does) is kept."""
     import warp as wp
 
     if wp.config.log_level == wp.LOG_INFO:
         wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    with _without_native_line(_NO_CUDA_DRIVER) as dropped:
+        wp.init()
+    if dropped:
+        logging.getLogger(__name__).debug("no NVIDIA CUDA driver: Warp runs on the CPU only")
+
+
+@contextlib.contextmanager
+def _without_native_line(text: str) -> Iterator[list[str]]:
+    """Hold back what native code writes to the process's stderr (file descriptor 2) inside the block, then write
+    it out without the lines that contain ``text``; the list yielded receives the lines dropped. Where the
+    descriptor cannot be redirected, everything prints as it is."""
+    import os
+    import sys
+    import tempfile
+
+    dropped: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield dropped
+        return
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield dropped
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            lines = held.read().decode(errors="replace").splitlines(keepends=True)
+            dropped.extend(line for line in lines if text in line)
+            kept = "".join(line for line in lines if text not in line)
+            if kept:
+                sys.stderr.write(kept)
+                sys.stderr.flush()

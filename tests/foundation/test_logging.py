@@ -90,3 +90,48 @@ def test_warp_keeps_a_log_level_chosen_before():
         assert wp.config.log_level == wp.LOG_WARNING
     finally:
         wp.config.log_level = saved
+
+
+def test_warp_on_a_cpu_only_machine_says_nothing_of_the_missing_cuda_driver():
+    """Warp's native library warns on stderr that it finds no NVIDIA driver; on a CPU-only machine (where tnf
+    runs on the CPU by design) init_warp holds that line back and lets everything else through."""
+    env = dict(os.environ)
+    warning = "Could not find or load the NVIDIA CUDA driver"
+    bare = subprocess.run([sys.executable, "-c", "import warp; warp.init()"], capture_output=True, text=True, env=env)
+    assert bare.returncode == 0, bare.stderr
+    script = textwrap.dedent(
+        """
+        import sys
+        from tnf.runtime import init_warp
+
+        print("before", file=sys.stderr)
+        init_warp()
+        print("after", file=sys.stderr)
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    assert warning not in out.stdout + out.stderr
+    assert out.stderr.splitlines() == ["before", "after"]
+    if warning not in bare.stderr:
+        import pytest
+
+        pytest.skip("this machine has an NVIDIA driver: Warp has nothing to warn about")
+
+
+def test_native_lines_held_back_during_warp_start_are_written_out_after():
+    """What else native code writes while Warp starts reaches stderr, in order; only the driver line is dropped."""
+    script = textwrap.dedent(
+        """
+        import os
+        from tnf.runtime import _without_native_line
+
+        with _without_native_line("drop me") as dropped:
+            os.write(2, b"first\\nplease drop me\\nlast\\n")
+        print(len(dropped))
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=dict(os.environ))
+    assert out.returncode == 0, out.stderr
+    assert out.stderr.splitlines() == ["first", "last"]
+    assert out.stdout.strip() == "1"
