@@ -77,6 +77,23 @@ def test_train_stage_prints_no_lightning_advice(data_root, recwarn, caplog):
     assert any("GPU available" in r.getMessage() for r in caplog.records)
 
 
+def test_pipeline_without_evaluate_names_the_earlier_report_as_not_updated(data_root, capsys):
+    """A pipeline run of some stages only points at the report its experiment already has, saying that this run
+    did not update it; one that evaluates names the report as its own."""
+    from tnf.stages import pipeline
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    cfg = compose("pipeline", [*TINY, "pipeline.stages=[train]"])
+    report = data_root / "reports" / str(cfg.evaluate.name) / "report.md"
+    report.parent.mkdir(parents=True)
+    report.write_text("# an earlier run's report\n")
+    pipeline.run(cfg)
+    printed = "".join(capsys.readouterr().out.split())
+    assert f"report(notupdated:evaluatedidnotrun):{report}" in printed
+    assert f"report:{report}" not in printed
+    assert report.read_text() == "# an earlier run's report\n"
+
+
 def test_train_stage_with_the_mirror_augmentation(data_root):
     from tnf.stages import train
 

@@ -97,4 +97,7 @@ def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float],
         {"stages": times, "total_s": total, "device": str(cfg.device), "model": str(cfg.generate.model)},
     )
     if (report / "report.md").is_file():
-        console.print(f"report: [bold]{report / 'report.md'}[/]")
+        if "evaluate" in stages:
+            console.print(f"report: [bold]{report / 'report.md'}[/]")
+        else:  # the report there is an earlier run's: this one did not evaluate
+            console.print(f"report (not updated: evaluate did not run): {report / 'report.md'}")
