@@ -30,6 +30,75 @@ def warp_device(torch_device: str) -> str:
     return "cuda:0" if torch_device == "cuda" else torch_device
 
 
+def environment(device: str) -> dict[str, Any]:
+    """Where a result was made: the accelerator (the GPU's name, or the CPU's), CPU cores, Python and the
+    versions of tnf (with its git commit where tnf runs from a checkout) and of the libraries the numbers depend
+    on. Stored in each evaluated run's results and shown in the report."""
+    import os
+    import platform
+    import sys
+    from importlib import metadata
+
+    import torch
+
+    import tnf
+
+    def version(package: str) -> str | None:
+        try:
+            return metadata.version(package)
+        except metadata.PackageNotFoundError:
+            return None
+
+    if device.startswith("cuda") and torch.cuda.is_available():
+        accelerator = torch.cuda.get_device_name(torch.device(device))
+    else:
+        accelerator = _cpu_name() or "CPU"
+    return {
+        "accelerator": accelerator,
+        "device": device,
+        "cpu_cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "platform": sys.platform,
+        "tnf": tnf.__version__,
+        "commit": _git_commit(),
+        "torch": torch.__version__,
+        "warp": version("warp-lang"),
+        "lightning": version("lightning"),
+    }
+
+
+def _cpu_name() -> str | None:
+    import platform
+    from pathlib import Path
+
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text(errors="replace").splitlines():
+            if line.startswith("model name") and ":" in line:
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or None
+
+
+def _git_commit() -> str | None:
+    """The short commit of the checkout tnf runs from, with ``+changes`` if tracked files differ from it; None
+    where tnf is installed from a package (or git is missing)."""
+    import subprocess
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parent
+    if not (here.parent / ".git").exists():
+        return None
+    try:
+        git = ["git", "-C", str(here.parent)]
+        commit = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10)
+        if commit.returncode != 0:
+            return None
+        dirty = subprocess.run([*git, "diff", "--quiet", "HEAD", "--"], capture_output=True, timeout=10).returncode
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit.stdout.strip() + ("+changes" if dirty == 1 else "")
+
+
 def seed_everything(seed: int) -> None:
     """Seed Python, NumPy and torch (all devices)."""
     import numpy as np

@@ -105,6 +105,38 @@ def test_report_tables_checks_and_figures(tmp_path):
         assert im.size[0] >= 360
 
 
+def test_report_says_where_each_run_ran_and_how_long_each_stage_took(tmp_path):
+    """The pipeline's wall times per model (its timings files) and each run's environment end the report; runs
+    evaluated before environments were recorded say so."""
+    env = {"accelerator": "NVIDIA H100 80GB HBM3", "cpu_cores": 16, "python": "3.12.3", "torch": "2.11.0",
+           "warp": "1.19.0", "lightning": "2.6.6", "tnf": "0.1.0", "commit": "abc1234"}  # fmt: skip
+    results = [
+        {**_result("main", "T-N", 0, 0.97, 20.0, 95.0), "model": "tn0", "environment": env},
+        {**_result("main", "T-N", 1, 0.97, 20.0, 95.0), "model": "tn1", "environment": env, "evaluate_s": 88.5},
+        {**_result("main", "Lee", 0, 0.70, 1000.0, 70.0), "model": "lee0"},
+    ]
+    timings = tmp_path / "rep" / "timings"
+    timings.mkdir(parents=True)
+    stages = {"capture": 10.0, "fit-scene": 155.0, "train": 400.25, "generate": 40.0, "evaluate": 90.0}
+    (timings / "tn0.json").write_text(json.dumps({"model": "tn0", "device": "cuda", "stages": stages}))
+    # written before its evaluate ran: the evaluate time comes from the run's results
+    (timings / "tn1.json").write_text(json.dumps({"model": "tn1", "device": "cuda", "stages": {"train": 402.0}}))
+    write_report(results, tmp_path / "rep", name="tiny")
+    md = (tmp_path / "rep" / "report.md").read_text()
+    where = md[md.index("## Where and how long") :]
+    assert "| Model | device | capture | fit-scene | train | generate | evaluate | total |" in where
+    assert "| tn0 | cuda | 10.0 | 155 | 400 | 40.0 | 90.0 | 695 |" in where
+    assert "| tn1 | cuda | - | - | 402 | - | 88.5 | 490 |" in where
+    env_row = "| T-N seed 0, T-N seed 1 | NVIDIA H100 80GB HBM3 | 16 | 3.12.3 | 2.11.0 | 1.19.0 | 2.6.6 "
+    env_row += "| 0.1.0 (abc1234) |"
+    assert env_row in where
+    assert "| Lee seed 0 | not recorded |" in where
+    # without timings files or environments the section is left out
+    bare = [_result("main", "T-N", 0, 0.97, 20.0, 95.0)]
+    write_report(bare, tmp_path / "bare", name="tiny")
+    assert "## Where and how long" not in (tmp_path / "bare" / "report.md").read_text()
+
+
 def test_report_compares_our_method_with_the_papers_own_figures(tmp_path):
     results = [_result("main", "Lee", s, 0.70, 1000.0, 70.0) for s in range(3)]
     # T-N: novel view 0.976 / 0.979 / 0.982 (novel object 0.01 lower), MSE 20, Sim + T-N 95-97 against Sim 80-82

@@ -287,15 +287,33 @@ def evaluate_inputs(root: Path, upstream: Path, reference: Path) -> None:
 
 
 def report_files(root: Path) -> dict[str, bytes]:
-    """The report's files, without the line that says when it was written and the pipeline's wall times."""
+    """The report's files, without the line that says when it was written and the wall times (the pipeline's
+    timings files, the report's section of them and the evaluation's time in each run's results)."""
     files = {k: v for k, v in tree_bytes(root / REPORT).items() if not k.startswith("timings/")}
-    files["report.md"] = b"\n".join(ln for ln in files["report.md"].split(b"\n") if not ln.startswith(b"Written "))
+    for k in [k for k in files if k.endswith("results.json")]:
+        results = json.loads(files[k])
+        results.pop("evaluate_s")
+        files[k] = json.dumps(results, sort_keys=True).encode()
+    lines, kept, timed = files["report.md"].split(b"\n"), [], False
+    for ln in lines:
+        if ln.startswith(b"#"):
+            timed = ln.startswith(b"### Wall times")
+        if not timed and not ln.startswith(b"Written "):
+            kept.append(ln)
+    files["report.md"] = b"\n".join(kept)
     return files
 
 
+def results_of(root: Path) -> dict:
+    """The run's results without how long its evaluation took."""
+    results = json.loads((root / RESULTS).read_text())
+    assert results.pop("evaluate_s") > 0
+    return results
+
+
 def check_evaluated(root: Path, ref: Path) -> None:
-    a, b = (json.loads((r / RESULTS).read_text()) for r in (root, ref))
-    assert a == b  # metrics, accuracies and the config hash
+    a, b = results_of(root), results_of(ref)
+    assert a == b  # metrics, accuracies, the environment and the config hash
     assert report_files(root) == report_files(ref)
     assert leftovers(root) == [], leftovers(root)
 
@@ -341,7 +359,7 @@ def check_pipeline(root: Path, ref: Path, exact_from: tuple[str, ...]) -> None:
             skip = ("manifest.json", "scene.pt", "metrics.json", "preview.png", "hparams.yaml")
             if stage not in ("scenes", "models"):  # trained: the same settings, not the same bytes
                 assert tree_bytes(item, skip) == tree_bytes(root / item.relative_to(ref), skip), item
-    a, b = (json.loads((r / RESULTS).read_text()) for r in (root, ref))
+    a, b = results_of(root), results_of(ref)
     assert a["config_hash"] == b["config_hash"]
     if "generated" in exact_from:
         assert a == b
@@ -369,6 +387,15 @@ def test_pipeline_killed_in_generate_and_in_evaluate_resumes(tmp_path, upstream,
     for line in ("pair: dataset", "is up to date", "trained with the same settings, skipped", "ball is up to date"):
         assert said(out, line), line
     check_pipeline(root, reference, exact_from=UPSTREAM + ("generated",))
+    # The report ends with where the run was evaluated and the pipeline's wall times: the stages of the run that
+    # wrote it, up to generate, and evaluate's from its results.
+    report = (root / REPORT / "report.md").read_text()
+    wall = report[report.index("### Wall times") :].split("\n")
+    header = next(ln for ln in wall if ln.startswith("| Model |"))
+    assert header == "| Model | device | capture | fit-scene | touch | pair | train | generate | evaluate | total |"
+    (row,) = [ln for ln in wall if ln.startswith(f"| {MODEL} | cpu |")]
+    assert all(float(c) >= 0 for c in row.strip("| ").split(" | ")[2:])
+    assert "| T-N seed 0 | " in report[report.index("### Environment") :]
 
 
 @pytest.mark.slow

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 import time
 from collections.abc import Sequence
@@ -204,11 +205,81 @@ def batch_sampling(runs: Sequence[dict[str, Any]]) -> str | None:
     return f"Rows that add generated images draw {f:.0%} of each batch from the ground-truth touches."
 
 
+def _seconds(t: float | None) -> str:
+    return "-" if t is None else (f"{t:.1f}" if t < 100 else f"{t:.0f}")
+
+
+def wall_times(timings: Sequence[dict[str, Any]], runs: Sequence[dict[str, Any]]) -> list[str]:
+    """Markdown lines: the wall time of each stage of each model's last ``tnf pipeline`` run (``timings``: the
+    ``timings/<model>.json`` files the pipeline writes); evaluate's from the run's results where the pipeline
+    had not recorded it yet (it writes the report while it runs)."""
+    from tnf.stages.pipeline import ORDER
+
+    if not timings:
+        return []
+    evaluated = {r.get("model"): r.get("evaluate_s") for r in runs}
+    rows = []
+    for t in sorted(timings, key=lambda t: str(t.get("model"))):
+        stages = dict(t.get("stages") or {})
+        if "evaluate" not in stages and evaluated.get(t.get("model")) is not None:
+            stages["evaluate"] = evaluated[t.get("model")]
+        rows.append((str(t.get("model")), str(t.get("device", "-")), stages))
+    shown = [s for s in ORDER if any(s in stages for _, _, stages in rows)]
+    lines = [
+        "### Wall times (seconds)",
+        "",
+        "Each model's last `tnf pipeline` run, stage by stage; a stage that found its work done takes next to no "
+        "time (in a sweep, the stages before training run in the first job).",
+        "",
+        "| Model | device | " + " | ".join(shown) + " | total |",
+        "|---|---|" + "---|" * (len(shown) + 1),
+    ]
+    for model, device, stages in rows:
+        cells = [_seconds(stages.get(s)) for s in shown]
+        lines.append(f"| {model} | {device} | " + " | ".join(cells) + f" | {_seconds(sum(stages.values()))} |")
+    return [*lines, ""]
+
+
+def environments(runs: Sequence[dict[str, Any]]) -> list[str]:
+    """Markdown lines: where the runs were evaluated (``tnf.runtime.environment``), one row per distinct
+    environment with the runs it made."""
+    keys = ("accelerator", "cpu_cores", "python", "torch", "warp", "lightning", "tnf", "commit")
+    groups: dict[tuple[Any, ...], list[str]] = {}
+    for r in sorted(runs, key=lambda r: (r.get("table", "main"), r["method"], r["seed"])):
+        env = r.get("environment") or {}
+        key = tuple(env.get(k) for k in keys)
+        groups.setdefault(key, []).append(f"{r['method']} seed {r['seed']}")
+    if not any(r.get("environment") for r in runs):
+        return []
+    lines = [
+        "### Environment",
+        "",
+        "| Runs | accelerator | CPU cores | Python | torch | warp | lightning | tnf |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for key, names in groups.items():
+        env = dict(zip(keys, key, strict=True))
+        if not any(v is not None for v in key):
+            lines.append(f"| {', '.join(names)} | not recorded | | | | | | |")
+            continue
+        version = env["tnf"] or "-"
+        if env["commit"]:
+            version += f" ({env['commit']})"
+        cells = [env[k] if env[k] is not None else "-" for k in keys[:-2]]
+        lines.append(f"| {', '.join(names)} | " + " | ".join(str(c) for c in cells) + f" | {version} |")
+    return [*lines, ""]
+
+
 def render_markdown(
-    name: str, tables: dict[str, TableData], figures: dict[str, list[tuple[str, str]]], notes: str | None = None
+    name: str,
+    tables: dict[str, TableData],
+    figures: dict[str, list[tuple[str, str]]],
+    notes: str | None = None,
+    timings: Sequence[dict[str, Any]] = (),
 ) -> str:
-    """The report as Markdown; ``figures[table]`` lists (caption, relative path) of its PNGs; ``notes`` (the
-    experiment's own words, e.g. why a figure falls short of the paper's) end it."""
+    """The report as Markdown; ``figures[table]`` lists (caption, relative path) of its PNGs; ``timings`` are the
+    pipeline's wall times per model (see ``wall_times``); ``notes`` (the experiment's own words, e.g. why a
+    figure falls short of the paper's) end it."""
     n_runs = sum(len(t.runs) for t in tables.values())
     lines = [
         f"# tnf evaluation report: {name}",
@@ -277,6 +348,10 @@ def render_markdown(
         for run in sorted(data.runs, key=lambda r: (r["method"], r["seed"])):
             lines.append(f"| {run['method']} | {run['seed']} | {run.get('model') or '-'} | {run.get('_rel', '')} |")
         lines.append("")
+    runs = [r for t in tables.values() for r in t.runs]
+    where = wall_times(timings, runs) + environments(runs)
+    if where:
+        lines += ["## Where and how long", "", *where]
     if notes and notes.strip():
         lines += ["## Notes", "", notes.strip(), ""]
     return "\n".join(lines)
@@ -363,7 +438,8 @@ def write_report(
                     )
                     figs.append((caption, _relpath(ex, folder)))
         figures[table] = figs
-    md = render_markdown(name or folder.name, tables, figures, notes)
+    timings = [json.loads(p.read_text()) for p in sorted((folder / "timings").glob("*.json"))]
+    md = render_markdown(name or folder.name, tables, figures, notes, timings)
     write_bytes(folder / "report.md", md.encode())
     return tables
 

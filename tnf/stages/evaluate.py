@@ -13,6 +13,7 @@ import functools
 import io
 import re
 import shutil
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, cast
@@ -150,10 +151,11 @@ def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], b
     """Image metrics and the classification task for ``cfg.evaluate.model``: the results dict, and the example
     figure as PNG bytes (None without image metrics), which the caller writes beside the results."""
     from tnf.eval.aggregate import SCHEMA
-    from tnf.runtime import progress, resolve_device, seed_everything
+    from tnf.runtime import environment, progress, resolve_device, seed_everything
 
     ecfg = cfg.evaluate
     device = resolve_device(str(cfg.device))
+    t0 = time.perf_counter()
     examples_png = None
     results: dict[str, Any] = {
         "schema": SCHEMA,
@@ -165,6 +167,7 @@ def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], b
         "image": {},
         "accuracy": {},
         "warnings": [],
+        "environment": environment(device),
     }
     with progress(bool(cfg.progress)) as bar:
         if list(ecfg.splits):
@@ -185,6 +188,7 @@ def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], b
             results["accuracy"] = acc
             results["classify"] = info
             results["warnings"] += warnings
+    results["evaluate_s"] = time.perf_counter() - t0
     return results, examples_png
 
 

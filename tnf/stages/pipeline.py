@@ -51,6 +51,8 @@ def run(cfg: Any) -> dict[str, Any]:
     results: dict[str, Any] = {}
     t_all = time.perf_counter()
     for i, stage in enumerate(stages, 1):
+        if stage == "evaluate":  # the report it writes shows this run's wall times so far
+            _write_timings(cfg, times, None)
         console.rule(f"[bold]pipeline {i}/{len(stages)}: {stage}")
         module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
         t0 = time.perf_counter()
@@ -81,8 +83,6 @@ def finetune_run_name(cfg: Any) -> str:
 def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float], total: float, ev: Any) -> None:
     from rich.table import Table
 
-    from tnf.artifacts import ArtifactStore, write_json
-
     table = Table(title="pipeline stages", header_style="bold")
     table.add_column("stage")
     table.add_column("wall time", justify="right")
@@ -90,14 +90,24 @@ def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float],
         table.add_row(s, f"{times[s]:.1f} s")
     table.add_row("[bold]total", f"[bold]{total:.1f} s")
     console.print(table)
-    store = ArtifactStore(cfg.data_root)
-    report = store.path("reports", str(cfg.evaluate.name))
-    write_json(
-        report / "timings" / f"{cfg.generate.model}.json",
-        {"stages": times, "total_s": total, "device": str(cfg.device), "model": str(cfg.generate.model)},
-    )
+    report = _write_timings(cfg, times, total)
     if (report / "report.md").is_file():
         if "evaluate" in stages:
             console.print(f"report: [bold]{report / 'report.md'}[/]")
         else:  # the report there is an earlier run's: this one did not evaluate
             console.print(f"report (not updated: evaluate did not run): {report / 'report.md'}")
+
+
+def _write_timings(cfg: Any, times: dict[str, float], total: float | None) -> Any:
+    """``<report>/timings/<model>.json``: this run's wall time per stage (the stages run so far; ``total_s`` once
+    all have run), which the report shows. Returns the report's folder."""
+    from tnf.artifacts import ArtifactStore, write_json
+    from tnf.runtime import resolve_device
+
+    report = ArtifactStore(cfg.data_root).path("reports", str(cfg.evaluate.name))
+    device = resolve_device(str(cfg.device))
+    write_json(
+        report / "timings" / f"{cfg.generate.model}.json",
+        {"stages": times, "total_s": total, "device": device, "model": str(cfg.generate.model)},
+    )
+    return report
