@@ -5,7 +5,12 @@ A run's results JSON (written by ``tnf evaluate`` for one model, see ``tnf.stage
     {"schema": 1, "table": "main" | "transfer", "method": "T-N", "seed": 0, "model": "...",
      "image": {test_set: {method_or_"BG": {"ssim": float, "mse": float, "n": int,
                                            "per_object": {object: {"ssim", "mse", "n"}}}}},
-     "accuracy": {"Sim": percent, "Sim + T-N": percent, "T-N only": percent}}
+     "accuracy": {"Sim": percent, "Sim + T-N": percent, "T-N only": percent},
+     "environment": {"accelerator", "cpu_cores", "python", "torch", "warp", "lightning", "tnf", "commit", ...},
+     "evaluate_s": seconds}
+
+``environment`` (``tnf.runtime.environment``) and ``evaluate_s`` are absent from runs evaluated before they were
+recorded; the report then says ``not recorded``.
 
 Test set ``all`` holds the pooled ``BG`` row. Rows shared by several runs of the same seed (``Sim``, ``BG``: every
 generator's job of seed 0 computes the same ones) are averaged within the seed first, so each seed counts once;
