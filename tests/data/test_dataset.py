@@ -165,6 +165,27 @@ def test_per_object_keeps_whole_touches(tmp_path):
     assert len(PairDataset(tmp_path / "ds", per_object=100)) == len(PairDataset(tmp_path / "ds"))
 
 
+def test_extra_touches_add_to_the_same_per_object_touches(tmp_path):
+    """T-N+'s set: the touches per_object keeps, and extra_touches more from any object's others."""
+    ref = make_dataset(tmp_path / "ds", touches=8, frames=3)
+    base = PairDataset(tmp_path / "ds", splits=("train",), per_object=2, seed=1)
+    plus = PairDataset(tmp_path / "ds", splits=("train",), per_object=2, seed=1, extra_touches=3)
+
+    def touches(ds):
+        return set(zip(ref["object_id"][ds.index].tolist(), ref["touch_index"][ds.index].tolist(), strict=True))
+
+    assert touches(base) < touches(plus)
+    assert len(touches(plus)) == len(touches(base)) + 3
+    assert len(plus) == len(base) + 3 * 3  # every frame of each added touch
+    # more than are left: all of them
+    every = PairDataset(tmp_path / "ds", splits=("train",), per_object=2, seed=1, extra_touches=10_000)
+    assert len(every) == len(PairDataset(tmp_path / "ds", splits=("train",)))
+    with pytest.raises(TnfError, match="give per_object too"):
+        PairDataset(tmp_path / "ds", extra_touches=3)
+    with pytest.raises(TnfError, match="extra_touches must be >= 0"):
+        PairDataset(tmp_path / "ds", per_object=2, extra_touches=-1)
+
+
 def _mirrored(x, order=None):
     x = x.flip(-1)
     return x if order is None else x[list(order)]

@@ -82,3 +82,18 @@ def test_the_transfer_frames_its_pairs_as_the_model_it_fine_tunes():
     assert {k: getattr(digit, k) for k in shared} == {k: getattr(omnitact, k) for k in shared}
     # each frames its own sensor's patch: the Digit's is portrait, OmniTact's square
     assert digit.view_size[1] > digit.view_size[0] and omnitact.view_size[0] == pytest.approx(omnitact.view_size[1])
+
+
+def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
+    """T-N and FS fine-tune on 5 touches per training object, T-N+ on the same 5 and 45 more in all (the paper's
+    "additional 45 training images"); each variant's model gets its own run name."""
+    from tnf.stages.pipeline import finetune_run_name
+
+    names = {}
+    for variant in ("tn", "tn_plus", "fs"):
+        cfg = compose("pipeline", ["experiment=sim_omnitact_transfer", f"transfer={variant}"])
+        assert cfg.data.per_object == 5
+        assert cfg.data.extra_touches == (45 if variant == "tn_plus" else 0)
+        names[variant] = finetune_run_name(cfg)
+    assert names["tn_plus"] == names["tn"].replace("-5pt-", "-5pt+45-")
+    assert "-scratch-5pt-" in names["fs"] and len(set(names.values())) == 3

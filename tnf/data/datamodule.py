@@ -51,6 +51,7 @@ class PairDataModule(L.LightningDataModule):
         batch_size: pairs per batch.
         num_workers: DataLoader worker processes (0 loads in the main process).
         per_object: at most this many touches per object and dataset; None keeps all.
+        extra_touches: with ``per_object``, this many more touches per dataset, drawn from all objects' others.
         augment: augmentations of the training batches, from ``tnf.data.AUGMENTATIONS`` (see ``augment_batch``);
             ``mirror`` needs every dataset to come from sensors with the same mirror symmetry, and is left out
             (with a warning) where they have none (``tnf.data.dataset.mirror_augment``).
@@ -78,6 +79,7 @@ class PairDataModule(L.LightningDataModule):
         drop_last: bool = False,
         data_root: str | os.PathLike[str] | None = None,
         convert_on_device: bool = False,
+        extra_touches: int = 0,
     ):
         super().__init__()
         if isinstance(folders, (str, os.PathLike)):
@@ -90,6 +92,7 @@ class PairDataModule(L.LightningDataModule):
         self.batch_size = batch_size
         self.num_workers = num_workers
         self.per_object = per_object
+        self.extra_touches = extra_touches
         self.augment = check_augment(augment)
         self.pin_memory = pin_memory
         self.seed = seed
@@ -118,6 +121,7 @@ class PairDataModule(L.LightningDataModule):
                 object_names=self.object_names,
                 augment=augment,
                 compact=self.convert_on_device,
+                extra_touches=self.extra_touches,
             )
             for f in self.folders
         ]

@@ -170,6 +170,9 @@ class PairDataset(Dataset):
         splits: split names to include (see ``tnf.data.SPLITS``).
         per_object: keep at most this many touches per object (all frames of a chosen touch), drawn with
             ``seed``; None keeps all.
+        extra_touches: with ``per_object``, this many more touches drawn at random (``seed``) from all that
+            ``per_object`` left out, whatever their object: the paper's T-N+ (5 per object and 45 more). The
+            ``per_object`` touches are the same with or without them.
         seed: seed of the per-object subsample.
         object_names: the object vocabulary ``object_id`` indexes; default this dataset's own object list.
             Datasets that are mixed share one vocabulary so an object keeps its id.
@@ -192,6 +195,7 @@ class PairDataset(Dataset):
         object_names: Sequence[str] | None = None,
         augment: Sequence[str] = (),
         compact: bool = False,
+        extra_touches: int = 0,
     ):
         if isinstance(splits, str):
             splits = (splits,)
@@ -214,8 +218,15 @@ class PairDataset(Dataset):
         rows = np.flatnonzero(np.isin(split, codes))
         if per_object is not None:
             rows = _subsample_touches(
-                rows, np.asarray(self.arrays.object_id), np.asarray(self.arrays.touch_index), per_object, seed
+                rows,
+                np.asarray(self.arrays.object_id),
+                np.asarray(self.arrays.touch_index),
+                per_object,
+                seed,
+                extra_touches,
             )
+        elif extra_touches:
+            raise TnfError(f"extra_touches={extra_touches} adds to per_object's touches: give per_object too")
         self.index = rows.astype(np.int64)
         # Backgrounds are few (one per sensor): convert once; a batch gets a view of them, not copies.
         self._backgrounds_u8 = torch.from_numpy(np.array(self.arrays.backgrounds))  # [K, H, W, 3]
@@ -315,11 +326,14 @@ def training_order(trained: Sequence[str] | None, own: Sequence[str]) -> list[st
 
 
 def _subsample_touches(
-    rows: np.ndarray, object_id: np.ndarray, touch_index: np.ndarray, per_object: int, seed: int
+    rows: np.ndarray, object_id: np.ndarray, touch_index: np.ndarray, per_object: int, seed: int, extra: int = 0
 ) -> np.ndarray:
-    """Keep the rows of at most ``per_object`` touches per object (chosen at random with ``seed``)."""
+    """Keep the rows of at most ``per_object`` touches per object (chosen at random with ``seed``), then of
+    ``extra`` more touches drawn from all the others (fewer where fewer are left)."""
     if per_object < 1:
         raise TnfError(f"per_object must be >= 1 or null, got {per_object}")
+    if extra < 0:
+        raise TnfError(f"extra_touches must be >= 0, got {extra}")
     rng = np.random.default_rng(seed)
     keep = np.zeros(len(rows), dtype=bool)
     obj = object_id[rows]
@@ -330,6 +344,11 @@ def _subsample_touches(
         if len(touches) > per_object:
             touches = np.sort(rng.choice(touches, size=per_object, replace=False))
         keep |= in_obj & np.isin(touch, touches)
+    if extra:  # drawn after every object's own, so that those are the same with or without the extra ones
+        left = np.unique(np.stack([obj[~keep], touch[~keep]], axis=1), axis=0)  # (object, touch) pairs
+        chosen = left[rng.choice(len(left), size=min(extra, len(left)), replace=False)]
+        for o, t in chosen:
+            keep |= (obj == o) & (touch == t)
     return rows[keep]
 
 

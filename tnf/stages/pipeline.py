@@ -71,13 +71,15 @@ def model_run_name(cfg: Any) -> str:
 
 
 def finetune_run_name(cfg: Any) -> str:
-    """``<generator>-<dataset>-<from-RUN|scratch>-<n>pt-seed<k>`` for a sensor-transfer model."""
+    """``<generator>-<dataset>-<from-RUN|scratch>-<n>pt[+<m>]-seed<k>`` for a sensor-transfer model: ``n`` touches
+    per object (``all``), ``m`` more in all (``data.extra_touches``)."""
     from tnf.data.store import dataset_name
 
     ckpt = cfg.finetune.checkpoint
     origin = f"from-{str(ckpt).split('/')[0]}" if ckpt else "scratch"
     per_object = cfg.data.per_object if cfg.data.per_object is not None else "all"
-    return f"{cfg.generator.name}-{dataset_name(cfg)}-{origin}-{per_object}pt-seed{cfg.seed}"
+    extra = f"+{cfg.data.extra_touches}" if cfg.data.get("extra_touches") else ""
+    return f"{cfg.generator.name}-{dataset_name(cfg)}-{origin}-{per_object}pt{extra}-seed{cfg.seed}"
 
 
 def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float], total: float, ev: Any) -> None:
