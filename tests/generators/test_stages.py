@@ -167,6 +167,20 @@ def test_finetune_stage_from_checkpoint_and_from_scratch(data_root):
         finetune.run(compose("finetune", [*ft, "finetune.checkpoint=nope"]))
 
 
+def test_finetune_on_per_object_touches_and_extra_ones_records_its_pairs(data_root, capsys):
+    """T-N+'s fine-tuning set: data.per_object touches of each object and data.extra_touches more; the run's
+    manifest and its summary line say how many pairs it trained on."""
+    from tnf.stages import finetune
+
+    write_pairs(data_root / "pairs" / "omnitact-hashgrid", n=6, seed=3)  # 4 training touches, 2 per object
+    ft = [*TINY, "data.datasets=[omnitact-hashgrid]", "data.per_object=1"]
+    for extra, pairs in ((0, 2), (1, 3)):
+        out = finetune.run(compose("finetune", [*ft, f"data.extra_touches={extra}", f"finetune.run_name=ft{extra}"]))
+        assert json.loads((data_root / "models" / f"ft{extra}" / "manifest.json").read_text())["train_pairs"] == pairs
+        assert out["train_pairs"] == pairs
+        assert f"epochs on {pairs} pairs" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("name", ["tn_cgan", "lee", "cyclegan"])
 def test_generator_config_files_match_the_config_classes(name):
     """conf/generator/<name>.yaml and the generator's Config hold the same defaults, so that `tnf train` and

@@ -237,6 +237,7 @@ def fit(
     epochs, global_step, best = _progress(run_dir / "last.ckpt", monitor="val_l1")
     summary = {
         **dict(info or {}),
+        "train_pairs": _train_pairs(datamodule),
         "epochs": epochs,
         "global_step": global_step,
         "best_val_l1": best,
@@ -393,6 +394,13 @@ def process_rank() -> int:
     from lightning.fabric.utilities.rank_zero import rank_zero_only
 
     return int(getattr(rank_zero_only, "rank", 0) or 0)
+
+
+def _train_pairs(datamodule: Any) -> int | None:
+    """How many pairs the training split served (after ``data.per_object`` and ``data.extra_touches``)."""
+    if not hasattr(datamodule, "dataset") or not hasattr(datamodule, "train_splits"):
+        return None
+    return len(datamodule.dataset(datamodule.train_splits))
 
 
 def _progress(last: Path, monitor: str) -> tuple[int, int, float | None]:

@@ -128,7 +128,8 @@ def run(cfg: Any) -> dict[str, Any]:
     )
     last = summary.get("last", {})
     console.print(
-        f"[bold]{run_name}[/]: {summary['epochs']} epochs; val SSIM {last.get('val_ssim', float('nan')):.4f}, "
+        f"[bold]{run_name}[/]: {summary['epochs']} epochs on {summary.get('train_pairs') or '?'} pairs; "
+        f"val SSIM {last.get('val_ssim', float('nan')):.4f}, "
         f"val MSE {last.get('val_mse', float('nan')):.1f}"
     )
     return {"run_dir": str(run_dir), **summary}

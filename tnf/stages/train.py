@@ -82,7 +82,8 @@ def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None
     last = summary.get("last", {})
     best = summary.get("best_val_l1")
     console.print(
-        f"[bold]{run_name}[/]: {summary['epochs']} epochs; val SSIM {last.get('val_ssim', float('nan')):.4f}, "
+        f"[bold]{run_name}[/]: {summary['epochs']} epochs on {summary.get('train_pairs') or '?'} pairs; "
+        f"val SSIM {last.get('val_ssim', float('nan')):.4f}, "
         f"val MSE {last.get('val_mse', float('nan')):.1f}, val L1 {last.get('val_l1', float('nan')):.4f} "
         f"(best {best if best is not None else float('nan'):.4f}, in best.ckpt)"
     )
