@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import random
+import threading
 import warnings
 from collections.abc import Iterator
 from typing import Any
@@ -158,19 +159,29 @@ def lightning_logs_once() -> None:
 
 # What Warp's native library prints on a machine without an NVIDIA driver, where tnf runs on the CPU by design.
 _NO_CUDA_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+_warp_lock = threading.Lock()
+_warp_started = False
 
 
 def init_warp() -> None:
-    """Initialise Warp (once per process; a no-op after) without its start-up banner, its notice for every
-    kernel module it loads, or its warning that a CPU-only machine has no CUDA driver (logged at DEBUG instead);
-    its other warnings and errors still print. Only Warp's default level (INFO) is raised: a level set before
-    (``warp.config.log_level = warp.LOG_DEBUG`` to see what Warp does) is kept."""
+    """Initialise Warp without its start-up banner, its notice for every kernel module it loads, or its warning
+    that a CPU-only machine has no CUDA driver (logged at DEBUG instead); its other warnings and errors still
+    print. Only Warp's default level (INFO) is raised: a level set before (``warp.config.log_level =
+    warp.LOG_DEBUG`` to see what Warp does) is kept. Cheap after the first call, which alone starts Warp (under
+    a lock: kernels call this on every launch, from any thread)."""
+    global _warp_started
     import warp as wp
 
     if wp.config.log_level == wp.LOG_INFO:
         wp.config.log_level = wp.LOG_WARNING
-    with _without_native_line(_NO_CUDA_DRIVER) as dropped:
-        wp.init()
+    if _warp_started:
+        return
+    with _warp_lock:
+        if _warp_started:
+            return
+        with _without_native_line(_NO_CUDA_DRIVER) as dropped:
+            wp.init()
+        _warp_started = True
     if dropped:
         logging.getLogger(__name__).debug("no NVIDIA CUDA driver: Warp runs on the CPU only")
 

@@ -211,10 +211,8 @@ def _seconds(t: float | None) -> str:
 
 def wall_times(timings: Sequence[dict[str, Any]], runs: Sequence[dict[str, Any]]) -> list[str]:
     """Markdown lines: the wall time of each stage of each model's last ``tnf pipeline`` run (``timings``: the
-    ``timings/<model>.json`` files the pipeline writes); evaluate's from the run's results where the pipeline
-    had not recorded it yet (it writes the report while it runs)."""
-    from tnf.stages.pipeline import ORDER
-
+    ``timings/<model>.json`` files the pipeline writes, stages in the order they ran); evaluate's from the run's
+    results where the pipeline had not recorded it yet (it writes the report while it runs)."""
     if not timings:
         return []
     evaluated = {r.get("model"): r.get("evaluate_s") for r in runs}
@@ -224,12 +222,14 @@ def wall_times(timings: Sequence[dict[str, Any]], runs: Sequence[dict[str, Any]]
         if "evaluate" not in stages and evaluated.get(t.get("model")) is not None:
             stages["evaluate"] = evaluated[t.get("model")]
         rows.append((str(t.get("model")), str(t.get("device", "-")), stages))
-    shown = [s for s in ORDER if any(s in stages for _, _, stages in rows)]
+    shown = list(dict.fromkeys(s for _, _, stages in rows for s in stages if s != "evaluate"))
+    shown += ["evaluate"] if any("evaluate" in stages for _, _, stages in rows) else []
     lines = [
         "### Wall times (seconds)",
         "",
         "Each model's last `tnf pipeline` run, stage by stage; a stage that found its work done takes next to no "
-        "time (in a sweep, the stages before training run in the first job).",
+        "time (in a sweep, the stages before training run in the first job). Evaluate: the evaluation that made "
+        "the run's results.",
         "",
         "| Model | device | " + " | ".join(shown) + " | total |",
         "|---|---|" + "---|" * (len(shown) + 1),
