@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -180,10 +181,31 @@ def test_extra_touches_add_to_the_same_per_object_touches(tmp_path):
     # more than are left: all of them
     every = PairDataset(tmp_path / "ds", splits=("train",), per_object=2, seed=1, extra_touches=10_000)
     assert len(every) == len(PairDataset(tmp_path / "ds", splits=("train",)))
-    with pytest.raises(TnfError, match="give per_object too"):
-        PairDataset(tmp_path / "ds", extra_touches=3)
-    with pytest.raises(TnfError, match="extra_touches must be >= 0"):
-        PairDataset(tmp_path / "ds", per_object=2, extra_touches=-1)
+
+
+@pytest.mark.parametrize(
+    ("per_object", "extra", "message"),
+    [
+        (None, 3, "give data.per_object too"),
+        (None, -2, "extra_touches must be a whole number >= 0, got -2"),
+        (2, -1, "extra_touches must be a whole number >= 0, got -1"),
+        (2, 2.5, "extra_touches must be a whole number >= 0, got 2.5"),
+        (2, "45", "extra_touches must be a whole number >= 0, got '45'"),
+        (2, True, "extra_touches must be a whole number >= 0, got True"),
+        (0, 0, "per_object must be a whole number >= 1 or null, got 0"),
+        ("5", 0, "per_object must be a whole number >= 1 or null, got '5'"),
+    ],
+)
+def test_subsample_settings_are_checked(tmp_path, per_object, extra, message):
+    """Bad data.per_object / data.extra_touches: one line naming the setting, from the dataset and from the data
+    module alike (the latter before it opens any dataset)."""
+    from tnf.data import PairDataModule
+
+    make_dataset(tmp_path / "ds")
+    with pytest.raises(TnfError, match=re.escape(message)):
+        PairDataset(tmp_path / "ds", per_object=per_object, extra_touches=extra)
+    with pytest.raises(TnfError, match=re.escape(message)):
+        PairDataModule([tmp_path / "missing"], per_object=per_object, extra_touches=extra)
 
 
 def _mirrored(x, order=None):

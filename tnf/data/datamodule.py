@@ -18,6 +18,7 @@ from tnf.data.dataset import (
     PairDataset,
     augment_batch,
     check_augment,
+    check_subsample,
     collate_pairs,
     mirror_augment,
     to_float_batch,
@@ -88,6 +89,7 @@ class PairDataModule(L.LightningDataModule):
             raise TnfError("PairDataModule needs at least one dataset folder")
         if batch_size < 1:
             raise TnfError(f"batch_size must be >= 1, got {batch_size}")
+        check_subsample(per_object, extra_touches)
         self.folders = [resolve_dataset(f, data_root) for f in folders]
         self.batch_size = batch_size
         self.num_workers = num_workers

@@ -199,6 +199,7 @@ class PairDataset(Dataset):
     ):
         if isinstance(splits, str):
             splits = (splits,)
+        check_subsample(per_object, extra_touches)
         self.arrays: PairArrays = open_pairs(folder)
         # Compact batches are augmented after the copy, by PairDataModule (which reads the sensor's mirror itself).
         self.augment, self.mirror = mirror_augment(
@@ -225,8 +226,6 @@ class PairDataset(Dataset):
                 seed,
                 extra_touches,
             )
-        elif extra_touches:
-            raise TnfError(f"extra_touches={extra_touches} adds to per_object's touches: give per_object too")
         self.index = rows.astype(np.int64)
         # Backgrounds are few (one per sensor): convert once; a batch gets a view of them, not copies.
         self._backgrounds_u8 = torch.from_numpy(np.array(self.arrays.backgrounds))  # [K, H, W, 3]
@@ -325,15 +324,29 @@ def training_order(trained: Sequence[str] | None, own: Sequence[str]) -> list[st
     return list(trained) + [o for o in own if o not in trained]
 
 
+def check_subsample(per_object: Any, extra_touches: Any) -> None:
+    """A TnfError unless ``per_object`` is None or a whole number >= 1 and ``extra_touches`` a whole number >= 0
+    that only comes with ``per_object`` (it adds to per_object's touches)."""
+
+    def whole(x: Any) -> bool:
+        return isinstance(x, (int, np.integer)) and not isinstance(x, bool)
+
+    if per_object is not None and not (whole(per_object) and per_object >= 1):
+        raise TnfError(f"data.per_object must be a whole number >= 1 or null, got {per_object!r}")
+    if not (whole(extra_touches) and extra_touches >= 0):
+        raise TnfError(f"data.extra_touches must be a whole number >= 0, got {extra_touches!r}")
+    if extra_touches and per_object is None:
+        raise TnfError(
+            f"data.extra_touches={extra_touches} adds to data.per_object's touches: give data.per_object too"
+        )
+
+
 def _subsample_touches(
     rows: np.ndarray, object_id: np.ndarray, touch_index: np.ndarray, per_object: int, seed: int, extra: int = 0
 ) -> np.ndarray:
     """Keep the rows of at most ``per_object`` touches per object (chosen at random with ``seed``), then of
-    ``extra`` more touches drawn from all the others (fewer where fewer are left)."""
-    if per_object < 1:
-        raise TnfError(f"per_object must be >= 1 or null, got {per_object}")
-    if extra < 0:
-        raise TnfError(f"extra_touches must be >= 0, got {extra}")
+    ``extra`` more touches drawn from all the others (fewer where fewer are left); ``check_subsample`` checked
+    both."""
     rng = np.random.default_rng(seed)
     keep = np.zeros(len(rows), dtype=bool)
     obj = object_id[rows]
