@@ -20,6 +20,7 @@ STAGES: dict[str, str] = {
     "objects": "list the objects of an object source with size and triangle count",
     "capture": "render multi-view RGB-D images of objects (transforms.json, RGBA PNGs, depth)",
     "fit-scene": "fit a scene representation (nerf, hashgrid) to an object's captured views",
+    "calibrate": "fit a sensor's optics to real indenter presses; score realism on held-out presses",
     "touch": "simulate tactile touches of objects with a sensor (warp gel simulator)",
     "pair": "pair each touch with RGB-D rendered from the object's scene; build a dataset",
     "train": "train a generator (tn_cgan, lee, cyclegan) on a paired dataset",

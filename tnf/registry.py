@@ -291,7 +291,7 @@ OBJECTS = Registry(
     ["tnf.objects.builtin", "tnf.objects.mesh_dir", "tnf.objects.pybullet", "tnf.objects.captured"],
 )
 SCENES = Registry("scene", "tnf.scenes", ["tnf.scenes.nerf", "tnf.scenes.hashgrid", "tnf.scenes.mesh"])
-SENSORS = Registry("sensor", "tnf.sensors", ["tnf.sensors.digit", "tnf.sensors.omnitact"])
+SENSORS = Registry("sensor", "tnf.sensors", ["tnf.sensors.digit", "tnf.sensors.omnitact", "tnf.sensors.gelsight_mini"])
 SIMULATORS = Registry("simulator", "tnf.simulators", ["tnf.sim.warp_gel"])
 GENERATORS = Registry(
     "generator", "tnf.generators", ["tnf.generators.tn_cgan", "tnf.generators.lee", "tnf.generators.cyclegan"]

@@ -9,3 +9,7 @@ class TestDigitContract(SensorContract):
 
 class TestOmniTactContract(SensorContract):
     name = "omnitact"
+
+
+class TestGelSightMiniContract(SensorContract):
+    name = "gelsight_mini"

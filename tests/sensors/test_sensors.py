@@ -11,7 +11,7 @@ from tnf.testing import compose
 ASSET = Path(__file__).resolve().parents[1] / "assets" / "bg_digit_240_320.jpg"
 
 
-@pytest.mark.parametrize("name", ["digit", "omnitact"])
+@pytest.mark.parametrize("name", ["digit", "omnitact", "gelsight_mini"])
 def test_yaml_matches_defaults_and_validates(name):
     cfg = compose("touch", [f"sensor={name}"])
     sensor = SENSORS.build(cfg.sensor)

@@ -88,9 +88,14 @@ class _Window(torch.autograd.Function):
 
 
 def _ssim(p: torch.Tensor, t: torch.Tensor, data_range: float, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """Per-image SSIM, [B] float32, of float [B, C, H, W] images: local statistics under the Gaussian window
-    over mirrored borders (in ``dtype``, of values centred on zero), every pixel's SSIM averaged over pixels and
-    channels."""
+    """Per-image SSIM, [B] float32, of float [B, C, H, W] images: every pixel's SSIM (:func:`_ssim_map`)
+    averaged over pixels and channels."""
+    return _ssim_map(p, t, data_range, dtype).flatten(1).mean(1).float()
+
+
+def _ssim_map(p: torch.Tensor, t: torch.Tensor, data_range: float, dtype: torch.dtype) -> torch.Tensor:
+    """Per-pixel SSIM, [B, C, H, W] in ``dtype``, of float [B, C, H, W] images: local statistics under the
+    Gaussian window over mirrored borders (in ``dtype``, of values centred on zero)."""
     b, _, h, w = p.shape
     if min(h, w) <= WINDOW // 2:
         raise ValueError(f"SSIM needs images larger than {WINDOW // 2} px, got {h} x {w}")
@@ -104,8 +109,7 @@ def _ssim(p: torch.Tensor, t: torch.Tensor, data_range: float, dtype: torch.dtyp
     vp, vt, cov = (epp - mp * mp).clamp_min(0), (ett - mt * mt).clamp_min(0), ept - mp * mt
     mp, mt = mp + mid, mt + mid
     c1, c2 = (K1 * data_range) ** 2, (K2 * data_range) ** 2
-    s = ((2 * mp * mt + c1) * (2 * cov + c2)) / ((mp * mp + mt * mt + c1) * (vp + vt + c2))
-    return s.flatten(1).mean(1).float()
+    return ((2 * mp * mt + c1) * (2 * cov + c2)) / ((mp * mp + mt * mt + c1) * (vp + vt + c2))
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -121,6 +125,13 @@ def ssim_unquantised(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     with torch.autocast(pred.device.type, enabled=False):
         # SSIM is unchanged by scaling the images and their range together: [0, 1] with range 1 is 0-255 / 255.
         return _ssim((pred.float() + 1) / 2, (target.float() + 1) / 2, 1.0, torch.float32)
+
+
+def ssim_map(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM, [B, H, W] float64, of [B, 3, H, W] images (uint8 or [-1, 1] floats) at their own size
+    (not resized to 128 px), mean over channels: its mean over a region is that region's SSIM."""
+    with torch.autocast(pred.device.type, enabled=False):
+        return _ssim_map(to_uint8_scale(pred), to_uint8_scale(target), 255.0, torch.float64).mean(1)
 
 
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

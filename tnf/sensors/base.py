@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from tnf.errors import TnfError
+from tnf.sensors.calibration import Calibration, load_calibration
 
 
 @dataclass
@@ -119,6 +120,10 @@ class SensorConfig:
     """Image file of the sensor with nothing touching it (a real photo); null = procedural background."""
     background_seed: int = 0
     """Seed of the procedural background (gel texture, LED variation)."""
+    calibration: str | None = None
+    """Folder written by ``tnf calibrate`` (measured shading table, blur, noise, gel fall-off and background);
+    null = the hand-set optics above. When set, its values replace ``lights``, ``contrast``, ``blur_sigma``,
+    ``noise_std``, the background and the simulator's ``falloff``."""
 
     def validate(self) -> None:
         if self.width < 8 or self.height < 8:
@@ -154,6 +159,31 @@ class Sensor:
 
     def __init__(self, cfg: SensorConfig):
         self.cfg = cfg
+        self._calibration: Calibration | None = None
+
+    def calibrated(self, calibration: Calibration, path: str) -> Sensor:
+        """This sensor with ``calibration`` (already in memory) as its optics, recorded as coming from ``path``."""
+        import dataclasses
+
+        other = type(self)(dataclasses.replace(self.cfg, calibration=str(path)))
+        other._calibration = calibration
+        other.calibration  # noqa: B018 - checks the image size
+        return other
+
+    @property
+    def calibration(self) -> Calibration | None:
+        """The measured optics from ``cfg.calibration`` (loaded once), or None without one."""
+        if self.cfg.calibration is None:
+            return None
+        if self._calibration is None:
+            cal = load_calibration(self.cfg.calibration)
+            if cal.size != (self.width, self.height):
+                raise TnfError(
+                    f"sensor {self.name!r}: calibration {self.cfg.calibration} was made for {cal.size[0]}x{cal.size[1]}"
+                    f" images, the sensor's are {self.width}x{self.height} (calibrate at this size)"
+                )
+            self._calibration = cal
+        return self._calibration
 
     # -- camera ---------------------------------------------------------------------------------------
     @property
@@ -304,14 +334,26 @@ class Sensor:
         n = np.stack([-dzdc, dzdr, np.ones_like(z)], axis=-1)
         return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
 
+    def surface_slopes(self, heights: np.ndarray) -> np.ndarray:
+        """Slopes ``[..., H, W, 2]`` = ``(dh/dx, dh/dy)`` (dimensionless; x right, y up) of outward heights
+        ``[..., H, W]`` metres, by central differences (one-sided at the border): what a calibration's shading
+        table is indexed by."""
+        dx, dy = self.pixel_size()
+        h = np.asarray(heights, dtype=np.float64)
+        sx = np.gradient(h, axis=-1) / dx
+        sy = -np.gradient(h, axis=-2) / dy  # rows grow toward -y
+        return np.stack([sx, sy], axis=-1).astype(np.float32)
+
     # -- images ---------------------------------------------------------------------------------------
     def background(self, seed: int | None = None) -> np.ndarray:
         """The image with nothing touching the gel, ``[H, W, 3]`` uint8.
 
-        From ``background_image`` when set (resized to the sensor's size), else procedural: the lit undeformed
-        gel, coloured glows near each light, vignetting and a faint gel texture, varied by ``seed``
-        (default: ``background_seed``).
+        From the calibration when there is one, else from ``background_image`` when set (resized to the sensor's
+        size), else procedural: the lit undeformed gel, coloured glows near each light, vignetting and a faint gel
+        texture, varied by ``seed`` (default: ``background_seed``).
         """
+        if self.calibration is not None:
+            return self.calibration.background.copy()
         if self.cfg.background_image:
             return load_background(self.cfg.background_image, self.width, self.height)
         return self.procedural_background(self.cfg.background_seed if seed is None else seed)
@@ -365,7 +407,10 @@ class Sensor:
         """``{"name", "config"}`` as plain JSON data (what the touch manifest records)."""
         from tnf.registry import config_to_dict
 
-        return {"name": self.name, "config": config_to_dict(self.cfg)}
+        out: dict[str, Any] = {"name": self.name, "config": config_to_dict(self.cfg)}
+        if self.calibration is not None:
+            out["calibration_digest"] = self.calibration.digest()  # a new calibration at the same path is new data
+        return out
 
 
 def load_background(path: str | Path, width: int, height: int) -> np.ndarray:

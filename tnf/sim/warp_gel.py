@@ -213,6 +213,44 @@ def _solve_force(
 
 
 @wp.kernel
+def _force_at_depth(
+    hist: wp.array2d(dtype=wp.int32),
+    target_depth: wp.array(dtype=float),
+    t_min: wp.array(dtype=float),
+    bin_width: float,
+    pixel_area: float,
+    e_star: float,
+    thickness: float,
+    depth: wp.array(dtype=float),
+    force: wp.array(dtype=float),
+):
+    # A press to a given penetration instead of a given force: the same integral as ``_solve_force``, stopped
+    # at the target depth (clamped to the deepest the histogram covers).
+    b = wp.tid()
+    depth[b] = 0.0
+    force[b] = 0.0
+    if t_min[b] >= MISS:
+        return
+    step = 2.0 * bin_width
+    n = hist.shape[1]
+    d = wp.clamp(target_depth[b], 0.0, float(n) * step)
+    f = wp.float32(0.0)
+    below = wp.float32(0.0)
+    for k in range(n):
+        lo = float(k) * step
+        if lo >= d:
+            break
+        cnt = float(hist[b, k])
+        area = (below + 0.5 * cnt) * pixel_area
+        a = wp.sqrt(area / wp.pi)
+        s = a / thickness
+        f += 2.0 * e_star * a * (1.0 + 1.33 * s + 1.33 * s * s * s) * (wp.min(d - lo, step))
+        below += cnt
+    depth[b] = d
+    force[b] = f
+
+
+@wp.kernel
 def _coarse_constraint(
     t: wp.array3d(dtype=float),
     t_min: wp.array(dtype=float),
@@ -436,6 +474,58 @@ def _shade(
             diff[b, r, c] = contrast * (col - base[r, c])
 
 
+@wp.func
+def _table(table: wp.array2d(dtype=wp.vec3), sx: float, sy: float, max_slope: float) -> wp.vec3:
+    # Bilinear read of a calibration's shading table at slope (sx, sy), clamped to the grid (as
+    # ``Calibration.shade`` reads it on the host).
+    n = table.shape[0]
+    fx = (wp.clamp(sx, -max_slope, max_slope) + max_slope) / (2.0 * max_slope) * float(n - 1)
+    fy = (wp.clamp(sy, -max_slope, max_slope) + max_slope) / (2.0 * max_slope) * float(n - 1)
+    j0 = wp.clamp(int(wp.floor(fx)), 0, n - 2)
+    i0 = wp.clamp(int(wp.floor(fy)), 0, n - 2)
+    ax = fx - float(j0)
+    ay = fy - float(i0)
+    top = table[i0, j0] * (1.0 - ax) + table[i0, j0 + 1] * ax
+    bot = table[i0 + 1, j0] * (1.0 - ax) + table[i0 + 1, j0 + 1] * ax
+    return top * (1.0 - ay) + bot * ay
+
+
+@wp.kernel
+def _shade_table(
+    u: wp.array3d(dtype=float),
+    h0: wp.array2d(dtype=float),
+    gel: wp.array2d(dtype=wp.uint8),
+    table: wp.array2d(dtype=wp.vec3),
+    max_slope: float,
+    dx: float,
+    dy: float,
+    span: int,
+    diff: wp.array3d(dtype=wp.vec3),
+):
+    # Calibrated shading: the colour change is the table at the deformed surface's slope minus the table at the
+    # undeformed slope. Slopes by central differences, clamped at the border (``surface_slopes`` on the host).
+    b, r, jb = wp.tid()
+    hh = u.shape[1]
+    ww = u.shape[2]
+    c0 = jb * span
+    c1 = wp.min(c0 + span, ww)
+    rm = wp.max(r - 1, 0)
+    rp = wp.min(r + 1, hh - 1)
+    for c in range(c0, c1):
+        if gel[r, c] == wp.uint8(0):
+            diff[b, r, c] = wp.vec3(0.0)
+        else:
+            cm = wp.max(c - 1, 0)
+            cp = wp.min(c + 1, ww - 1)
+            gx = 1.0 / (float(cp - cm) * dx)
+            gy = 1.0 / (float(rp - rm) * dy)  # rows grow toward -y
+            sx0 = (h0[r, cp] - h0[r, cm]) * gx
+            sy0 = (h0[rm, c] - h0[rp, c]) * gy
+            sx = (h0[r, cp] - u[b, r, cp] - h0[r, cm] + u[b, r, cm]) * gx
+            sy = (h0[rm, c] - u[b, rm, c] - h0[rp, c] + u[b, rp, c]) * gy
+            diff[b, r, c] = _table(table, sx, sy, max_slope) - _table(table, sx0, sy0, max_slope)
+
+
 @wp.kernel
 def _blur_rows(
     src: wp.array3d(dtype=wp.vec3), weights: wp.array(dtype=float), span: int, dst: wp.array3d(dtype=wp.vec3)
@@ -584,7 +674,13 @@ class WarpGel:
         self.background = bg.astype(np.uint8)
         self._light_pos = wp.array(pos, dtype=wp.vec3, device=dev)
         self._light_rad = wp.array(rad, dtype=wp.vec3, device=dev)
-        sigma = s.cfg.blur_sigma
+        # A calibrated sensor brings measured optics: a shading table, blur, noise and the gel's fall-off.
+        cal = s.calibration
+        self.calibration = cal
+        self.falloff = cal.falloff if cal is not None else cfg.falloff
+        self.noise_std = cal.noise_std if cal is not None else s.cfg.noise_std
+        self._table = wp.array(cal.table, dtype=wp.vec3, device=dev) if cal is not None else None
+        sigma = cal.blur_sigma if cal is not None else s.cfg.blur_sigma
         if sigma > 0:
             radius = max(1, int(math.ceil(3 * sigma)))
             k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
@@ -662,9 +758,17 @@ class WarpGel:
         meshes = self._mesh_arrays(mesh)
         return self._split(c2w, force, host, lambda c, f, part, b0: self._press(c, f, seed, host, part, b0, meshes))
 
-    def press_heights(self, gaps: np.ndarray, force: float | np.ndarray, seed: int = 0) -> TouchBatch:
+    def press_heights(
+        self,
+        gaps: np.ndarray,
+        force: float | np.ndarray | None = None,
+        seed: int = 0,
+        penetration: float | np.ndarray | None = None,
+    ) -> TouchBatch:
         """Press the sensor with a constant normal force onto B surfaces given as height fields in its own
         pixel grid, instead of a mesh: steps 2-4 of ``press`` on a ray cast that was done elsewhere.
+        With ``penetration`` instead of ``force``, each press goes that deep past first contact (metres,
+        scalar or ``[B]``) and ``force`` reports the force it took.
 
         Args:
             gaps: ``[B, H, W]`` metres from each pixel's undeformed gel point (``Sensor.gel_points``) along the
@@ -683,11 +787,22 @@ class WarpGel:
         if g.ndim != 3 or g.shape[1:] != (s.height, s.width):
             shape = f"[B, {s.height}, {s.width}]"
             raise TnfError(f"press_heights: gaps must be {shape} (the sensor's pixels), got {list(g.shape)}")
+        if (force is None) == (penetration is None):
+            raise TnfError("press_heights: give either force or penetration")
         t = np.where(np.isfinite(g) & s.gel_mask()[None], g, MISS).astype(np.float32)
         c2w = np.broadcast_to(np.eye(4, dtype=np.float32), (len(t), 4, 4)).copy()
-        out = self._split(
-            c2w, force, True, lambda c, f, part, b0: self._press(c, f, seed, True, part, b0, gaps=t[b0 : b0 + len(c)])
-        )
+        if penetration is None:
+            assert force is not None
+
+            def run(c: np.ndarray, f: np.ndarray, part: int, b0: int) -> TouchBatch | None:
+                return self._press(c, f, seed, True, part, b0, gaps=t[b0 : b0 + len(c)])
+
+            out = self._split(c2w, force, True, run)
+        else:
+            d = np.broadcast_to(np.asarray(penetration, dtype=np.float32), (len(t),)).copy()
+            if not (np.isfinite(d).all() and (d >= 0).all()):
+                raise TnfError(f"press_heights: penetration must be finite and >= 0 metres, got {d.tolist()}")
+            out = self._press(c2w, np.zeros(len(t), np.float32), seed, True, 0, 0, gaps=t, depths=d)
         assert out is not None
         return out
 
@@ -725,6 +840,7 @@ class WarpGel:
         b0: int,
         meshes: tuple | None = None,
         gaps: np.ndarray | None = None,
+        depths: np.ndarray | None = None,
     ) -> TouchBatch | None:
         """Simulate touches ``b0 .. b0 + len(c2w)`` of a batch with the buffers of ``part``: ray cast against
         ``meshes`` (``_mesh_arrays``), or from the given ``gaps`` (``press_heights``; MISS where none)."""
@@ -737,7 +853,7 @@ class WarpGel:
         dx, dy = s.pixel_size()
         nb = self.cfg.histogram_bins
         bin_width = 0.5 * s.cfg.max_penetration / nb
-        lam = self.cfg.falloff * s.cfg.thickness
+        lam = self.falloff * s.cfg.thickness
         screen = (k * 0.5 * (dx + dy) / lam) ** 2
 
         span = self._span
@@ -773,7 +889,11 @@ class WarpGel:
         wp.launch(_gap_histogram, rows, [t, t_min, bin_width, poses, self._points, span, hist, point], device=dev)
         e_star = s.effective_modulus
         args = [hist, target, t_min, bin_width, dx * dy, e_star, s.cfg.thickness, depth, fout]
-        wp.launch(_solve_force, batch, args, device=dev)
+        if depths is None:
+            wp.launch(_solve_force, batch, args, device=dev)
+        else:
+            args[1] = wp.array(depths, dtype=float, device=dev)
+            wp.launch(_force_at_depth, batch, args, device=dev)
         self._phase(part, "force solve")
         coarse = (batch, hc, nblk_c)
         wp.launch(_coarse_constraint, coarse, [t, t_min, depth, k, span, cval, cmask, ra], device=dev)
@@ -782,7 +902,12 @@ class WarpGel:
             ra, rb = rb, ra
         wp.launch(_compose, rows, [t, t_min, depth, ra, k, span, u, contact], device=dev)
         self._phase(part, "deformation")
-        if s.custom_shading:
+        if self._table is not None:
+            cal = self.calibration
+            assert cal is not None
+            args = [u, self._h0, self._gel, self._table, cal.max_slope, dx, dy, span, diff]
+            wp.launch(_shade_table, rows, args, device=dev)
+        elif s.custom_shading:
             diff = self._shade_on_host(u)
         else:
             c = s.cfg
@@ -796,7 +921,7 @@ class WarpGel:
             tmp = self._buffer(part, "diff_tmp", (batch, hh, ww), wp.vec3)
             wp.launch(_blur_rows, rows, [diff, self._blur, span, tmp], device=dev)
             diff, weights = tmp, self._blur
-        args = [diff, weights, self._background, self._noise_table, float(s.cfg.noise_std), int(seed), b0, span, image]
+        args = [diff, weights, self._background, self._noise_table, float(self.noise_std), int(seed), b0, span, image]
         wp.launch(_blur_cols_finish, rows, args, device=dev)
         self._phase(part, "blur, noise")
         if not host:

@@ -1,0 +1,390 @@
+"""Fit a sensor's optics to real indenter presses: the library behind ``tnf calibrate``.
+
+The fit, for the training presses of a press folder:
+
+1. Frames and background are resized to the sensor's image size; the sensor's pixel size must match the
+   recording's (``mm_per_pixel`` scaled by the resize), so the indenter has its real size in the image.
+2. The simulator presses a sphere of the indenter's radius, at each press's centre and depth, into the gel
+   (``WarpGel.press_heights`` to a penetration): the deformed surface, with the gel's fall-off around the contact.
+3. The shading table (``Calibration.table``) is the linear least-squares fit of ``real - background`` to the
+   blurred table reading at each pixel's surface slope, over the pixels near each contact, with a smoothness
+   penalty (second differences over the table) and a small ridge that fill slopes no press showed.
+4. The fall-off, a factor on the presses' depths and the blur are chosen from fixed candidates by a coordinate
+   search: each fall-off at the first depth factor and the middle blur, then each depth factor, then each blur,
+   by the mean squared error over the training presses' contact regions. Each candidate costs one table fit
+   (a linear solve). The depth factor corrects hand-drawn contact circles, which tend to miss the gel's outer
+   slope; it applies to presses (``depth_scale`` in the record), not to the simulator.
+
+Frames, depths and centres come from :mod:`tnf.real.presses`; the table is read by ``warp_gel`` on the device.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from tnf.errors import TnfError
+from tnf.real.presses import PressSet
+from tnf.sensors.base import Sensor, load_background
+from tnf.sensors.calibration import Calibration
+
+
+@dataclass
+class FitSettings:
+    """How the optics are fitted (``calibrate.fit`` in the config)."""
+
+    table_size: int = 21
+    """Table nodes per slope axis."""
+    max_slope: float = 1.5
+    """Half-width of the table's slope grid (dimensionless); steeper slopes read the edge."""
+    falloffs: list[float] = field(default_factory=lambda: [0.02, 0.05, 0.1, 0.2, 0.4])
+    """Candidate gel fall-off lengths, multiples of the sensor's gel thickness."""
+    depth_scales: list[float] = field(default_factory=lambda: [1.0, 1.5, 2.0])
+    """Candidate factors on each press's depth: hand-drawn contact circles tend to miss the gel's outer slope."""
+    blurs: list[float] = field(default_factory=lambda: [1.0, 2.0, 3.0, 4.5, 6.0])
+    """Candidate blur sigmas of the change image, pixels at the sensor's size."""
+    smoothness: float = 20.0
+    """Weight of the second-difference penalty over the table."""
+    ridge: float = 0.01
+    """Weight pulling table entries toward zero (matters only where no press reached)."""
+    fit_scale: float = 2.0
+    """Pixels within this multiple of a press's contact radius enter the fit."""
+    region_scale: float = 1.5
+    """The contact region, scored in the search and in the realism report: this multiple of the contact radius."""
+
+    def validate(self) -> None:
+        if self.table_size < 3:
+            raise ValueError(f"table_size must be >= 3, got {self.table_size}")
+        for name in ("max_slope", "smoothness", "fit_scale", "region_scale"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v}")
+        if not (math.isfinite(self.ridge) and self.ridge >= 0):
+            raise ValueError(f"ridge must be a finite number >= 0, got {self.ridge}")
+        if not self.falloffs or not all(math.isfinite(f) and f > 0 for f in self.falloffs):
+            raise ValueError(f"falloffs must be a non-empty list of numbers > 0, got {self.falloffs}")
+        if not self.depth_scales or not all(math.isfinite(d) and d > 0 for d in self.depth_scales):
+            raise ValueError(f"depth_scales must be a non-empty list of numbers > 0, got {self.depth_scales}")
+        if not self.blurs or not all(math.isfinite(b) and b >= 0 for b in self.blurs):
+            raise ValueError(f"blurs must be a non-empty list of numbers >= 0, got {self.blurs}")
+
+
+@dataclass
+class SensorPresses:
+    """Presses at the sensor's image size."""
+
+    background: np.ndarray
+    """``[H, W, 3]`` uint8."""
+    frames: np.ndarray
+    """``[N, H, W, 3]`` uint8."""
+    centers: np.ndarray
+    """``[N, 2]`` float, contact centres ``(column, row)`` in sensor pixels (pixel centres at whole numbers)."""
+    radii: np.ndarray
+    """``[N]`` float, contact radii in sensor pixels."""
+    depths: np.ndarray
+    """``[N]`` float, metres past first contact."""
+    indices: list[int]
+    """Which presses of the folder these are."""
+
+
+def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) -> SensorPresses:
+    """The presses ``indices`` resized to ``sensor``'s image size, after checking that the geometry matches."""
+    n = len(presses)
+    bad = [i for i in indices if not 0 <= i < n]
+    if bad:
+        raise TnfError(f"press {bad[0]} does not exist: {presses.folder} has presses 0-{n - 1}")
+    sx, sy = sensor.width / presses.width, sensor.height / presses.height
+    if abs(sx / sy - 1) > 0.01:
+        raise TnfError(
+            f"sensor {sensor.name!r} images are {sensor.width}x{sensor.height}, the presses' {presses.width}x"
+            f"{presses.height}: the aspect ratios differ"
+        )
+    want = presses.mm_per_pixel / sx  # mm per sensor pixel
+    have = 1e3 * float(np.mean(sensor.pixel_size()))
+    if abs(have / want - 1) > 0.02:
+        raise TnfError(
+            f"sensor {sensor.name!r} sees {have:.4f} mm per pixel, the presses {want:.4f} mm at its size "
+            f"({presses.mm_per_pixel} mm at {presses.width}x{presses.height}): set sensor.fov or "
+            f"sensor.camera_distance to match"
+        )
+    bg = load_background(presses.background_path, sensor.width, sensor.height)
+    frames = np.stack([load_background(presses.presses[i].image, sensor.width, sensor.height) for i in indices])
+    centers = np.array([[(c + 0.5) * sx - 0.5 for c in presses.presses[i].center] for i in indices], dtype=float)
+    radii = np.array([presses.contact_radius_px(i) * sx for i in indices], dtype=float)
+    depths = np.array([presses.presses[i].depth_mm * 1e-3 for i in indices], dtype=float)
+    return SensorPresses(bg, frames, centers.reshape(-1, 2), radii, depths, list(indices))
+
+
+def sphere_gaps(sensor: Sensor, centers: np.ndarray, radius_m: float) -> np.ndarray:
+    """Gaps ``[N, H, W]`` float32 (metres, along the sensor's axis) from the undeformed gel to a sphere of
+    ``radius_m`` whose lowest point faces each centre ``(column, row)`` in pixels; inf where it is not above."""
+    fx, fy, cx, cy = sensor.intrinsics()
+    d = sensor.cfg.camera_distance
+    x, y = sensor.gel_grid()
+    h0 = sensor.gel_surface()
+    out = []
+    for col, row in np.asarray(centers, dtype=float).reshape(-1, 2):
+        x0 = (col + 0.5 - cx) / fx * d
+        y0 = -(row + 0.5 - cy) / fy * d
+        r2 = (x - x0) ** 2 + (y - y0) ** 2
+        inside = r2 < radius_m**2
+        under = np.sqrt(np.where(inside, radius_m**2 - r2, 0.0))
+        out.append(np.where(inside, -under - h0, np.inf))  # only differences matter
+    return np.stack(out).astype(np.float32)
+
+
+def press_surfaces(sensor: Sensor, simulator: dict[str, Any], sp: SensorPresses, radius_m: float) -> np.ndarray:
+    """Indentation ``[N, H, W]`` (metres toward the camera) of the sphere pressed to each press's depth."""
+    from tnf.registry import SIMULATORS
+
+    sim = SIMULATORS.build(simulator, sensor=sensor, device="cpu")
+    return sim.press_heights(sphere_gaps(sensor, sp.centers, radius_m), penetration=sp.depths).indentation
+
+
+def disk_masks(shape: tuple[int, int], centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """``[N, H, W]`` bool: pixels whose centre lies within ``radii`` pixels of ``centers`` ``(column, row)``."""
+    rows, cols = np.mgrid[: shape[0], : shape[1]]
+    c = np.asarray(centers, dtype=float).reshape(-1, 2)
+    r = np.asarray(radii, dtype=float).reshape(-1)
+    return (cols[None] - c[:, 0, None, None]) ** 2 + (rows[None] - c[:, 1, None, None]) ** 2 <= r[:, None, None] ** 2
+
+
+def _bilinear(slopes: np.ndarray, n: int, max_slope: float) -> tuple[np.ndarray, np.ndarray]:
+    """Table node indices ``[P, 4]`` and weights ``[P, 4]`` of slopes ``[P, 2]`` (as ``Calibration.shade``)."""
+    f = (np.clip(slopes, -max_slope, max_slope) + max_slope) / (2 * max_slope) * (n - 1)
+    j0 = np.clip(np.floor(f[:, 0]).astype(int), 0, n - 2)
+    i0 = np.clip(np.floor(f[:, 1]).astype(int), 0, n - 2)
+    ax, ay = f[:, 0] - j0, f[:, 1] - i0
+    idx = np.stack([i0 * n + j0, i0 * n + j0 + 1, (i0 + 1) * n + j0, (i0 + 1) * n + j0 + 1], 1)
+    w = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], 1)
+    return idx, w
+
+
+def _smoothness(n: int) -> np.ndarray:
+    """``D^T D`` of the second differences along both axes of an ``n x n`` table."""
+    rows = []
+    for i in range(n):
+        for j in range(n):
+            for di, dj in ((1, 0), (0, 1)):
+                if 0 < i < n - 1 if di else 0 < j < n - 1:
+                    r = np.zeros(n * n)
+                    r[(i - di) * n + j - dj] += 1
+                    r[i * n + j] -= 2
+                    r[(i + di) * n + j + dj] += 1
+                    rows.append(r)
+    d = np.array(rows)
+    return d.T @ d
+
+
+class _Design:
+    """Per-press crops of the unblurred design (table weights at each pixel's slope, minus the undeformed
+    slope's) and the targets (real minus background), for one fall-off."""
+
+    def __init__(self, sensor: Sensor, sp: SensorPresses, u: np.ndarray, st: FitSettings):
+        from scipy.ndimage import gaussian_filter1d  # noqa: F401 - imported once here, used in fit
+
+        n, k = st.table_size, st.table_size**2
+        h0 = sensor.gel_surface()
+        s0 = sensor.surface_slopes(h0)
+        slopes = sensor.surface_slopes(h0[None] - u)
+        self.crops: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        hh, ww = h0.shape
+        for b in range(len(u)):
+            col, row = sp.centers[b]
+            half = int(math.ceil(st.fit_scale * sp.radii[b])) + 2
+            r0, r1 = max(0, int(row) - half), min(hh, int(row) + half + 1)
+            c0, c1 = max(0, int(col) - half), min(ww, int(col) + half + 1)
+            crop_h, crop_w = r1 - r0, c1 - c0
+            w = np.zeros((crop_h * crop_w, k), np.float32)
+            rows = np.arange(crop_h * crop_w)
+            for sl, sign in ((slopes[b, r0:r1, c0:c1], 1.0), (s0[r0:r1, c0:c1], -1.0)):
+                idx, wt = _bilinear(sl.reshape(-1, 2), n, st.max_slope)
+                for q in range(4):
+                    np.add.at(w, (rows, idx[:, q]), sign * wt[:, q])
+            target = sp.frames[b, r0:r1, c0:c1].astype(np.float32) - sp.background[r0:r1, c0:c1]
+            rr, cc = np.mgrid[r0:r1, c0:c1]
+            region = (cc - col) ** 2 + (rr - row) ** 2 <= (st.region_scale * sp.radii[b]) ** 2
+            self.crops.append((w.reshape(crop_h, crop_w, k), target.reshape(-1, 3), region.reshape(-1)))
+
+    def fit(self, blur: float, st: FitSettings, reg: np.ndarray) -> tuple[np.ndarray, float]:
+        """Table ``[n, n, 3]`` for this blur, and its mean squared error over the contact regions."""
+        from scipy.ndimage import gaussian_filter1d
+
+        k = st.table_size**2
+        ata = np.zeros((k, k))
+        atb = np.zeros((k, 3))
+        blurred = []
+        for w, target, _ in self.crops:
+            wb = w
+            if blur > 0:
+                wb = gaussian_filter1d(gaussian_filter1d(w, blur, axis=0, mode="nearest"), blur, axis=1, mode="nearest")
+            wb = wb.reshape(-1, k)
+            ata += wb.T @ wb
+            atb += wb.T @ target
+            blurred.append(wb)
+        x = np.linalg.solve(ata + reg, atb)
+        err, count = 0.0, 0
+        for wb, (_, target, region) in zip(blurred, self.crops):
+            res = wb[region] @ x - target[region]
+            err += float((res**2).sum())
+            count += res.size
+        return x.reshape(st.table_size, st.table_size, 3).astype(np.float32), err / max(count, 1)
+
+
+def fit_calibration(
+    presses: PressSet,
+    sensor: Sensor,
+    simulator: dict[str, Any],
+    train: Sequence[int],
+    settings: FitSettings,
+    on_step: Callable[[str], None] | None = None,
+) -> tuple[Calibration, dict[str, Any]]:
+    """Fit the optics of ``sensor`` to the presses ``train`` (module docstring).
+
+    Args:
+        presses: a checked press folder.
+        sensor: the sensor to calibrate (its geometry, gel and image size; its lights are not used).
+        simulator: the simulator's spec ``{"name": "warp_gel", ...}`` (its ``falloff`` is searched).
+        train: indices of the presses to fit.
+        settings: the fit's settings.
+        on_step: called with a short description after each candidate (a progress bar's advance).
+
+    Returns:
+        The calibration and a JSON-able record of the search (each candidate's error, the choice, seconds).
+    """
+    t0 = time.perf_counter()
+    if sensor.cfg.calibration is not None:  # fit from the hand-set optics, not from an earlier calibration
+        sensor = type(sensor)(dataclasses.replace(sensor.cfg, calibration=None))
+    sp = at_sensor_size(presses, sensor, train)
+    radius = presses.radius_mm * 1e-3
+    n = settings.table_size
+    reg = settings.smoothness * _smoothness(n) + settings.ridge * np.eye(n * n)
+    mid_blur = sorted(settings.blurs)[len(settings.blurs) // 2]
+    tried: list[dict[str, float]] = []
+    designs: dict[tuple[float, float], _Design] = {}
+    results: dict[tuple[float, float, float], tuple[np.ndarray, float]] = {}
+
+    def trial(falloff: float, scale: float, blur: float) -> float:
+        key = (falloff, scale, blur)
+        if key not in results:
+            if (falloff, scale) not in designs:
+                spec = {**simulator, "falloff": float(falloff)}
+                scaled = dataclasses.replace(sp, depths=sp.depths * scale)
+                designs.clear()  # one at a time: each holds a few hundred MB of crops
+                designs[falloff, scale] = _Design(sensor, sp, press_surfaces(sensor, spec, scaled, radius), settings)
+            results[key] = designs[falloff, scale].fit(blur, settings, reg)
+            err = results[key][1]
+            tried.append({"falloff": float(falloff), "depth_scale": float(scale), "blur_sigma": float(blur), "region_mse": err})
+            if on_step is not None:
+                on_step(f"falloff {falloff:g}, depth x{scale:g}, blur {blur:g}: MSE {err:.1f}")
+        return results[key][1]
+
+    falloff = min(settings.falloffs, key=lambda f: trial(f, settings.depth_scales[0], mid_blur))
+    scale = min(settings.depth_scales, key=lambda d: trial(falloff, d, mid_blur))
+    blur = min(sorted(settings.blurs, key=lambda b: b != mid_blur), key=lambda b: trial(falloff, scale, b))
+    table, err = results[falloff, scale, blur]
+    cal = Calibration(
+        table=table,
+        max_slope=float(settings.max_slope),
+        blur_sigma=float(blur),
+        noise_std=0.0,  # the background is a real frame and carries the sensor's own noise
+        falloff=float(falloff),
+        background=sp.background,
+    )
+    info = {
+        "train": list(train),
+        "falloff": float(falloff),
+        "blur_sigma": float(blur),
+        "depth_scale": float(scale),
+        "search": tried,
+        "train_region_mse": float(err),
+        "frame_noise_std": frame_noise(sp),
+        "settings": dataclasses.asdict(settings),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    return cal, info
+
+
+def frame_noise(sp: SensorPresses) -> float:
+    """Pixel noise of one frame (8-bit units), from real minus background far from every contact: the
+    difference of two noisy frames has twice a frame's variance."""
+    far = ~disk_masks(sp.background.shape[:2], sp.centers, 4 * sp.radii)
+    d = sp.frames.astype(np.float64) - sp.background
+    d -= np.median(d[far], axis=0)
+    mad = np.median(np.abs(d[far]))
+    return float(1.4826 * mad / math.sqrt(2))
+
+
+def calibrate_sensor(
+    presses: PressSet,
+    sensor: Sensor,
+    simulator: dict[str, Any],
+    train: Sequence[int],
+    test: Sequence[int],
+    settings: FitSettings,
+    out: str | Path,
+    grid_presses: int = 4,
+    on_step: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Fit ``sensor``'s optics on presses ``train``, write the calibration into ``out`` and score realism on
+    presses ``test``, before (the sensor's hand-set optics over the real background) and after calibration.
+
+    Writes ``calibration.npz``, ``background.png``, ``realism.json`` (per press and mean), ``realism.md`` and
+    ``realism.png`` (real | uncalibrated | calibrated | differences). Returns the record of the fit and scores.
+    """
+    from tnf.real import realism
+
+    overlap = sorted(set(train) & set(test))
+    if overlap:
+        raise TnfError(f"calibrate: press {overlap[0]} is in both train and test")
+    if not train or not test:
+        raise TnfError("calibrate: train and test each need at least one press")
+    out = Path(out)
+    cal, info = fit_calibration(presses, sensor, simulator, train, settings, on_step)
+    cal.save(out)
+    plain = type(sensor)(dataclasses.replace(sensor.cfg, calibration=None, background_image=str(presses.background_path)))
+    calibrated = plain.calibrated(cal, str(out))
+    sp = at_sensor_size(presses, plain, test)
+    radius = presses.radius_mm * 1e-3
+    region = realism.regions(sp, settings.region_scale)
+    images, seconds, scores = {}, {}, {}
+    for label, s, scale in (("uncalibrated", plain, 1.0), ("calibrated", calibrated, info["depth_scale"])):
+        images[label], seconds[label] = realism.render(s, simulator, sp, radius, depth_scale=scale)
+        scores[label] = realism.score(images[label], sp.frames, region)
+    means = realism.summary(scores)
+    k = min(grid_presses, len(test))
+    realism.grid(sp.frames[:k], {n: v[:k] for n, v in images.items()}, sp.centers[:k], out / "realism.png")
+    record = {
+        "fit": info,
+        "test": list(test),
+        "per_press": scores,
+        "mean": means,
+        "seconds_per_frame": seconds,
+        "presses": str(presses.folder),
+    }
+    from tnf.artifacts import write_json
+
+    write_json(out / "realism.json", record)
+    lines = [
+        f"# Realism of sensor {sensor.name!r} on held-out presses {list(test)}",
+        "",
+        f"Presses: {presses.folder}; fitted on presses {list(train)} in {info['seconds']:.1f} s: fall-off "
+        f"{info['falloff']:g} x thickness, depth x{info['depth_scale']:g}, blur {info['blur_sigma']:g} px "
+        f"(frame noise {info['frame_noise_std']:.2f}).",
+        f"Contact region: {settings.region_scale:g} x each press's contact radius. Both rows use the real "
+        "background; uncalibrated is the sensor's hand-set lights.",
+        "",
+        realism.table(means, seconds),
+        "",
+        "![real | uncalibrated | calibrated | differences](realism.png)",
+        "",
+    ]
+    (out / "realism.md").write_text("\n".join(lines))
+    return record

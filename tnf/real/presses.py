@@ -1,0 +1,256 @@
+"""Indenter presses: real tactile frames of a known shape pressed into the gel, the data ``tnf calibrate`` fits.
+
+A press folder, which any lab can record (the README gives the protocol)::
+
+    <folder>/
+        presses.json        what the frames show (below)
+        background.png      the sensor's frame with nothing touching it
+        frames/00000.png    one RGB frame per press, all of the background's size
+
+``presses.json``::
+
+    {
+      "format": "tnf.presses/1",
+      "mm_per_pixel": 0.0295,                           # gel size of one frame pixel, millimetres
+      "indenter": {"shape": "sphere", "radius_mm": 2.0},
+      "background": "background.png",
+      "presses": [
+        {"image": "frames/00000.png", "center_px": [340, 224], "contact_radius_px": 39},
+        {"image": "frames/00001.png", "center_px": [320, 240], "depth_mm": 0.4},
+        ...
+      ]
+    }
+
+``center_px`` is the contact's centre as ``[column, row]`` pixels (row 0 at the top). Each press gives either the
+radius of its contact circle in pixels, as annotated on the frame, or ``depth_mm``: how far the indenter moved
+past first contact. The two are tied by geometry, as in Taxim: the circle is where the sphere (radius ``R``)
+crosses the undeformed gel surface, ``a = sqrt(R^2 - (R - depth)^2)``; inside it tnf's simulated gel takes the
+sphere's shape.
+
+:func:`import_taxim` writes such a folder from the calibration recordings that the ``taxim`` package ships
+(``taxim/calib/<sensor>/dataPack.npz``: frames in OpenCV's BGR order, a 4 mm ball). :func:`load_presses`
+reads and checks one; every problem is one line naming the file and the press.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tnf.errors import TnfError
+
+FORMAT = "tnf.presses/1"
+INDEX = "presses.json"
+SHAPES = ("sphere",)
+TAXIM_BALL_RADIUS_MM = 2.0
+"""Radius of the ball Taxim's calibration recordings were pressed with (4 mm diameter)."""
+
+
+@dataclass(frozen=True)
+class Press:
+    """One frame of the indenter pressed into the gel."""
+
+    image: Path
+    """The frame's file."""
+    center: tuple[float, float]
+    """Contact centre ``(column, row)``, pixels of the recorded frame."""
+    contact_radius_mm: float
+    """Radius of the contact circle on the gel, millimetres."""
+    depth_mm: float
+    """How far the indenter moved past first contact, millimetres (tnf's contact model ties it to the radius)."""
+
+
+@dataclass(frozen=True)
+class PressSet:
+    """A checked press folder: frames, background and the indenter's geometry."""
+
+    folder: Path
+    mm_per_pixel: float
+    """Gel size of one frame pixel, millimetres."""
+    radius_mm: float
+    """Radius of the spherical indenter, millimetres."""
+    width: int
+    """Frame width, pixels."""
+    height: int
+    """Frame height, pixels."""
+    presses: tuple[Press, ...]
+    background_path: Path
+
+    def __len__(self) -> int:
+        return len(self.presses)
+
+    def background(self) -> np.ndarray:
+        """``[height, width, 3]`` uint8 RGB no-contact frame."""
+        return _read_rgb(self.background_path)
+
+    def frame(self, i: int) -> np.ndarray:
+        """``[height, width, 3]`` uint8 RGB frame of press ``i``."""
+        return _read_rgb(self.presses[i].image)
+
+    def contact_radius_px(self, i: int) -> float:
+        """Contact radius of press ``i`` in frame pixels."""
+        return self.presses[i].contact_radius_mm / self.mm_per_pixel
+
+
+def depth_from_contact_radius(radius_mm: float, contact_mm: float) -> float:
+    """Depth past first contact (mm) at which a sphere of ``radius_mm`` crosses the gel in a circle of ``contact_mm``."""
+    return radius_mm - math.sqrt(max(radius_mm**2 - contact_mm**2, 0.0))
+
+
+def contact_radius_from_depth(radius_mm: float, depth_mm: float) -> float:
+    """Contact radius (mm) of a sphere of ``radius_mm`` pressed ``depth_mm`` past first contact."""
+    d = min(depth_mm, radius_mm)
+    return math.sqrt(max(radius_mm**2 - (radius_mm - d) ** 2, 0.0))
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise TnfError(f"press frame not found: {path}")
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"), dtype=np.uint8).copy()
+    except (UnidentifiedImageError, OSError) as e:
+        raise TnfError(f"{path} is not a readable image: {e}") from None
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (UnidentifiedImageError, OSError) as e:
+        raise TnfError(f"{path} is not a readable image: {e}") from None
+
+
+def _number(value: Any, where: str, positive: bool = True) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise TnfError(f"{where}: expected a finite number, got {value!r}")
+    if positive and value <= 0:
+        raise TnfError(f"{where}: must be > 0, got {value!r}")
+    return float(value)
+
+
+def load_presses(folder: str | Path) -> PressSet:
+    """Read and check a press folder (see the module docstring). Raises a one-line TnfError on bad input."""
+    folder = Path(folder).expanduser()
+    index = folder / INDEX
+    if not index.is_file():
+        raise TnfError(f"no {INDEX} in {folder}: not a press folder (see `tnf calibrate --help`)")
+    try:
+        meta = json.loads(index.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise TnfError(f"{index} is not valid JSON: {e}") from None
+    if not isinstance(meta, dict):
+        raise TnfError(f"{index}: expected a JSON object, got {type(meta).__name__}")
+    for key in ("mm_per_pixel", "indenter", "presses"):
+        if key not in meta:
+            raise TnfError(f"{index}: missing key {key!r}")
+    mmpp = _number(meta["mm_per_pixel"], f"{index}: mm_per_pixel")
+    ind = meta["indenter"]
+    if not isinstance(ind, dict) or ind.get("shape") not in SHAPES:
+        shape = ind.get("shape") if isinstance(ind, dict) else ind
+        raise TnfError(f"{index}: indenter.shape must be one of {', '.join(SHAPES)}, got {shape!r}")
+    radius = _number(ind.get("radius_mm"), f"{index}: indenter.radius_mm")
+    bg_path = folder / str(meta.get("background", "background.png"))
+    if not bg_path.is_file():
+        raise TnfError(f"{index}: background frame {bg_path.name} is missing (the sensor with nothing touching it)")
+    width, height = _image_size(bg_path)
+    entries = meta["presses"]
+    if not isinstance(entries, list) or not entries:
+        raise TnfError(f"{index}: presses must be a non-empty list")
+    presses = []
+    for i, e in enumerate(entries):
+        where = f"{index}: press {i}"
+        if not isinstance(e, dict) or "image" not in e or "center_px" not in e:
+            raise TnfError(f"{where}: needs image and center_px")
+        image = folder / str(e["image"])
+        if not image.is_file():
+            raise TnfError(f"{where}: frame {e['image']} not found")
+        size = _image_size(image)
+        if size != (width, height):
+            raise TnfError(f"{where}: frame {e['image']} is {size[0]}x{size[1]}, the background {width}x{height}")
+        c = e["center_px"]
+        if not isinstance(c, (list, tuple)) or len(c) != 2:
+            raise TnfError(f"{where}: center_px must be [column, row], got {c!r}")
+        col, row = (_number(v, f"{where}: center_px", positive=False) for v in c)
+        if not (0 <= col < width and 0 <= row < height):
+            raise TnfError(f"{where}: center_px [{col:g}, {row:g}] is outside the {width}x{height} frame")
+        has_r, has_d = "contact_radius_px" in e, "depth_mm" in e
+        if has_r == has_d:
+            raise TnfError(f"{where}: give exactly one of contact_radius_px and depth_mm")
+        if has_r:
+            contact = _number(e["contact_radius_px"], f"{where}: contact_radius_px") * mmpp
+            if contact >= radius:
+                raise TnfError(
+                    f"{where}: contact radius {contact:.3f} mm ({e['contact_radius_px']} px) is not smaller than the "
+                    f"indenter's radius {radius:g} mm (check mm_per_pixel and indenter.radius_mm)"
+                )
+            depth = depth_from_contact_radius(radius, contact)
+        else:
+            depth = _number(e["depth_mm"], f"{where}: depth_mm")
+            if depth >= radius:
+                raise TnfError(f"{where}: depth {depth:g} mm is not smaller than the indenter's radius {radius:g} mm")
+            contact = contact_radius_from_depth(radius, depth)
+        presses.append(Press(image=image, center=(col, row), contact_radius_mm=contact, depth_mm=depth))
+    return PressSet(
+        folder=folder,
+        mm_per_pixel=mmpp,
+        radius_mm=radius,
+        width=width,
+        height=height,
+        presses=tuple(presses),
+        background_path=bg_path,
+    )
+
+
+def taxim_recording(sensor: str) -> Path:
+    """The folder of the ``taxim`` package's calibration recording of ``sensor`` (``gelsight_mini``, ``gelsight``)."""
+    try:
+        import taxim
+    except ImportError:
+        raise TnfError("the taxim package is not installed: pip install 'tnf[real]'") from None
+    folder = Path(taxim.__file__).parent / "calib" / sensor
+    if not (folder / "dataPack.npz").is_file():
+        have = sorted(p.name for p in (Path(taxim.__file__).parent / "calib").iterdir() if p.is_dir())
+        raise TnfError(f"taxim has no recording {sensor!r}; it has: {', '.join(have)}")
+    return folder
+
+
+def import_taxim(sensor: str, out: str | Path) -> PressSet:
+    """Write the ``taxim`` package's recording of ``sensor`` as a press folder at ``out`` and return it checked.
+
+    The frames are converted from OpenCV's BGR order to RGB; ``touch_center`` is ``(column, row)``.
+    """
+    from PIL import Image
+
+    src = taxim_recording(sensor)
+    params = json.loads((src / "params.json").read_text())
+    with np.load(src / "dataPack.npz", allow_pickle=True) as d:
+        f0, imgs = d["f0"], d["imgs"]
+        centers, radii = d["touch_center"].astype(float), d["touch_radius"].astype(float)
+    out = Path(out)
+    (out / "frames").mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.ascontiguousarray(f0[..., ::-1])).save(out / "background.png")
+    presses = []
+    for i, img in enumerate(imgs):
+        rel = f"frames/{i:05d}.png"
+        Image.fromarray(np.ascontiguousarray(img[..., ::-1])).save(out / rel)
+        presses.append({"image": rel, "center_px": centers[i].tolist(), "contact_radius_px": float(radii[i])})
+    meta = {
+        "format": FORMAT,
+        "source": f"taxim package, calib/{sensor}/dataPack.npz",
+        "mm_per_pixel": float(params["sensor"]["pixmm"]),
+        "indenter": {"shape": "sphere", "radius_mm": TAXIM_BALL_RADIUS_MM},
+        "background": "background.png",
+        "presses": presses,
+    }
+    (out / INDEX).write_text(json.dumps(meta, indent=2) + "\n")
+    return load_presses(out)

@@ -1,0 +1,129 @@
+"""How close simulated presses come to real frames: SSIM and MSE on the whole frame and on the contact region.
+
+The contact region of a press is the disk of ``region_scale`` times its contact radius around its centre: the
+background alone scores high on the whole frame, so the region is the figure that counts. SSIM is tnf's metric
+(:func:`tnf.eval.metrics.ssim_map`: 11 px Gaussian window, sigma 1.5, 8-bit range) at the sensor's own size,
+its per-pixel map averaged over the frame or the region; MSE is on the 0-255 scale.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tnf.real.calibrate import SensorPresses, disk_masks, sphere_gaps
+from tnf.sensors.base import Sensor
+
+METRICS = ("ssim_frame", "mse_frame", "ssim_region", "mse_region")
+
+
+def score(pred: np.ndarray, real: np.ndarray, region: np.ndarray) -> dict[str, list[float]]:
+    """Per-frame realism of ``pred`` against ``real`` (both ``[N, H, W, 3]`` uint8), ``region`` ``[N, H, W]`` bool.
+
+    Returns ``{metric: [N] floats}`` for each of ``METRICS``.
+    """
+    import torch
+
+    from tnf.eval.metrics import ssim_map
+
+    p = torch.from_numpy(np.ascontiguousarray(pred)).permute(0, 3, 1, 2)
+    t = torch.from_numpy(np.ascontiguousarray(real)).permute(0, 3, 1, 2)
+    smap = ssim_map(p, t).numpy()
+    sq = ((pred.astype(np.float64) - real.astype(np.float64)) ** 2).mean(-1)
+    out: dict[str, list[float]] = {m: [] for m in METRICS}
+    for i in range(len(pred)):
+        m = region[i]
+        out["ssim_frame"].append(float(smap[i].mean()))
+        out["mse_frame"].append(float(sq[i].mean()))
+        out["ssim_region"].append(float(smap[i][m].mean()))
+        out["mse_region"].append(float(sq[i][m].mean()))
+    return out
+
+
+def regions(sp: SensorPresses, region_scale: float) -> np.ndarray:
+    """``[N, H, W]`` bool contact regions of the presses (``region_scale`` times each contact radius)."""
+    return disk_masks(sp.background.shape[:2], sp.centers, region_scale * sp.radii)
+
+
+def render(
+    sensor: Sensor, simulator: Mapping[str, Any], sp: SensorPresses, radius_m: float, depth_scale: float = 1.0
+) -> tuple[np.ndarray, float]:
+    """Simulated frames ``[N, H, W, 3]`` uint8 of the presses (without pixel noise: noise is independent of the
+    real frame's and would only add to the error), and the simulator's seconds per frame."""
+    import time
+
+    from tnf.registry import SIMULATORS
+
+    quiet = type(sensor)(dataclasses.replace(sensor.cfg, noise_std=0.0))
+    if sensor.calibration is not None:
+        quiet = quiet.calibrated(dataclasses.replace(sensor.calibration, noise_std=0.0), str(sensor.cfg.calibration))
+    sim = SIMULATORS.build(dict(simulator), sensor=quiet, device="cpu")
+    gaps = sphere_gaps(quiet, sp.centers, radius_m)
+    sim.press_heights(gaps[:1], penetration=sp.depths[:1] * depth_scale)  # compile and warm up
+    t0 = time.perf_counter()
+    out = sim.press_heights(gaps, penetration=sp.depths * depth_scale)
+    return out.images, (time.perf_counter() - t0) / len(gaps)
+
+
+def summary(per_frame: Mapping[str, Mapping[str, list[float]]]) -> dict[str, dict[str, float]]:
+    """``{simulator: {metric: mean over frames}}`` of ``{simulator: score(...)}``."""
+    return {name: {m: float(np.mean(v[m])) for m in METRICS} for name, v in per_frame.items()}
+
+
+def table(means: Mapping[str, Mapping[str, float]], seconds: Mapping[str, float] | None = None) -> str:
+    """A markdown table of :func:`summary`'s means (and seconds per frame where given)."""
+    head = "| simulator | contact SSIM | contact MSE | frame SSIM | frame MSE |"
+    rule = "|---|---|---|---|---|"
+    if seconds is not None:
+        head += " ms per frame |"
+        rule += "---|"
+    lines = [head, rule]
+    for name, m in means.items():
+        row = f"| {name} | {m['ssim_region']:.3f} | {m['mse_region']:.1f} | {m['ssim_frame']:.4f} | {m['mse_frame']:.2f} |"
+        if seconds is not None:
+            row += f" {1e3 * seconds[name]:.1f} |" if name in seconds else " |"
+        lines.append(row)
+    return "\n".join(lines)
+
+
+def grid(
+    real: np.ndarray,
+    simulated: Mapping[str, np.ndarray],
+    centers: np.ndarray,
+    path: str | Path,
+    crop: int = 96,
+    gain: float = 3.0,
+) -> None:
+    """Save a PNG: one row per press, columns real | each simulator | each simulator's |difference| x ``gain``,
+    cropped to ``crop`` pixels around the contact and enlarged 2x."""
+    from PIL import Image, ImageDraw
+
+    names = list(simulated)
+    h, w = real.shape[1:3]
+    half = crop // 2
+    tiles: list[list[np.ndarray]] = []
+    for i in range(len(real)):
+        c = int(np.clip(round(centers[i][0]), half, w - half))
+        r = int(np.clip(round(centers[i][1]), half, h - half))
+        box = (slice(r - half, r + half), slice(c - half, c + half))
+        row = [real[i][box]] + [simulated[n][i][box] for n in names]
+        for n in names:
+            d = np.abs(simulated[n][i][box].astype(np.float32) - real[i][box].astype(np.float32))
+            row.append(np.clip(d * gain, 0, 255).astype(np.uint8))
+        tiles.append(row)
+    labels = ["real"] + names + [f"|{n} - real| x{gain:g}" for n in names]
+    cell, pad, top = 2 * crop, 4, 18
+    img = Image.new("RGB", (len(labels) * (cell + pad), top + len(tiles) * (cell + pad)), (255, 255, 255))
+    draw = ImageDraw.Draw(img)
+    for k, lab in enumerate(labels):
+        draw.text((k * (cell + pad) + 2, 2), lab, fill=(0, 0, 0))
+    for i, row in enumerate(tiles):
+        for k, t in enumerate(row):
+            tile = Image.fromarray(np.ascontiguousarray(t)).resize((cell, cell), Image.Resampling.NEAREST)
+            img.paste(tile, (k * (cell + pad), top + i * (cell + pad)))
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    img.save(path)

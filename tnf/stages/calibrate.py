@@ -1,0 +1,72 @@
+"""``tnf calibrate``: fit a sensor's optics to real indenter presses and score realism on held-out presses.
+
+Writes ``<data_root>/calibration/<sensor>/<name>/``: ``calibration.npz`` and ``background.png`` (what
+``sensor.calibration=<that folder>`` makes every later stage use), ``realism.md``, ``realism.json``,
+``realism.png`` and the manifest. ``calibrate.presses=taxim:gelsight_mini`` first imports the recording that the
+``taxim`` package ships into ``<data_root>/presses/taxim_gelsight_mini/``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def run(cfg: Any) -> dict[str, Any] | None:
+    import hashlib
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+    from rich.console import Console
+
+    from tnf.artifacts import ArtifactStore
+    from tnf.errors import TnfError
+    from tnf.real.calibrate import FitSettings, calibrate_sensor
+    from tnf.real.presses import INDEX, import_taxim, load_presses
+    from tnf.registry import SENSORS, from_dict, split_spec
+    from tnf.runtime import progress
+
+    console = Console(highlight=False)
+    c = cfg.calibrate
+    store = ArtifactStore(cfg.data_root)
+    source = str(c.presses)
+    if source.startswith("taxim:"):
+        recording = source.split(":", 1)[1]
+        folder = store.path("presses", f"taxim_{recording}")
+        presses = load_presses(folder) if (folder / INDEX).is_file() else import_taxim(recording, folder)
+    else:
+        presses = load_presses(Path(source))
+    sensor = SENSORS.build(cfg.sensor)
+    settings = from_dict(FitSettings, OmegaConf.to_container(c.fit, resolve=True), where="calibrate.fit")
+    train, test = (list(OmegaConf.to_container(c[k], resolve=True)) for k in ("train", "test"))
+    for k, v in (("train", train), ("test", test)):
+        if not all(isinstance(i, int) and not isinstance(i, bool) for i in v):
+            raise TnfError(f"calibrate.{k} must be a list of press numbers, got {v}")
+    name = str(c.name)
+    digest = hashlib.sha256((presses.folder / INDEX).read_bytes()).hexdigest()[:16]
+    spec_name, spec = split_spec(cfg.simulator, "simulator")
+    simulator = {"name": spec_name, **spec}
+    config = {
+        "presses": str(presses.folder),
+        "presses_digest": digest,
+        "sensor": {**sensor.describe(), "config": {**sensor.describe()["config"], "calibration": None}},
+        "simulator": simulator,
+        "calibrate": OmegaConf.to_container(c, resolve=True),
+    }
+    item = ("calibration", sensor.name, name)
+    where = store.path(*item)
+    if store.is_done(*item, config=config):
+        console.print(f"calibrate {sensor.name}/{name}: done, skipped ({where})")
+        return None
+    steps = len(settings.falloffs) + len(settings.depth_scales) + len(settings.blurs) - 2
+    with progress(cfg.progress) as bar:
+        task = bar.add_task(f"calibrate {sensor.name}", total=steps)
+        with store.writing(*item, config=config) as tmp:
+            record = calibrate_sensor(
+                presses, sensor, simulator, train, test, settings, tmp,
+                grid_presses=int(c.grid_presses), on_step=lambda _: bar.advance(task),
+            )  # fmt: skip
+    from tnf.real.realism import table
+
+    console.print(table(record["mean"], record["seconds_per_frame"]))
+    console.print(f"calibration: {where}\nuse it with: sensor={sensor.name} sensor.calibration={where}")
+    return record
