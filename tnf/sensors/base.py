@@ -166,9 +166,17 @@ class Sensor:
         import dataclasses
 
         other = type(self)(dataclasses.replace(self.cfg, calibration=str(path)))
-        other._calibration = calibration
-        other.calibration  # noqa: B018 - checks the image size
+        other._calibration = other._checked(calibration)
         return other
+
+    def _checked(self, cal: Calibration) -> Calibration:
+        """``cal``, after checking that it was made for this sensor's image size."""
+        if cal.size != (self.width, self.height):
+            raise TnfError(
+                f"sensor {self.name!r}: calibration {self.cfg.calibration} was made for {cal.size[0]}x{cal.size[1]}"
+                f" images, the sensor's are {self.width}x{self.height} (calibrate at this size)"
+            )
+        return cal
 
     @property
     def calibration(self) -> Calibration | None:
@@ -176,13 +184,7 @@ class Sensor:
         if self.cfg.calibration is None:
             return None
         if self._calibration is None:
-            cal = load_calibration(self.cfg.calibration)
-            if cal.size != (self.width, self.height):
-                raise TnfError(
-                    f"sensor {self.name!r}: calibration {self.cfg.calibration} was made for {cal.size[0]}x{cal.size[1]}"
-                    f" images, the sensor's are {self.width}x{self.height} (calibrate at this size)"
-                )
-            self._calibration = cal
+            self._calibration = self._checked(load_calibration(self.cfg.calibration))
         return self._calibration
 
     # -- camera ---------------------------------------------------------------------------------------
@@ -298,10 +300,10 @@ class Sensor:
 
         Checked numerically on what this sensor computes: its pixel grid, ``gel_mask``, ``gel_surface`` and
         ``shade`` (at random points and normals), so a sensor that overrides them is judged by its own code. A
-        sensor that ``decorates`` its images (markers) is taken to have none.
+        sensor that ``decorates`` its images (markers), or has a calibration, is taken to have none.
         """
-        if self.decorates:
-            return None
+        if self.decorates or self.calibration is not None:
+            return None  # a measured shading table need not be mirror symmetric
         x, _ = self.gel_grid()
         h = self.gel_surface()
         mask = self.gel_mask()

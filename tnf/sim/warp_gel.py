@@ -24,6 +24,11 @@ launches, on the ``cpu`` or a ``cuda`` warp device with the same code:
    background, then Gaussian noise (drawn from a unit-variance table of normal quantiles). With no contact the
    image is the background plus noise.
 
+A calibrated sensor (``sensor.calibration``, written by ``tnf calibrate``) replaces step 4's lights with its
+measured shading table (colour change by surface slope), and brings its own blur, noise, background and the
+gel's fall-off length. ``press_heights(..., penetration=d)`` presses to a given depth instead of a force, as
+calibration presses are given.
+
 Outputs (``TouchBatch``): 8-bit RGB images, indentation maps (metres), contact masks, the achieved force (N),
 the penetration ``d`` (m), the first-contact point and the sensor pose at contact.
 """

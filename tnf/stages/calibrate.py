@@ -35,7 +35,9 @@ def run(cfg: Any) -> dict[str, Any] | None:
         presses = load_presses(folder) if (folder / INDEX).is_file() else import_taxim(recording, folder)
     else:
         presses = load_presses(Path(source))
-    sensor = SENSORS.build(cfg.sensor)
+    # The sensor as it is before calibration: an experiment may already point sensor.calibration at this output.
+    sensor_name, sensor_spec = split_spec(cfg.sensor, "sensor")
+    sensor = SENSORS.build({"name": sensor_name, **sensor_spec, "calibration": None})
     settings = from_dict(FitSettings, OmegaConf.to_container(c.fit, resolve=True), where="calibrate.fit")
     train, test = (list(OmegaConf.to_container(c[k], resolve=True)) for k in ("train", "test"))
     for k, v in (("train", train), ("test", test)):
@@ -48,7 +50,7 @@ def run(cfg: Any) -> dict[str, Any] | None:
     config = {
         "presses": str(presses.folder),
         "presses_digest": digest,
-        "sensor": {**sensor.describe(), "config": {**sensor.describe()["config"], "calibration": None}},
+        "sensor": sensor.describe(),
         "simulator": simulator,
         "calibrate": OmegaConf.to_container(c, resolve=True),
     }

@@ -1,6 +1,6 @@
 """``tnf pipeline``: every stage in order for one experiment, from objects to the report.
 
-capture -> fit-scene -> touch -> pair -> train (or finetune, for sensor transfer) -> generate -> evaluate, each
+(calibrate ->) capture -> fit-scene -> touch -> pair -> train (or finetune, for sensor transfer) -> generate -> evaluate, each
 with the same composed config.
 Each stage skips the items the artifact store already holds with a matching config, so re-running a finished
 or interrupted pipeline only does what is missing. The generator's run is named after the generator, the
@@ -16,7 +16,7 @@ from typing import Any
 
 from tnf.errors import TnfError
 
-ORDER = ("capture", "fit-scene", "touch", "pair", "train", "finetune", "generate", "evaluate")
+ORDER = ("calibrate", "capture", "fit-scene", "touch", "pair", "train", "finetune", "generate", "evaluate")
 
 
 def run(cfg: Any) -> dict[str, Any]:
