@@ -34,7 +34,9 @@ extra=(${EXTRA:-})
 mkdir -p "$out"
 tnf() { python -m tnf.cli "$@"; }
 dev=(device=${DEVICE:-cuda} trainer=${TRAINER:-gpu} progress=false "${extra[@]}")
-digit=(experiment=sim_digit "${dev[@]}")
+# EXPERIMENT runs the digit-* phases on another experiment of sim_digit's objects (sim_gelsight_mini_gpu).
+experiment=${EXPERIMENT:-sim_digit}
+digit=(experiment=$experiment "${dev[@]}")
 timed() {  # timed NAME CMD...: run, log to $out/NAME.log, append the wall time to $out/stage_times.txt
   local name=$1 t0=$SECONDS; shift
   "$@" >"$out/$name.log" 2>&1 || { tail -40 "$out/$name.log"; echo "FAILED: $name" | tee -a "$out/stage_times.txt"; return 1; }
@@ -154,7 +156,7 @@ PY
     ;;
   report)
     # Jobs that ran in parallel each rebuilt the report; rebuild it once more from every run present.
-    tnf evaluate experiment=sim_digit "${dev[@]}" 2>&1 | tee "$out/report_sim_digit.log"
+    tnf evaluate experiment=$experiment "${dev[@]}" 2>&1 | tee "$out/report_$experiment.log"
     tnf evaluate experiment=sim_omnitact_transfer "${dev[@]}" 2>&1 | tee "$out/report_transfer.log" || true
     tar czf "$out/reports.tgz" -C "$TNF_DATA/reports" .
     ;;
