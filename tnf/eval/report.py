@@ -28,7 +28,7 @@ from tnf.eval.aggregate import Stat, TableData, aggregate
 from tnf.eval.paper import PAPER
 from tnf.eval.scoring import BG
 
-TABLES = {"main": ("1", "Simulated tactile images (Digit)"), "transfer": ("2", "Transfer to a new sensor")}
+TABLES = {"main": ("1", "Simulated tactile images (the paper's: Digit)"), "transfer": ("2", "Transfer to a new sensor")}
 TEST_SET_NAMES = {
     "novel_view": "Novel view",
     "novel_object": "Novel object",
