@@ -59,9 +59,7 @@ def resize(frames: np.ndarray, width: int, height: int) -> np.ndarray:
     """Resize ``[N, H, W, 3]`` uint8 as ``tnf.sensors.load_background`` resizes image files (PIL bilinear)."""
     from PIL import Image
 
-    return np.stack(
-        [np.asarray(Image.fromarray(f).resize((width, height), Image.Resampling.BILINEAR)) for f in frames]
-    )
+    return np.stack([np.asarray(Image.fromarray(f).resize((width, height), Image.Resampling.BILINEAR)) for f in frames])
 
 
 def tnf_full_size_seconds(sensor, cal, presses, indices, depth_scale: float) -> float:
@@ -152,7 +150,8 @@ def main() -> None:
     lines = [
         "# Realism against real GelSight Mini frames",
         "",
-        f"Held-out presses {test[0]}-{test[-1]} of the GelSight Mini recording in the `taxim` package; tnf's calibration "
+        f"Held-out presses {test[0]}-{test[-1]} of the GelSight Mini recording in the `taxim` package; "
+        "tnf's calibration "
         f"fitted on presses {train[0]}-{train[-1]} in {fit_s:.1f} s on this machine's CPU. Contact region: "
         f"{settings.region_scale:g} x each press's annotated contact radius, at 320x240.",
         "",
@@ -165,10 +164,13 @@ def main() -> None:
         + (
             "ahead in both SSIM and MSE."
             if len(wins) == 2
-            else f"ahead in {wins[0].split('_')[0].upper()} only." if wins else "behind in SSIM and in MSE."
+            else f"ahead in {wins[0].split('_')[0].upper()} only."
+            if wins
+            else "behind in SSIM and in MSE."
         ),
         "",
-        f"Fit: fall-off {info['falloff']:g} x thickness, depth x{info['depth_scale']:g}, blur {info['blur_sigma']:g} px, "
+        f"Fit: fall-off {info['falloff']:g} x thickness, depth x{info['depth_scale']:g}, "
+        f"blur {info['blur_sigma']:g} px, "
         f"table {settings.table_size}x{settings.table_size} over slopes +-{settings.max_slope:g}; "
         f"measured frame noise {info['frame_noise_std']:.2f} (8-bit).",
         "",

@@ -24,8 +24,8 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -281,7 +281,9 @@ def fit_calibration(
                 designs[falloff, scale] = _Design(sensor, sp, press_surfaces(sensor, spec, scaled, radius), settings)
             results[key] = designs[falloff, scale].fit(blur, settings, reg)
             err = results[key][1]
-            tried.append({"falloff": float(falloff), "depth_scale": float(scale), "blur_sigma": float(blur), "region_mse": err})
+            tried.append(
+                {"falloff": float(falloff), "depth_scale": float(scale), "blur_sigma": float(blur), "region_mse": err}
+            )
             if on_step is not None:
                 on_step(f"falloff {falloff:g}, depth x{scale:g}, blur {blur:g}: MSE {err:.1f}")
         return results[key][1]
@@ -349,7 +351,9 @@ def calibrate_sensor(
     out = Path(out)
     cal, info = fit_calibration(presses, sensor, simulator, train, settings, on_step)
     cal.save(out)
-    plain = type(sensor)(dataclasses.replace(sensor.cfg, calibration=None, background_image=str(presses.background_path)))
+    plain = type(sensor)(
+        dataclasses.replace(sensor.cfg, calibration=None, background_image=str(presses.background_path))
+    )
     calibrated = plain.calibrated(cal, str(out))
     sp = at_sensor_size(presses, plain, test)
     radius = presses.radius_mm * 1e-3

@@ -98,7 +98,8 @@ class PressSet:
 
 
 def depth_from_contact_radius(radius_mm: float, contact_mm: float) -> float:
-    """Depth past first contact (mm) at which a sphere of ``radius_mm`` crosses the gel in a circle of ``contact_mm``."""
+    """Depth past first contact (mm) at which a sphere of ``radius_mm`` crosses the gel in a circle of
+    ``contact_mm``."""
     return radius_mm - math.sqrt(max(radius_mm**2 - contact_mm**2, 0.0))
 
 
@@ -167,35 +168,35 @@ def load_presses(folder: str | Path) -> PressSet:
     if not isinstance(entries, list) or not entries:
         raise TnfError(f"{index}: presses must be a non-empty list")
     presses = []
-    for i, e in enumerate(entries):
+    for i, entry in enumerate(entries):
         where = f"{index}: press {i}"
-        if not isinstance(e, dict) or "image" not in e or "center_px" not in e:
+        if not isinstance(entry, dict) or "image" not in entry or "center_px" not in entry:
             raise TnfError(f"{where}: needs image and center_px")
-        image = folder / str(e["image"])
+        image = folder / str(entry["image"])
         if not image.is_file():
-            raise TnfError(f"{where}: frame {e['image']} not found")
+            raise TnfError(f"{where}: frame {entry['image']} not found")
         size = _image_size(image)
         if size != (width, height):
-            raise TnfError(f"{where}: frame {e['image']} is {size[0]}x{size[1]}, the background {width}x{height}")
-        c = e["center_px"]
+            raise TnfError(f"{where}: frame {entry['image']} is {size[0]}x{size[1]}, the background {width}x{height}")
+        c = entry["center_px"]
         if not isinstance(c, (list, tuple)) or len(c) != 2:
             raise TnfError(f"{where}: center_px must be [column, row], got {c!r}")
         col, row = (_number(v, f"{where}: center_px", positive=False) for v in c)
         if not (0 <= col < width and 0 <= row < height):
             raise TnfError(f"{where}: center_px [{col:g}, {row:g}] is outside the {width}x{height} frame")
-        has_r, has_d = "contact_radius_px" in e, "depth_mm" in e
+        has_r, has_d = "contact_radius_px" in entry, "depth_mm" in entry
         if has_r == has_d:
             raise TnfError(f"{where}: give exactly one of contact_radius_px and depth_mm")
         if has_r:
-            contact = _number(e["contact_radius_px"], f"{where}: contact_radius_px") * mmpp
+            contact = _number(entry["contact_radius_px"], f"{where}: contact_radius_px") * mmpp
             if contact >= radius:
                 raise TnfError(
-                    f"{where}: contact radius {contact:.3f} mm ({e['contact_radius_px']} px) is not smaller than the "
-                    f"indenter's radius {radius:g} mm (check mm_per_pixel and indenter.radius_mm)"
+                    f"{where}: contact radius {contact:.3f} mm ({entry['contact_radius_px']} px) is not smaller "
+                    f"than the indenter's radius {radius:g} mm (check mm_per_pixel and indenter.radius_mm)"
                 )
             depth = depth_from_contact_radius(radius, contact)
         else:
-            depth = _number(e["depth_mm"], f"{where}: depth_mm")
+            depth = _number(entry["depth_mm"], f"{where}: depth_mm")
             if depth >= radius:
                 raise TnfError(f"{where}: depth {depth:g} mm is not smaller than the indenter's radius {radius:g} mm")
             contact = contact_radius_from_depth(radius, depth)

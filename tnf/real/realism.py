@@ -83,7 +83,8 @@ def table(means: Mapping[str, Mapping[str, float]], seconds: Mapping[str, float]
         rule += "---|"
     lines = [head, rule]
     for name, m in means.items():
-        row = f"| {name} | {m['ssim_region']:.3f} | {m['mse_region']:.1f} | {m['ssim_frame']:.4f} | {m['mse_frame']:.2f} |"
+        cells = (f"{m['ssim_region']:.3f}", f"{m['mse_region']:.1f}", f"{m['ssim_frame']:.4f}", f"{m['mse_frame']:.2f}")
+        row = f"| {name} | " + " | ".join(cells) + " |"
         if seconds is not None:
             row += f" {1e3 * seconds[name]:.1f} |" if name in seconds else " |"
         lines.append(row)

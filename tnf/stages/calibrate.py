@@ -38,11 +38,14 @@ def run(cfg: Any) -> dict[str, Any] | None:
     # The sensor as it is before calibration: an experiment may already point sensor.calibration at this output.
     sensor_name, sensor_spec = split_spec(cfg.sensor, "sensor")
     sensor = SENSORS.build({"name": sensor_name, **sensor_spec, "calibration": None})
-    settings = from_dict(FitSettings, OmegaConf.to_container(c.fit, resolve=True), where="calibrate.fit")
-    train, test = (list(OmegaConf.to_container(c[k], resolve=True)) for k in ("train", "test"))
-    for k, v in (("train", train), ("test", test)):
-        if not all(isinstance(i, int) and not isinstance(i, bool) for i in v):
+    settings = from_dict(FitSettings, c.fit, where="calibrate.fit")
+    split: dict[str, list[int]] = {}
+    for k in ("train", "test"):
+        v = OmegaConf.to_container(c[k], resolve=True) if OmegaConf.is_list(c[k]) else c[k]
+        if not isinstance(v, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in v):
             raise TnfError(f"calibrate.{k} must be a list of press numbers, got {v}")
+        split[k] = v
+    train, test = split["train"], split["test"]
     name = str(c.name)
     digest = hashlib.sha256((presses.folder / INDEX).read_bytes()).hexdigest()[:16]
     spec_name, spec = split_spec(cfg.simulator, "simulator")

@@ -1,7 +1,7 @@
 """``tnf pipeline``: every stage in order for one experiment, from objects to the report.
 
-(calibrate ->) capture -> fit-scene -> touch -> pair -> train (or finetune, for sensor transfer) -> generate -> evaluate, each
-with the same composed config.
+(calibrate ->) capture -> fit-scene -> touch -> pair -> train (or finetune, for sensor transfer) -> generate ->
+evaluate, each with the same composed config.
 Each stage skips the items the artifact store already holds with a matching config, so re-running a finished
 or interrupted pipeline only does what is missing. The generator's run is named after the generator, the
 dataset and the seed, so a sweep (``tnf pipeline -m generator=tn_cgan,lee,cyclegan seed=0,1,2``) trains one
