@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import importlib.metadata as md
+import math
 import threading
 import types
 import typing
@@ -237,6 +238,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
                 return _coerce(value, a, where)
             except TnfError as e:
                 errors.append(str(e))
+        if len(errors) == 1:  # one type besides None (an optional setting): its own message says more
+            raise TnfError(errors[0])
         raise TnfError(f"{where}: expected {_name(tp)}, got {value!r}")
     if origin is typing.Literal:
         if value not in args:
@@ -271,6 +274,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise TnfError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):  # NaN passes every `x < 0` check: refuse it (and infinity) here, once
+            raise TnfError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

@@ -130,3 +130,36 @@ def test_kinds():
         "tnf.simulators",
         "tnf.generators",
     }
+
+
+def _float_fields():
+    """(registry, component, field) for every top-level float setting of every registered component."""
+    import dataclasses
+    import typing
+
+    from tnf.registry import REGISTRIES
+
+    out = []
+    for reg in REGISTRIES.values():
+        for entry in reg.entries():
+            cls = entry.config_class
+            if cls is None or not dataclasses.is_dataclass(cls):
+                continue
+            hints = typing.get_type_hints(cls)
+            for f in dataclasses.fields(cls):
+                tp = hints[f.name]
+                if tp is float or (
+                    typing.get_origin(tp) in (typing.Union, getattr(__import__("types"), "UnionType"))
+                    and float in typing.get_args(tp)
+                ):
+                    out.append((reg, entry.name, f.name))
+    return out
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_every_float_setting_refuses_non_finite_values(bad):
+    fields = _float_fields()
+    assert len(fields) > 50  # sensors, simulator, scenes, generators, object sources
+    for reg, name, field in fields:
+        with pytest.raises(TnfError, match=rf"{reg.kind}\.{name}\.{field}: expected a finite number"):
+            reg.config(name, {field: bad})
