@@ -135,9 +135,8 @@ def test_kinds():
 def _float_fields():
     """(registry, component, field) for every top-level float setting of every registered component."""
     import dataclasses
+    import types
     import typing
-
-    from tnf.registry import REGISTRIES
 
     out = []
     for reg in REGISTRIES.values():
@@ -149,8 +148,7 @@ def _float_fields():
             for f in dataclasses.fields(cls):
                 tp = hints[f.name]
                 if tp is float or (
-                    typing.get_origin(tp) in (typing.Union, getattr(__import__("types"), "UnionType"))
-                    and float in typing.get_args(tp)
+                    typing.get_origin(tp) in (typing.Union, types.UnionType) and float in typing.get_args(tp)
                 ):
                     out.append((reg, entry.name, f.name))
     return out
