@@ -158,6 +158,6 @@ def _float_fields():
 def test_every_float_setting_refuses_non_finite_values(bad):
     fields = _float_fields()
     assert len(fields) > 50  # sensors, simulator, scenes, generators, object sources
-    for reg, name, field in fields:
-        with pytest.raises(TnfError, match=rf"{reg.kind}\.{name}\.{field}: expected a finite number"):
-            reg.config(name, {field: bad})
+    for reg, name, key in fields:
+        with pytest.raises(TnfError, match=rf"{reg.kind}\.{name}\.{key}: expected a finite number"):
+            reg.config(name, {key: bad})
