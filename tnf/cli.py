@@ -71,6 +71,8 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
 
     from tnf.env import conf_dir
 
+    if os.environ.get("HYDRA_FULL_ERROR") != "1":
+        check_overrides(stage, overrides)
     module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
     task = _guard(module.run)
     app = hydra.main(version_base=None, config_path=conf_dir(), config_name="stage/" + stage.replace("-", "_"))(task)
@@ -83,6 +85,76 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
     finally:
         sys.argv = old
     return 0
+
+
+def check_overrides(stage: str, overrides: Sequence[str]) -> None:
+    """Compose the stage's config with ``overrides`` before Hydra runs it, so that an unknown option, a misspelled
+    key or a malformed value is one line (a TnfError) instead of Hydra's report with its search path.
+
+    Sweeps (``-m``), Hydra's flags (``--cfg``...) and ``hydra...`` overrides are left to Hydra itself.
+    """
+    if any(o.startswith("-") or o.lstrip("+~").startswith("hydra") for o in overrides):
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException, MissingConfigException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from tnf.env import conf_dir
+
+    name = "stage/" + stage.replace("-", "_")
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=conf_dir(), version_base=None):
+            try:
+                compose(config_name=name, overrides=list(overrides))
+            except MissingConfigException as e:
+                raise TnfError(_missing_option(e, overrides)) from None
+            except (HydraException, OmegaConfBaseException) as e:
+                cause = e.__cause__
+                if isinstance(cause, OmegaConfBaseException) and "Could not override" in str(e):
+                    raise TnfError(_unknown_key(str(e), compose(config_name=name))) from None
+                lines = [ln for ln in str(e).splitlines() if ln.strip() and "search path" not in ln.lower()]
+                raise TnfError(" ".join(lines[:2])) from None
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def _missing_option(e: Exception, overrides: Sequence[str]) -> str:
+    """``generator=foo: no such option; options: ...`` from Hydra's missing-config error."""
+    import re
+
+    m = re.search(r"Could not find '([^']+)'", str(e))
+    missing = m.group(1) if m else str(e).splitlines()[0]
+    group, _, option = missing.rpartition("/")
+    options = getattr(e, "options", None) or []
+    given = next((o for o in overrides if o.lstrip("+~").split("=")[0].lstrip("/") == group), f"{group}={option}")
+    if not group:
+        return f"no config {missing!r}"
+    return f"{given}: no such {group}; options: {', '.join(options) if options else '(none)'}"
+
+
+def _unknown_key(message: str, cfg: object) -> str:
+    """``trian.epochs: no such setting; did you mean train.epochs?`` from Hydra's failed override."""
+    import difflib
+    import re
+
+    from omegaconf import OmegaConf
+
+    m = re.search(r"Could not override '([^']+)'", message)
+    key = m.group(1) if m else "?"
+    keys: list[str] = []
+
+    def walk(node: object, prefix: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}{k}.")
+        keys.append(prefix.rstrip("."))
+
+    walk(OmegaConf.to_container(cfg, resolve=False), "")  # type: ignore[arg-type]
+    close = difflib.get_close_matches(key, [k for k in keys if k], n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]}?" if close else "see `tnf STAGE --cfg job` for the settings"
+    return f"{key}: no such setting; {hint} (+{key}=... adds a new key)"
 
 
 def _guard(fn: Callable[..., object]) -> Callable[..., object]:
@@ -104,8 +176,10 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
 
 def report_error(e: BaseException) -> None:
     from rich.console import Console
+    from rich.markup import escape
 
-    Console(stderr=True, highlight=False, soft_wrap=True).print(f"[bold red]error:[/] {e}", markup=True, emoji=False)
+    console = Console(stderr=True, highlight=False, soft_wrap=True)
+    console.print(f"[bold red]error:[/] {escape(str(e))}", markup=True, emoji=False)  # "[1, 2]" is not markup
 
 
 def _print_help() -> None:

@@ -66,3 +66,24 @@ def test_multirun_runs_each_job(echo_stage, data_root):
     sys.modules["tnf.stages.objects"].run = lambda cfg: seeds.append(cfg.seed)
     assert main(["objects", "-m", "seed=1,2,3"]) == 0
     assert seeds == [1, 2, 3]
+
+
+@pytest.mark.parametrize(
+    "override, expected",
+    [
+        ("generator=foo", "error: generator=foo: no such generator; options: cyclegan, lee, tn_cgan"),
+        ("sensor=gelsigth_mini", "error: sensor=gelsigth_mini: no such sensor; options: digit, gelsight_mini"),
+        ("trian.epochs=1", "error: trian.epochs: no such setting; did you mean train.epochs?"),
+        ("sensor.widht=3", "error: sensor.widht: no such setting; did you mean sensor.width?"),
+        (
+            "train.epochs=1,2",
+            "error: Ambiguous value for argument 'train.epochs=1,2' 1. To use it as a list, use key=[v",
+        ),
+    ],
+)
+def test_hydra_config_errors_are_one_line(override, expected, capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("TNF_DATA", str(tmp_path))
+    assert main(["train", override]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(expected), err
+    assert not (tmp_path / "logs").exists()  # refused before Hydra made its run folder
