@@ -286,15 +286,51 @@ def test_compact_batches_are_mirrored_on_the_device_side(tmp_path):
 
     class Training:
         training = True
+        current_epoch = 0
+        global_rank = 0
 
     dm.trainer = Training()  # the hook augments only while training
-    torch.manual_seed(1)
     aug = dm.on_after_batch_transfer(compact, 0)
     flipped = [not torch.equal(aug["depth"][i], ref["depth"][i]) for i in range(len(ref["depth"]))]
     assert any(flipped) and not all(flipped)
     for i, f in enumerate(flipped):
         expect = _mirrored(ref["tactile"][i], (1, 0, 2)) if f else ref["tactile"][i]
         assert torch.equal(aug["tactile"][i], expect)
+
+
+@pytest.mark.parametrize("compact", [True, False])
+def test_training_draws_depend_on_seed_epoch_and_batch_alone(tmp_path, compact):
+    """What a run resumed from a checkpoint relies on: a new DataModule shuffles epoch e and augments its k-th batch
+    exactly as the one that ran epochs 0 .. e did, though torch's global random state differs."""
+    from tnf.data import PairDataModule
+
+    make_dataset(tmp_path / "ds")
+
+    class Trainer:
+        training = True
+        current_epoch = 0
+        global_rank = 0
+        distributed_sampler_kwargs = None  # one process
+
+    def epoch_batches(dm, epoch):
+        dm.trainer = Trainer()
+        dm.trainer.current_epoch = epoch
+        loader = dm.train_dataloader()
+        loader.sampler.set_epoch(epoch)  # as Lightning does at each epoch's start
+        return [dm.on_after_batch_transfer(b, 0) for b in loader]
+
+    kw = dict(batch_size=4, convert_on_device=compact, augment=["mirror", "jitter"], seed=3)
+    first = PairDataModule([tmp_path / "ds"], **kw)
+    torch.manual_seed(0)
+    ran = [epoch_batches(first, e) for e in range(3)]
+    resumed = PairDataModule([tmp_path / "ds"], **kw)
+    torch.manual_seed(123)  # another global state, as in a new process
+    again = epoch_batches(resumed, 2)
+    assert len(again) == len(ran[2]) > 1
+    for a, b in zip(again, ran[2]):
+        for k in ("rgb", "depth", "tactile"):
+            assert torch.equal(a[k], b[k]), k
+    assert not torch.equal(ran[1][0]["rgb"], ran[2][0]["rgb"])  # epochs differ in order or draws
 
 
 def test_datamodule_batches_and_mixing(tmp_path):

@@ -134,13 +134,15 @@ def _ckpt(path):
 
 
 @pytest.mark.slow
-def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path):
+@pytest.mark.parametrize("augment", ["[]", "[mirror,jitter]"])
+def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path, augment):
     from tests.generators.test_stages import write_pairs
 
     ref, root = tmp_path / "ref", tmp_path / "data"
     for r in (ref, root):
         write_pairs(r / "pairs" / "digit-hashgrid", n=9)
-    run_to_end(ref, *TRAIN)
+    train = (*TRAIN, f"data.augment={augment}")
+    run_to_end(ref, *train)
     run_dir = root / "models" / "tn_cgan_digit-hashgrid"
     last = run_dir / "last.ckpt"
 
@@ -152,10 +154,10 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
         except Exception:  # being written
             return False
 
-    assert kill_when(root, TRAIN, after_second_epoch, poll=0.05)
+    assert kill_when(root, train, after_second_epoch, poll=0.05)
     assert not (run_dir / "manifest.json").exists()
     killed = _ckpt(last)
-    run_to_end(root, *TRAIN)
+    run_to_end(root, *train)
     assert (run_dir / "metrics.part1.csv").is_file(), "the re-run started afresh instead of resuming"
     a, b = _ckpt(run_dir / "last.ckpt"), _ckpt(ref / "models" / "tn_cgan_digit-hashgrid" / "last.ckpt")
     progress = [(c["epoch"], c["global_step"]) for c in (killed, a, b)]
@@ -167,6 +169,12 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
         steps_a = sorted(float(s["step"]) for s in oa["state"].values())
         steps_b = sorted(float(s["step"]) for s in ob["state"].values())
         assert steps_a == steps_b, "optimiser step counters differ from an uninterrupted run"
+    # The weights are an uninterrupted run's, whatever the augmentation (its draws are not in the checkpoint).
+    for k, wa in a["state_dict"].items():
+        assert torch.allclose(wa.float(), b["state_dict"][k].float(), rtol=1e-4, atol=1e-5), (
+            k,
+            (wa.float() - b["state_dict"][k].float()).abs().max(),
+        )
     assert manifest(run_dir)["config_hash"] == manifest(ref / "models" / "tn_cgan_digit-hashgrid")["config_hash"]
 
 

@@ -111,6 +111,7 @@ class PairDataModule(L.LightningDataModule):
         self.augment, self.mirror = mirror_augment(
             self.augment, [(read_json(f / MANIFEST, "dataset manifest"), f) for f in self.folders]
         )
+        self._augmented = (-1, 0)  # (epoch, batches augmented in it): what seeds the next batch's augmentation
 
     def dataset(self, splits: Sequence[str], augment: Sequence[str] = ()) -> PairDataset | MixedPairDataset:
         """The pairs of ``splits`` over all folders (one dataset, or a mix)."""
@@ -130,22 +131,24 @@ class PairDataModule(L.LightningDataModule):
         return parts[0] if len(parts) == 1 else MixedPairDataset(parts)
 
     def _loader(self, splits: Sequence[str], train: bool) -> DataLoader:
-        ds = self.dataset(splits, augment=self.augment if train else ())
+        ds = self.dataset(splits)  # training batches are augmented after the transfer (on_after_batch_transfer)
         if len(ds) == 0:
             raise TnfError(f"no pairs in split(s) {', '.join(splits)} of {', '.join(map(str, self.folders))}")
-        g = torch.Generator().manual_seed(self.seed)
         sampler = self._distributed_sampler(ds, shuffle=train)
+        if sampler is None and train:
+            # One process's "shard" is the whole dataset, shuffled from (seed, epoch) alone (Lightning calls
+            # set_epoch): a run resumed at an epoch sees the order an uninterrupted run saw there.
+            sampler = DistributedSampler(ds, num_replicas=1, rank=0, shuffle=True, seed=self.seed, drop_last=False)
         return DataLoader(
             ds,
             batch_size=self.batch_size,
-            shuffle=train if sampler is None else None,
+            shuffle=None if sampler is not None else False,
             sampler=sampler,
             drop_last=train and self.drop_last,
             num_workers=self.num_workers,
             pin_memory=self.pin_memory,
             persistent_workers=self.num_workers > 0,
             collate_fn=collate_pairs,
-            generator=g if train else None,
         )
 
     def _distributed_sampler(self, ds: Any, shuffle: bool) -> DistributedSampler | None:
@@ -162,13 +165,24 @@ class PairDataModule(L.LightningDataModule):
         return DistributedSampler(ds, shuffle=shuffle, seed=self.seed, drop_last=False, **kwargs)
 
     def on_after_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Batch:
-        if not self.convert_on_device:
-            return batch
-        batch = to_float_batch(batch)
+        if self.convert_on_device:
+            batch = to_float_batch(batch)
         trainer = getattr(self, "trainer", None)
         if self.augment and trainer is not None and trainer.training:
-            augment_batch(batch, self.augment, self.mirror)
+            augment_batch(batch, self.augment, self.mirror, generator=self._augment_generator(trainer))
         return batch
+
+    def _augment_generator(self, trainer: Any) -> torch.Generator:
+        """The random draws of the next training batch's augmentation, from ``seed``, the epoch, the batch's
+        number in it and the process's rank alone: a run resumed from a checkpoint draws what an uninterrupted
+        run drew (the global random state is not part of the checkpoint)."""
+        epoch, count = self._augmented
+        epoch_now = int(trainer.current_epoch)
+        count = count if epoch == epoch_now else 0
+        self._augmented = (epoch_now, count + 1)
+        rank = int(getattr(trainer, "global_rank", 0))
+        key = ((self.seed * 1_000_003 + epoch_now) * 1_000_003 + count) * 64 + rank
+        return torch.Generator().manual_seed(key % (2**63 - 1))
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_splits, train=True)

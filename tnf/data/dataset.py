@@ -474,22 +474,25 @@ def unmirror_channels(mirror: Sequence[int]) -> list[int]:
     return undo
 
 
-def augment_batch(batch: Batch, augment: Sequence[str], mirror: Sequence[int] | None = None) -> None:
+def augment_batch(
+    batch: Batch, augment: Sequence[str], mirror: Sequence[int] | None = None, generator: torch.Generator | None = None
+) -> None:
     """The augmentations named in ``augment`` (see ``AUGMENTATIONS``) on a float batch, each pair drawn on its
     own; the batch's images are replaced by new tensors (a shared, stride-0 background is never written to).
-    ``mirror`` is the sensor's channel order under the mirror (``sensor_mirror``).
+    ``mirror`` is the sensor's channel order under the mirror (``sensor_mirror``); ``generator`` (a CPU
+    generator) draws the random choices, torch's global one when None.
     """
     b = batch["rgb"].shape[0]
     if "mirror" in augment:
         if mirror is None:
             raise TnfError("the mirror augmentation needs the sensor's channel order (sensor_mirror)")
-        flip = (torch.rand(b) < 0.5).to(batch["rgb"].device).view(b, 1, 1, 1)
+        flip = (torch.rand(b, generator=generator) < 0.5).to(batch["rgb"].device).view(b, 1, 1, 1)
         whole = mirror_batch(batch, mirror)
         for k in whole:
             batch[k] = torch.where(flip, whole[k], batch[k])
     if "jitter" in augment:
-        gain = 1 + 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
-        shift = 0.2 * (torch.rand(b, 1, 1, 1) - 0.5)
+        gain = 1 + 0.2 * (torch.rand(b, 1, 1, 1, generator=generator) - 0.5)
+        shift = 0.2 * (torch.rand(b, 1, 1, 1, generator=generator) - 0.5)
         rgb = batch["rgb"]
         batch["rgb"] = (rgb * gain.to(rgb.device) + shift.to(rgb.device)).clamp_(-1, 1)
 

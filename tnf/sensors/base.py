@@ -302,7 +302,7 @@ class Sensor:
         ``shade`` (at random points and normals), so a sensor that overrides them is judged by its own code. A
         sensor that ``decorates`` its images (markers), or has a calibration, is taken to have none.
         """
-        if self.decorates or self.calibration is not None:
+        if self.decorates or self.cfg.calibration is not None:
             return None  # a measured shading table need not be mirror symmetric
         x, _ = self.gel_grid()
         h = self.gel_surface()
