@@ -11,6 +11,7 @@ import importlib
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 from tnf.errors import TnfError
 
@@ -73,6 +74,7 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
 
     if os.environ.get("HYDRA_FULL_ERROR") != "1":
         check_overrides(stage, overrides)
+    check_data_root(overrides)
     module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
     task = _guard(module.run)
     app = hydra.main(version_base=None, config_path=conf_dir(), config_name="stage/" + stage.replace("-", "_"))(task)
@@ -85,6 +87,104 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
     finally:
         sys.argv = old
     return 0
+
+
+# Flags with which Hydra only prints something (help, config, info): no run folder, so nothing to check.
+_PRINT_ONLY = {"--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", "--shell-completion", "-sc"}
+# Less free space than this in the data root and Hydra may fail writing its run folder (config, log) already.
+MIN_FREE_BYTES = 1_000_000
+
+
+def check_data_root(overrides: Sequence[str]) -> None:
+    """Refuse, as one line, a data root that cannot hold the run: Hydra makes its run folder
+    ``<data_root>/logs/...`` before the stage starts, and a failure there is a traceback.
+
+    The data root is the ``data_root=`` override, else ``$TNF_DATA``, else ``./tnf-data`` (as in
+    ``tnf.artifacts.data_root``). Sweeps over ``data_root`` and interpolated values are left unchecked. The folder
+    is created here when missing (Hydra would create it a moment later anyway).
+    """
+    if any(o.split("=")[0] in _PRINT_ONLY for o in overrides):
+        return
+    configured = _data_root_override(overrides)
+    if configured is _UNCHECKED:
+        return
+    from tnf.artifacts import data_root
+
+    root = data_root(configured)  # type: ignore[arg-type]
+    _check_folder(root, root)
+    _check_folder(root / "logs", root)
+    free = _free_bytes(root)
+    if free is not None and free < MIN_FREE_BYTES:
+        raise TnfError(f"no space left on device for data_root {root}: {free / 1e6:.2f} MB free")
+
+
+_UNCHECKED = object()
+
+
+def _data_root_override(overrides: Sequence[str]) -> object:
+    """The last ``data_root=`` override's value (str or None when not given), or ``_UNCHECKED`` for a sweep or an
+    interpolation, whose folder only Hydra knows."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    value: object = None
+    parser = OverridesParser.create()
+    for o in overrides:
+        if o.startswith("-") or "data_root" not in o.split("=")[0]:
+            continue
+        try:
+            (parsed,) = parser.parse_overrides([o])
+        except Exception:  # a malformed override: Hydra reports it itself
+            continue
+        if parsed.key_or_group != "data_root":
+            continue
+        if parsed.is_delete():
+            value = None
+        elif parsed.is_sweep_override():
+            return _UNCHECKED
+        else:
+            v = parsed.value()
+            value = None if v is None else str(v)
+    if isinstance(value, str) and "${" in value:
+        return _UNCHECKED
+    return value
+
+
+def _check_folder(folder: Path, root: Path) -> None:
+    """Make ``folder`` (the data root or a folder in it) if missing; a TnfError naming ``root`` if it cannot be."""
+    name = f"data_root {root}" if folder == root else f"data_root {root}: {folder}"
+    if folder.exists():
+        if not folder.is_dir():
+            raise TnfError(f"{name} is a file, not a folder")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise TnfError(f"{name} is not writable (permission denied)")
+        return
+    ancestor = folder.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise TnfError(f"{name} cannot be created: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise TnfError(f"{name} cannot be created: {ancestor} is not writable (permission denied)")
+    try:  # root may write where os.access says no, and may not write where it says yes (/proc, read-only mounts)
+        os.makedirs(folder, exist_ok=True)
+    except OSError as e:
+        import errno
+
+        reason = (e.strerror or type(e).__name__).lower()
+        if e.errno == errno.ENOENT:  # /proc, /sys: the folder is there but takes no new entries
+            reason = f"{ancestor} takes no new folders"
+        elif e.errno == errno.ENOTDIR:
+            reason = "a folder above it is a file"
+        raise TnfError(f"{name} cannot be created: {reason}") from None
+
+
+def _free_bytes(folder: Path) -> int | None:
+    import shutil
+
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return None
 
 
 def check_overrides(stage: str, overrides: Sequence[str]) -> None:
@@ -107,7 +207,7 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     try:
         with initialize_config_dir(config_dir=conf_dir(), version_base=None):
             try:
-                compose(config_name=name, overrides=list(overrides))
+                cfg = compose(config_name=name, overrides=list(overrides))
             except MissingConfigException as e:
                 raise TnfError(_missing_option(e, overrides)) from None
             except (HydraException, OmegaConfBaseException) as e:
@@ -116,6 +216,9 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
                     raise TnfError(_unknown_key(str(e), compose(config_name=name))) from None
                 lines = [ln for ln in str(e).splitlines() if ln.strip() and "search path" not in ln.lower()]
                 raise TnfError(" ".join(lines[:2])) from None
+        from tnf.settings import check_settings
+
+        check_settings(cfg)  # before Hydra makes its run folder
     finally:
         GlobalHydra.instance().clear()
 
@@ -161,7 +264,10 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
     """Print a TnfError as one line and exit 1, instead of Hydra's traceback report."""
 
     def task(cfg: object) -> object:
+        from tnf.settings import check_settings
+
         try:
+            check_settings(cfg)  # every job of a sweep checks its own settings before any work
             return fn(cfg)
         except TnfError as e:
             if os.environ.get("HYDRA_FULL_ERROR") == "1":

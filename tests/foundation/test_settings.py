@@ -1,0 +1,49 @@
+"""The stage sections are checked against their defaults' types before any stage works (tnf.settings)."""
+
+from pathlib import Path
+
+import pytest
+
+from tnf.cli import main
+from tnf.errors import TnfError
+from tnf.settings import check_settings, schema
+from tnf.testing import compose
+
+EXPERIMENTS = sorted(p.stem for p in (Path(__file__).resolve().parents[2] / "conf" / "experiment").glob("*.yaml"))
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("train.epochs=abc", "train.epochs: expected a whole number, got 'abc'"),
+        ("touch.n_touches=-5", "touch.n_touches: must be >= 0, got -5"),
+        ("touch.n_touches=1.5", "touch.n_touches: expected a whole number, got 1.5"),
+        ("touch.force=nan", "touch.force: expected a finite number, got nan"),
+        ("touch.random_roll=maybe", "touch.random_roll: expected true or false, got 'maybe'"),
+        ("data.augment=mirror", "data.augment: expected a list, got 'mirror'"),
+        ("progress=2", "progress: expected true or false, got 2"),
+    ],
+)
+def test_a_bad_setting_is_one_line_before_any_work(override, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("TNF_DATA", str(tmp_path))
+    assert main(["touch", "debug=tiny", override]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [f"error: {message}"]
+    assert list(tmp_path.iterdir()) == []  # not even Hydra's log folder
+
+
+@pytest.mark.parametrize("experiment", [None, *EXPERIMENTS])
+def test_every_shipped_config_passes(experiment):
+    overrides = [f"experiment={experiment}"] if experiment else []
+    if experiment == "real_capture":
+        overrides.append("objects.root=/data")
+    for debug in ([], ["debug=tiny"]):
+        check_settings(compose("pipeline", overrides + debug))
+
+
+def test_schema_covers_every_stage_section():
+    s = schema()
+    for section in ("capture", "fit", "touch", "pair", "train", "finetune", "generate", "evaluate", "data"):
+        assert isinstance(s[section], dict) and s[section], section
+    with pytest.raises(TnfError, match=r"^data\.batch_size: expected a whole number"):
+        check_settings({"data": {"batch_size": 2.5}})
+    check_settings({"data": {"batch_size": 3}, "touch": {"force": 4}})  # an integer where a number belongs is fine

@@ -1,0 +1,97 @@
+"""Checks of the stage sections of a composed config (``touch``, ``train``, ...) before any stage works.
+
+The components (sensors, simulators, scenes, generators, object sources) are validated into their ``Config``
+dataclasses by the registry. The stage sections are plain YAML; their defaults (``conf/<section>/default.yaml``)
+are the schema: a setting whose default is an integer takes an integer (not ``1.5``, not ``"abc"``), and a
+non-negative one (a count, a size, a number of epochs) stays non-negative; a number takes a finite number; a
+switch takes true or false; a list takes a list. Settings whose default is null take anything.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from tnf.errors import TnfError
+
+SECTIONS = (
+    "capture",
+    "fit",
+    "touch",
+    "pair",
+    "train",
+    "finetune",
+    "generate",
+    "evaluate",
+    "data",
+    "calibrate",
+    "pipeline",
+)
+"""Config sections with a ``default.yaml`` that sets every key's type."""
+TOP_LEVEL = {"seed": 0, "progress": True}
+"""Run-wide settings and their defaults (their types)."""
+
+
+@functools.lru_cache(maxsize=1)
+def schema() -> dict[str, Any]:
+    """``{section: defaults}`` from ``conf/<section>/default.yaml``, plus the run-wide settings."""
+    from omegaconf import OmegaConf
+
+    from tnf.env import conf_dir
+
+    out: dict[str, Any] = dict(TOP_LEVEL)
+    for section in SECTIONS:
+        path = Path(conf_dir()) / section / "default.yaml"
+        if path.is_file():
+            out[section] = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    return out
+
+
+def check_settings(cfg: Any) -> None:
+    """Raise a one-line TnfError naming the first setting of ``cfg`` whose value does not fit its default's type."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    for key, default in schema().items():
+        if key not in cfg:
+            continue
+        value = cfg[key]
+        if OmegaConf.is_config(value):
+            try:
+                value = OmegaConf.to_container(value, resolve=True)
+            except OmegaConfBaseException:  # an interpolation only a running Hydra job resolves: left to the stage
+                continue
+        _check(value, default, key)
+
+
+def _check(value: Any, default: Any, where: str) -> None:
+    if default is None or (isinstance(default, str) and default.startswith("${")):
+        return  # anything goes, or an interpolation whose type the default does not show
+    if isinstance(default, Mapping):
+        if value is None:
+            return
+        if not isinstance(value, Mapping):
+            raise TnfError(f"{where}: expected a section of settings, got {value!r}")
+        for k, d in default.items():
+            if k in value:
+                _check(value[k], d, f"{where}.{k}")
+        return
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise TnfError(f"{where}: expected true or false, got {value!r}")
+    elif isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TnfError(f"{where}: expected a whole number, got {value!r}")
+        if default >= 0 > value:
+            raise TnfError(f"{where}: must be >= 0, got {value}")
+    elif isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TnfError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise TnfError(f"{where}: expected a finite number, got {value!r}")
+    elif isinstance(default, list):
+        if value is not None and not isinstance(value, list):
+            raise TnfError(f"{where}: expected a list, got {value!r}")
