@@ -218,3 +218,26 @@ def _without_native_line(text: str) -> Iterator[list[str]]:
             if kept:
                 sys.stderr.write(kept)
                 sys.stderr.flush()
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this machine can still give a process (Linux ``MemAvailable``), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(need: float, what: str, settings: str, share: float = 0.8) -> None:
+    """Refuse (one-line TnfError) work estimated to need ``need`` bytes when that is over ``share`` of the memory
+    available: ``what`` says which work, ``settings`` which settings drive the figure and their values."""
+    have = available_memory()
+    if have is not None and need > share * have:
+        raise TnfError(
+            f"{what} would need about {need / 2**30:.1f} GiB of memory ({settings}); this machine has "
+            f"{have / 2**30:.1f} GiB available: lower them"
+        )

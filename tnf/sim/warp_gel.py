@@ -45,10 +45,15 @@ import warp as wp
 
 from tnf.errors import TnfError
 from tnf.registry import SIMULATORS
-from tnf.runtime import init_warp
+from tnf.runtime import check_memory, init_warp
 from tnf.sensors.base import Sensor
 
 MISS = 1.0e9  # ray distance stored for pixels that see no object (and pixels outside the gel)
+SENSOR_BYTES_PER_PIXEL = 400
+"""Host memory per image pixel of what a simulator holds and builds once (the gel's grids, shading, background),
+a generous estimate."""
+TOUCH_BYTES_PER_PIXEL = 80
+"""Memory per image pixel of one touch of a batch (device buffers and the host copies of the results)."""
 
 
 # -- kernels ------------------------------------------------------------------------------------------
@@ -659,6 +664,12 @@ class WarpGel:
         """``sensor``: the tactile sensor to simulate; ``device``: warp device (``cpu``, ``cuda:0``)."""
         self.cfg = cfg
         self.sensor = sensor
+        c = sensor.cfg
+        check_memory(
+            SENSOR_BYTES_PER_PIXEL * sensor.width * sensor.height,
+            f"sensor {sensor.name!r}",
+            f"sensor.width={c.width}, sensor.height={c.height}",
+        )
         init_warp()
         self.device = wp.get_device(device)
         s = sensor
@@ -815,6 +826,11 @@ class WarpGel:
         """``run(c2w, forces, part, b0)`` over the batch, split over ``cpu_threads`` threads on the CPU."""
         s = self.sensor
         batch = c2w.shape[0]
+        check_memory(
+            TOUCH_BYTES_PER_PIXEL * batch * s.width * s.height,
+            f"a batch of {batch} touches",
+            f"touch.batch_size={batch}, sensor.width={s.width}, sensor.height={s.height}",
+        )
         forces = np.broadcast_to(np.asarray(force, dtype=np.float32), (batch,)).copy()
         for f in np.unique(forces):
             s.check_force(float(f))
