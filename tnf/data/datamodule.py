@@ -11,7 +11,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
-from tnf.artifacts import MANIFEST, data_root, read_json
+from tnf.artifacts import MANIFEST, data_root
 from tnf.data.dataset import (
     Batch,
     MixedPairDataset,
@@ -23,6 +23,7 @@ from tnf.data.dataset import (
     mirror_augment,
     to_float_batch,
 )
+from tnf.data.store import open_pairs
 from tnf.errors import TnfError
 
 if TYPE_CHECKING:
@@ -102,15 +103,15 @@ class PairDataModule(L.LightningDataModule):
         self.val_splits = tuple(val_splits)
         self.drop_last = drop_last
         self.convert_on_device = convert_on_device
+        # Every array checked (readable, shapes, row counts against the manifest) before training writes anything.
+        manifests = [open_pairs(f).manifest for f in self.folders]
         names: list[str] = []
-        for f in self.folders:
-            for n in read_json(f / MANIFEST, "dataset manifest")["objects"]:
+        for m in manifests:
+            for n in m["objects"]:
                 if n not in names:
                     names.append(n)
         self.object_names = names
-        self.augment, self.mirror = mirror_augment(
-            self.augment, [(read_json(f / MANIFEST, "dataset manifest"), f) for f in self.folders]
-        )
+        self.augment, self.mirror = mirror_augment(self.augment, list(zip(manifests, self.folders)))
         self._augmented = (-1, 0)  # (epoch, batches augmented in it): what seeds the next batch's augmentation
 
     def dataset(self, splits: Sequence[str], augment: Sequence[str] = ()) -> PairDataset | MixedPairDataset:

@@ -71,6 +71,7 @@ class TouchItem:
                     point = np.zeros(0)
                 if point.shape != (3,):
                     raise TnfError(f"touch manifest {where}: touch {i} contact_point must be 3 numbers (metres)")
+        _check_images(folder, [folder / "background.png", *(folder / t["image"] for t in touches)])
         return cls(folder, manifest)
 
     @property
@@ -109,13 +110,39 @@ class TouchItem:
 
 
 def _read_png(path: Path) -> np.ndarray:
-    from PIL import Image
+    from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
             return np.asarray(im.convert("RGB"))
     except FileNotFoundError:
         raise TnfError(f"image not found: {path}; rerun `tnf touch` for this object") from None
+    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+        raise TnfError(f"{path} is not a readable image ({e}); {_REDO}") from None
+
+
+_REDO = "remove the object's touches (`tnf clean touch SENSOR/SOURCE/OBJECT`) and rerun `tnf touch`"
+
+
+def _check_images(folder: Path, paths: Sequence[Path]) -> None:
+    """Every image of a touch item exists, is whole (its chunks' checksums) and has the background's size, before
+    any rendering starts: a corrupt file is named here, not in a traceback after minutes of work."""
+    from PIL import Image, UnidentifiedImageError
+
+    size = None
+    for path in paths:
+        if not path.is_file():
+            raise TnfError(f"image not found: {path}; {_REDO}")
+        try:
+            with Image.open(path) as im:
+                this = im.size
+                im.verify()
+        except (UnidentifiedImageError, OSError, SyntaxError) as e:
+            raise TnfError(f"{path} is not a readable image ({e}); {_REDO}") from None
+        if size is None:
+            size = this
+        elif this != size:
+            raise TnfError(f"{path} is {this[0]}x{this[1]}, the other images of {folder} {size[0]}x{size[1]}; {_REDO}")
 
 
 CROP_DISTANCES = ("contact", "fixed")
