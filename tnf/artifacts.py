@@ -87,10 +87,74 @@ def write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if _disk_full(e):
+            raise DiskFull(
+                f"{_reason(e)} writing {path}: it needs {_mb(len(data))} MB; "
+                f"free space there: {_mb(free_bytes(path.parent))} MB"
+            ) from None
         raise
+
+
+class DiskFull(TnfError):
+    """The disk (or the user's quota) filled while tnf wrote a file (``item`` false) or an item (true)."""
+
+    def __init__(self, message: str, item: bool = False):
+        super().__init__(message)
+        self.item = item
+
+
+_DISK_FULL_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
+
+
+def _disk_full(e: BaseException) -> bool:
+    """Whether ``e`` says the disk or the quota is full (an item's error, already worded, is not re-worded)."""
+    if isinstance(e, DiskFull):
+        return not e.item
+    return isinstance(e, OSError) and e.errno in _DISK_FULL_ERRNOS
+
+
+def _reason(e: BaseException) -> str:
+    """``no space left on device`` or ``disk quota exceeded``, from a disk-full error."""
+    if isinstance(e, OSError) and e.errno is not None:
+        return (e.strerror or os.strerror(e.errno)).lower()
+    return "no space left on device"
+
+
+def _mb(n: int | None) -> str:
+    return "?" if n is None else f"{n / 1e6:.1f}"
+
+
+def free_bytes(path: str | os.PathLike[str]) -> int | None:
+    """Free space for an unprivileged user on the file system of ``path`` (or of its nearest existing folder)."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return None
+
+
+def require_space(path: str | os.PathLike[str], needed: int, what: str) -> None:
+    """A TnfError, before any work, when the file system of ``path`` has less than ``needed`` bytes free."""
+    free = free_bytes(path)
+    if free is not None and free < needed:
+        raise TnfError(
+            f"not enough space for {what}: it needs about {_mb(needed)} MB; free space there: {_mb(free)} MB"
+        )
+
+
+def _tree_bytes(folder: Path) -> int:
+    """Total size of the files under ``folder`` (what a write put there before it failed)."""
+    total = 0
+    for dirpath, _, files in os.walk(folder):
+        for f in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(dirpath, f)).st_size
+    return total
 
 
 @contextlib.contextmanager
@@ -177,7 +241,8 @@ class ArtifactStore:
 
         ``info`` (and anything the body stores in the yielded folder's ``manifest.json`` beforehand is
         replaced) goes into the manifest next to the config and its hash. On an exception the temporary
-        folder is removed and any earlier finished item is left as it was.
+        folder is removed and any earlier finished item is left as it was; a full disk (or quota) becomes a
+        one-line ``DiskFull`` naming the item, what was written of it and the space left.
         """
         final = self.path(stage, *item)
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -204,8 +269,16 @@ class ArtifactStore:
             }
             write_json(tmp / MANIFEST, manifest)
             _replace_dir(tmp, final)
-        except BaseException:
+        except BaseException as e:
+            full = _disk_full(e)
+            written = _tree_bytes(tmp) if full else 0
             shutil.rmtree(tmp, ignore_errors=True)
+            if full:
+                raise DiskFull(
+                    f"{_reason(e)} writing {final}: {_mb(written)} MB were written into the item before the disk "
+                    f"filled; free space there: {_mb(free_bytes(final.parent))} MB",
+                    item=True,
+                ) from None
             raise
 
     def clean_partials(self, stage: str, *item: str) -> int:
@@ -287,3 +360,29 @@ def _version() -> str:
     from tnf import __version__
 
     return __version__
+
+
+def clean(args: list[str]) -> str:
+    """``tnf clean STAGE [ITEM] [data_root=DIR]``: remove the finished item ``<data_root>/STAGE/ITEM`` (a path
+    such as ``digit/builtin/ball`` for a touch item) so that the next run of its stage redoes it; without ITEM,
+    list the stage's finished items. Returns what was done, as text."""
+    root_arg = [a for a in args if a.startswith("data_root=")]
+    rest = [a for a in args if not a.startswith("data_root=")]
+    store = ArtifactStore(root_arg[-1].split("=", 1)[1] if root_arg else None)
+    if not rest or len(rest) > 2:
+        raise TnfError("usage: tnf clean STAGE [ITEM] [data_root=DIR], e.g. tnf clean touch digit/builtin/ball")
+    stage = rest[0]
+    base = store.path(stage)
+    if not base.is_dir():
+        raise TnfError(f"no stage folder {base}")
+    if len(rest) == 1:
+        found = sorted(str(m.parent.relative_to(base)) for m in base.rglob(MANIFEST))
+        return "\n".join(found) if found else f"{base}: no finished items"
+    parts = Path(rest[1]).parts
+    if not parts or any(p in ("..", ".") or p.startswith("/") for p in parts):
+        raise TnfError(f"item must be a path inside {base}, got {rest[1]!r}")
+    item = base.joinpath(*parts)
+    if not (item / MANIFEST).is_file():
+        raise TnfError(f"{item} is not a finished item (no {MANIFEST}); `tnf clean {stage}` lists them")
+    shutil.rmtree(item)
+    return f"removed {item}; `tnf {stage} ...` redoes it"

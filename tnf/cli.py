@@ -15,7 +15,7 @@ from pathlib import Path
 
 from tnf.errors import TnfError
 
-# name -> one line of help. Order is the pipeline's order.
+# name -> one line of help. Order is the pipeline's order; COMMANDS are not Hydra apps.
 STAGES: dict[str, str] = {
     "list": "list every registered component (objects, scenes, sensors, simulators, generators) and its origin",
     "objects": "list the objects of an object source with size and triangle count",
@@ -29,7 +29,12 @@ STAGES: dict[str, str] = {
     "generate": "generate tactile images from novel poses with a trained generator",
     "evaluate": "compute SSIM/MSE and the classification task; write the report",
     "pipeline": "run every stage in order for one experiment",
+    "clean": "remove a finished item from the artifact store so that its stage redoes it (tnf clean STAGE ITEM)",
 }
+
+
+COMMANDS = ("list", "clean")
+"""Entries of STAGES that are plain commands, not Hydra apps (no config, no overrides)."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -57,6 +62,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             from tnf.listing import print_components
 
             print_components()
+            return 0
+        if stage == "clean":
+            from tnf.artifacts import clean
+
+            print(clean(rest))
             return 0
         return run_stage(stage, rest)
     except TnfError as e:
@@ -112,10 +122,10 @@ def check_data_root(overrides: Sequence[str]) -> None:
 
     root = data_root(configured)  # type: ignore[arg-type]
     _check_folder(root, root)
-    _check_folder(root / "logs", root)
     free = _free_bytes(root)
     if free is not None and free < MIN_FREE_BYTES:
         raise TnfError(f"no space left on device for data_root {root}: {free / 1e6:.2f} MB free")
+    _check_folder(root / "logs", root)
 
 
 _UNCHECKED = object()
@@ -156,7 +166,7 @@ def _check_folder(folder: Path, root: Path) -> None:
         if not folder.is_dir():
             raise TnfError(f"{name} is a file, not a folder")
         if not os.access(folder, os.W_OK | os.X_OK):
-            raise TnfError(f"{name} is not writable (permission denied)")
+            raise TnfError(f"{name} {_unwritable(folder)}")
         return
     ancestor = folder.parent
     while not ancestor.exists() and ancestor != ancestor.parent:
@@ -164,7 +174,7 @@ def _check_folder(folder: Path, root: Path) -> None:
     if not ancestor.is_dir():
         raise TnfError(f"{name} cannot be created: {ancestor} is a file, not a folder")
     if not os.access(ancestor, os.W_OK | os.X_OK):
-        raise TnfError(f"{name} cannot be created: {ancestor} is not writable (permission denied)")
+        raise TnfError(f"{name} cannot be created: {ancestor} {_unwritable(ancestor)}")
     try:  # root may write where os.access says no, and may not write where it says yes (/proc, read-only mounts)
         os.makedirs(folder, exist_ok=True)
     except OSError as e:
@@ -176,6 +186,16 @@ def _check_folder(folder: Path, root: Path) -> None:
         elif e.errno == errno.ENOTDIR:
             reason = "a folder above it is a file"
         raise TnfError(f"{name} cannot be created: {reason}") from None
+
+
+def _unwritable(folder: Path) -> str:
+    """Why ``folder``, which ``os.access`` calls unwritable, is."""
+    try:
+        if os.statvfs(folder).f_flag & os.ST_RDONLY:
+            return "is on a read-only file system"
+    except (OSError, AttributeError):  # no statvfs (Windows)
+        pass
+    return "is not writable (permission denied)"
 
 
 def _free_bytes(folder: Path) -> int | None:

@@ -4,14 +4,14 @@ from pathlib import Path
 
 import pytest
 
-from tnf.cli import STAGES
+from tnf.cli import COMMANDS, STAGES
 from tnf.env import conf_dir
 from tnf.testing import compose
 
 CONF = Path(conf_dir())
 GROUPS = ["objects", "scene", "sensor", "simulator", "generator", "data", "trainer", "logger", "experiment", "debug"]
 OPTIONS = [(g, p.stem) for g in GROUPS for p in sorted((CONF / g).glob("*.yaml"))]
-HYDRA_STAGES = [s for s in STAGES if s != "list"]
+HYDRA_STAGES = [s for s in STAGES if s not in COMMANDS]
 
 
 @pytest.mark.parametrize("stage", HYDRA_STAGES)

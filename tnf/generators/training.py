@@ -54,6 +54,13 @@ class LatestCheckpoint(ModelCheckpoint):
         if self._due(trainer):
             super().on_validation_end(trainer, pl_module)
 
+    def _save_checkpoint(self, trainer: Any, filepath: str) -> None:
+        # The loggers first: a run killed just after this checkpoint resumes after its epoch, so metrics.csv
+        # must already hold that epoch's rows (the CSV logger buffers them until it saves).
+        for lg in trainer.loggers:
+            lg.save()
+        super()._save_checkpoint(trainer, filepath)
+
 
 def make_loggers(logger_cfg: Mapping[str, Any] | None, run_dir: Path) -> list[Any]:
     """CSV metrics (always, ``metrics.csv`` in the run folder) plus the configured logger.

@@ -7,7 +7,10 @@ Finished items are skipped; ``-m sensor=digit,omnitact`` runs several sensors.
 
 from __future__ import annotations
 
+import contextlib
 import zlib
+from collections.abc import Iterator
+from concurrent.futures import wait
 from typing import Any
 
 SPLITS = ("train", "val", "novel_view")
@@ -27,16 +30,33 @@ def item_config(cfg: Any, sensor: Any) -> dict[str, Any]:
     }
 
 
-def _write_png(path: Any, image: Any) -> None:
-    """Write one tactile image as a PNG. Level 1: noisy sensor images barely compress further, and level 6 costs
-    3.5x the time (35 ms per 240x320 Digit frame on one core, more than simulating it)."""
+def _png(image: Any, level: int = 6) -> bytes:
     import io
 
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(image).save(buf, format="PNG", compress_level=1)
-    path.write_bytes(buf.getvalue())
+    Image.fromarray(image).save(buf, format="PNG", compress_level=level)
+    return buf.getvalue()
+
+
+def _write_png(path: Any, image: Any) -> None:
+    """Write one tactile image as a PNG. Level 1: noisy sensor images barely compress further, and level 6 costs
+    3.5x the time (35 ms per 240x320 Digit frame on one core, more than simulating it)."""
+    path.write_bytes(_png(image, level=1))
+
+
+@contextlib.contextmanager
+def _settled(writes: list[Any]) -> Iterator[None]:
+    """On an exception (a failed write, a full disk, Ctrl-C), cancel the image writes not started and wait for the
+    running ones, so that none writes into the item's temporary folder while it is being removed."""
+    try:
+        yield
+    except BaseException:
+        for w in writes:
+            w.cancel()
+        wait(writes)
+        raise
 
 
 def run(cfg: Any) -> None:
@@ -44,10 +64,9 @@ def run(cfg: Any) -> None:
     from concurrent.futures import ThreadPoolExecutor
 
     import numpy as np
-    from PIL import Image
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore
+    from tnf.artifacts import ArtifactStore, require_space
     from tnf.errors import TnfError
     from tnf.objects import select
     from tnf.registry import SENSORS, SIMULATORS
@@ -78,6 +97,11 @@ def run(cfg: Any) -> None:
     device = warp_device(resolve_device(cfg.device))
     sim = SIMULATORS.build(cfg.simulator, sensor=sensor, device=device)
     counts = {"train": int(tc.n_touches), "val": int(tc.n_val), "novel_view": int(tc.n_novel_view)}
+    # What an item takes on disk, at least: its background, and each touch about the size of the background at the
+    # touches' compression (a touch adds contact shading to it, so it compresses a little worse: ~1.3x measured).
+    background_png = _png(sim.background)
+    n_images = sum(counts.values())
+    item_bytes = len(background_png) + n_images * len(_png(sim.background, level=1))
     # PNG encoding releases the GIL: a pool writes images while the simulator runs the next split.
     with progress(cfg.progress) as bar, ThreadPoolExecutor(max(1, min(16, os.cpu_count() or 1))) as pool:
         task = bar.add_task("touch", total=len(todo) * sum(counts.values()))
@@ -89,10 +113,12 @@ def run(cfg: Any) -> None:
             discarded = {}
             item = ("touch", sensor.name, source.name, name)
             info: dict[str, Any] = {}
-            writes = []
-            with store.writing(*item, config=config, info=info) as tmp:
+            writes: list[Any] = []
+            what = f"touch item {store.path(*item)} ({n_images} images of {sensor.width}x{sensor.height})"
+            require_space(store.path(*item), item_bytes, what)  # before simulating what could not be stored
+            with store.writing(*item, config=config, info=info) as tmp, _settled(writes):
                 (tmp / "images").mkdir()
-                Image.fromarray(sim.background).save(tmp / "background.png")
+                (tmp / "background.png").write_bytes(background_png)
                 for split_no, split in enumerate(SPLITS):
                     if counts[split] == 0:
                         discarded[split] = 0
