@@ -104,7 +104,8 @@ def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) ->
     if abs(sx / sy - 1) > 0.01:
         raise TnfError(
             f"sensor {sensor.name!r} images are {sensor.width}x{sensor.height}, the presses' {presses.width}x"
-            f"{presses.height}: the aspect ratios differ"
+            f"{presses.height}: the aspect ratios differ (calibrate the sensor that recorded them, e.g. "
+            f"sensor=gelsight_mini for Taxim's GelSight Mini)"
         )
     want = presses.mm_per_pixel / sx  # mm per sensor pixel
     have = 1e3 * float(np.mean(sensor.pixel_size()))
