@@ -25,15 +25,6 @@ def test_a_truncated_touch_image_is_named_when_the_item_is_opened(touched):
     assert "\n" not in str(e.value)
 
 
-def test_a_touch_image_of_another_size_is_named(touched):
-    from PIL import Image
-
-    png = sorted((touched / "images").glob("*.png"))[0]
-    Image.new("RGB", (7, 9)).save(png)
-    with pytest.raises(TnfError, match=rf"{png.name} is 7x9, the other images of .* 60x80"):
-        TouchItem.load(touched)
-
-
 def test_a_truncated_dataset_array_stops_training_before_the_run_folder(tmp_path, monkeypatch, capsys):
     from tests.generators.test_stages import write_pairs
 

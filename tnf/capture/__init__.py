@@ -269,6 +269,10 @@ def load_transforms(
         intrinsics: ``(fx, fy, cx, cy)`` in pixels (from fl_x/fl_y/cx/cy, or camera_angle_x).
         w, h: image size in pixels.
         depth: [N, H, W] float32 z-depth metres (0 = empty) when every frame has ``depth_file_path``, else None.
+
+    Raises a one-line TnfError naming the file (and the frame) for anything unusable, a ``transform_matrix``
+    that is not a rigid pose included (:func:`pose_problem`: scaled, sheared, mirrored, or a last row other
+    than [0, 0, 0, 1]).
     """
     path = Path(path)
     if path.is_dir():
@@ -320,7 +324,11 @@ def load_transforms(
             raise TnfError(f"{path}: frame {i} transform_matrix has shape {list(m.shape)}, expected [4, 4]")
         if not np.isfinite(m).all():
             raise TnfError(f"{path}: frame {i} transform_matrix holds NaN or infinite values")
-        img_path = path.parent / _rel_path(fr, "file_path", path, i)
+        rel = _rel_path(fr, "file_path", path, i)
+        problem = pose_problem(m)
+        if problem is not None:
+            raise TnfError(f"{path}: frame {i} ({rel!r}) transform_matrix is not a rigid camera pose: {problem}")
+        img_path = path.parent / rel
         if not img_path.suffix and not img_path.is_file():
             img_path = img_path.with_suffix(".png")  # instant-ngp files may omit the extension
         if not img_path.is_file():
@@ -343,6 +351,41 @@ def load_transforms(
             depths.append(d)
     depth = np.stack(depths) if len(depths) == len(frames) else None
     return np.stack(images), np.stack(poses), (fx, fy, cx, cy), w, h, depth
+
+
+# A camera pose's rotation may deviate this much from orthonormal (max |R^T R - I|) and its last row this much
+# from [0, 0, 0, 1]. Poses tnf writes are rigid to float32 rounding (~1e-7); a 4-decimal JSON export is ~1e-4.
+POSE_ROTATION_TOL = 1e-3
+POSE_LAST_ROW_TOL = 1e-6
+
+
+def pose_problem(m: np.ndarray) -> str | None:
+    """What makes the finite 4x4 matrix ``m`` not a rigid transform (rotation + translation), or None.
+
+    Checks the last row against [0, 0, 0, 1] (within ``POSE_LAST_ROW_TOL``) and the 3x3 part for unit-length,
+    orthogonal columns (max |R^T R - I| within ``POSE_ROTATION_TOL``) and a positive determinant (no reflection).
+    """
+    m = np.asarray(m, dtype=np.float64)
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > POSE_LAST_ROW_TOL:
+        return f"its last row is {_fmt(m[3])}, expected [0, 0, 0, 1]"
+    r = m[:3, :3]
+    gram, tol = r.T @ r, POSE_ROTATION_TOL
+    problems = []
+    if np.abs(np.diag(gram) - 1).max() > tol:
+        problems.append(f"columns not unit length (lengths {_fmt(np.sqrt(np.diag(gram)))}, tolerance {tol:g}: scaled)")
+    off = float(np.abs(gram - np.diag(np.diag(gram))).max())
+    if off > tol:
+        problems.append(f"columns not orthogonal (largest dot product {off:.3g}, tolerance {tol:g}: sheared)")
+    det = float(np.linalg.det(r))
+    if det < 0:
+        problems.append(f"a reflection (det {det:.3g}: a mirrored axis)")
+    if problems:
+        return f"not a rotation: {', '.join(problems)}"
+    return None
+
+
+def _fmt(values: np.ndarray) -> str:
+    return "[" + ", ".join(f"{float(x):.4g}" for x in values) + "]"
 
 
 def _field(meta: dict[str, Any], key: str, path: Path, kind: type = float, positive: bool = True, limit=None) -> Any:

@@ -125,24 +125,18 @@ _REDO = "remove the object's touches (`tnf clean touch SENSOR/SOURCE/OBJECT`) an
 
 
 def _check_images(folder: Path, paths: Sequence[Path]) -> None:
-    """Every image of a touch item exists, is whole (its chunks' checksums) and has the background's size, before
-    any rendering starts: a corrupt file is named here, not in a traceback after minutes of work."""
+    """Every image of a touch item in ``folder`` exists and is whole (its chunks' checksums), before any rendering
+    starts: a corrupt file is named here, not in a traceback after minutes of work."""
     from PIL import Image, UnidentifiedImageError
 
-    size = None
     for path in paths:
         if not path.is_file():
             raise TnfError(f"image not found: {path}; {_REDO}")
         try:
             with Image.open(path) as im:
-                this = im.size
                 im.verify()
         except (UnidentifiedImageError, OSError, SyntaxError) as e:
             raise TnfError(f"{path} is not a readable image ({e}); {_REDO}") from None
-        if size is None:
-            size = this
-        elif this != size:
-            raise TnfError(f"{path} is {this[0]}x{this[1]}, the other images of {folder} {size[0]}x{size[1]}; {_REDO}")
 
 
 CROP_DISTANCES = ("contact", "fixed")

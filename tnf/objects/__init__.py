@@ -14,6 +14,7 @@ validated (:func:`validate_mesh`). In-tree sources: ``builtin`` (procedural hous
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,6 +30,11 @@ log = logging.getLogger(__name__)
 
 # A mesh thinner than this along any axis (metres after scaling) is flat, not a solid object.
 MIN_EXTENT = 1e-4
+# Largest extent (metres after scaling) of an object a fingertip sensor touches on a table: about 1 cm to 1 m.
+# Outside REFUSE_SIZE the mesh is refused (a unit mix-up: millimetres read as metres, or a scale applied twice);
+# outside WARN_SIZE a warning is logged.
+REFUSE_SIZE = (1e-3, 10.0)
+WARN_SIZE = (5e-3, 1.5)
 
 
 class ObjectSource:
@@ -56,12 +62,47 @@ class ObjectSource:
         return f"{self.name} object {name!r}"
 
     def load(self, name: str) -> trimesh.Trimesh:
-        """Object ``name`` as a ``trimesh.Trimesh``: metres, centred at the origin, validated, with colours."""
+        """Object ``name`` as a ``trimesh.Trimesh``: metres, centred at the origin, validated, with colours.
+
+        A largest extent outside ``REFUSE_SIZE`` (1 mm .. 10 m) is a TnfError, outside ``WARN_SIZE`` (5 mm .. 1.5 m)
+        a logged warning, both naming the object, its size and ``objects.scale`` (a unit mix-up, most likely).
+        """
         self.check_name(name)
         mesh = self._load(name)
         mesh = centre(mesh)
+        # Size first: a mesh in metres read with objects.scale=0.001 is also "flat", which would hide the cause.
+        size = _largest_extent(mesh)
+        if size is not None and not REFUSE_SIZE[0] <= size <= REFUSE_SIZE[1]:
+            raise TnfError(self.size_message(name, size, refused=True))
         validate_mesh(mesh, self.where(name))
+        if size is not None and not WARN_SIZE[0] <= size <= WARN_SIZE[1]:
+            log.warning("%s", self.size_message(name, size, refused=False))
         return mesh
+
+    def size_message(self, name: str, size: float, refused: bool) -> str:
+        """One line on object ``name`` being ``size`` metres across: implausible (``refused``) or unusual, naming
+        ``objects.scale`` (its value, where the source has one) and the likely fix."""
+        scale = getattr(getattr(self, "cfg", None), "scale", None)
+        has_scale = isinstance(scale, (int, float)) and not isinstance(scale, bool)
+        lo, hi = REFUSE_SIZE if refused else WARN_SIZE
+        head = (
+            f"{self.where(name)}: object {name!r} is {size:.3g} m across (largest extent)"
+            + (f" with objects.scale={scale:g}" if has_scale else "")
+            + (", implausible" if refused else ", unusual")
+            + f" for a tabletop object ({_metres(lo)} .. {_metres(hi)}{' allowed' if refused else ' expected'})"
+        )
+        if not has_scale:
+            return f"{head}; source {self.name!r} has no objects.scale setting: its meshes must be in metres"
+        scale = float(scale)  # type: ignore[arg-type]
+        # The power of 1000 (mm <-> m <-> km) that brings the object nearest to 10 cm across.
+        factor = 1000.0 ** min(max(round((math.log10(0.1) - math.log10(size)) / 3), -50), 50)
+        if size > hi:
+            fix = " (a mesh in millimetres needs objects.scale=0.001)" if scale == 1 else ""
+        else:
+            fix = " (a mesh in metres needs objects.scale=1)" if scale != 1 and scale * factor != 1 else ""
+        if factor == 1 or (size < lo and scale == 1):  # no unit nearer to 10 cm, or tiny in the file's own units
+            return f"{head}; check objects.scale if the mesh is not in metres{fix}"
+        return f"{head}; a unit mix-up? objects.scale={scale * factor:g} makes it {size * factor:.3g} m{fix}"
 
     def load_or_skip(self, name: str) -> trimesh.Trimesh | None:
         """Like ``load``, but returns None (and logs why) for an invalid mesh when ``skip_invalid`` is set."""
@@ -102,6 +143,25 @@ def mesh_info(mesh: trimesh.Trimesh) -> dict[str, Any]:
         "vertices": int(len(mesh.vertices)),
         "watertight": bool(mesh.is_watertight),
     }
+
+
+def _largest_extent(mesh: Any) -> float | None:
+    """The largest bounding-box side (metres) of a mesh with faces and finite vertices, else None (validation
+    says what is wrong)."""
+    try:
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        if not len(mesh.faces):
+            return None
+    except (AttributeError, TypeError, ValueError):
+        return None
+    if v.ndim != 2 or v.shape[1] != 3 or not len(v) or not np.isfinite(v).all():
+        return None
+    size = float((v.max(0) - v.min(0)).max())
+    return size if 0 < size < math.inf else None  # a point or an overflow: validation says what is wrong
+
+
+def _metres(x: float) -> str:
+    return f"{x * 1000:g} mm" if x < 0.01 else f"{x:g} m"
 
 
 def centre(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
