@@ -211,9 +211,11 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     """Compose the stage's config with ``overrides`` before Hydra runs it, so that an unknown option, a misspelled
     key or a malformed value is one line (a TnfError) instead of Hydra's report with its search path.
 
-    Sweeps (``-m``), Hydra's flags (``--cfg``...) and ``hydra...`` overrides are left to Hydra itself.
+    A sweep (``-m a=x,y b=z``) is checked one value at a time: each swept value with the others' first values.
+    Hydra's other flags (``--cfg``...) and ``hydra...`` overrides are left to Hydra itself.
     """
-    if any(o.startswith("-") or o.lstrip("+~").startswith("hydra") for o in overrides):
+    multirun = {"-m", "--multirun"}
+    if any((o.startswith("-") and o not in multirun) or o.lstrip("+~").startswith("hydra") for o in overrides):
         return
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -221,26 +223,54 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     from tnf.env import conf_dir
+    from tnf.settings import check_settings
 
     name = "stage/" + stage.replace("-", "_")
+    plain = [o for o in overrides if o not in multirun]
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=conf_dir(), version_base=None):
-            try:
-                cfg = compose(config_name=name, overrides=list(overrides))
-            except MissingConfigException as e:
-                raise TnfError(_missing_option(e, overrides)) from None
-            except (HydraException, OmegaConfBaseException) as e:
-                cause = e.__cause__
-                if isinstance(cause, OmegaConfBaseException) and "Could not override" in str(e):
-                    raise TnfError(_unknown_key(str(e), compose(config_name=name))) from None
-                lines = [ln for ln in str(e).splitlines() if ln.strip() and "search path" not in ln.lower()]
-                raise TnfError(" ".join(lines[:2])) from None
-        from tnf.settings import check_settings
-
-        check_settings(cfg)  # before Hydra makes its run folder
+            for combination in _combinations(plain) if len(plain) < len(overrides) else [plain]:
+                try:
+                    cfg = compose(config_name=name, overrides=combination)
+                except MissingConfigException as e:
+                    raise TnfError(_missing_option(e, combination)) from None
+                except (HydraException, OmegaConfBaseException) as e:
+                    cause = e.__cause__
+                    if isinstance(cause, OmegaConfBaseException) and "Could not override" in str(e):
+                        raise TnfError(_unknown_key(str(e), compose(config_name=name))) from None
+                    lines = [ln for ln in str(e).splitlines() if ln.strip() and "search path" not in ln.lower()]
+                    raise TnfError(" ".join(lines[:2])) from None
+                check_settings(cfg)  # before Hydra makes its run folder
     finally:
         GlobalHydra.instance().clear()
+
+
+def _combinations(overrides: list[str]) -> list[list[str]]:
+    """The overrides of a sweep as plain ones: each swept value once, the other swept keys at their first value.
+    Sweeps Hydra's parser cannot expand here (ranges, globs) keep only their first combination's check to Hydra."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except HydraException as e:
+        raise TnfError(str(e).splitlines()[0]) from None
+    values: list[list[str]] = []
+    for o in parsed:
+        key = o.get_key_element()
+        if o.is_sweep_override():
+            try:
+                values.append([f"{key}={v}" for v in o.sweep_string_iterator()])
+            except (HydraException, TypeError, ValueError):
+                return []
+        else:
+            values.append([str(o.input_line)])
+    out = [[v[0] for v in values]]
+    for i, vs in enumerate(values):
+        for v in vs[1:]:
+            out.append([*(w[0] for w in values[:i]), v, *(w[0] for w in values[i + 1 :])])
+    return out
 
 
 def _missing_option(e: Exception, overrides: Sequence[str]) -> str:

@@ -87,3 +87,18 @@ def test_hydra_config_errors_are_one_line(override, expected, capsys, tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(expected), err
     assert not (tmp_path / "logs").exists()  # refused before Hydra made its run folder
+
+
+@pytest.mark.parametrize(
+    "sweep, expected",
+    [
+        (["generator=tn_cgan,foo", "seed=0,1"], "error: generator=foo: no such generator; options: cyclegan"),
+        (["train.epochs=1,-2"], "error: train.epochs: must be >= 0, got -2"),
+    ],
+)
+def test_a_sweep_with_one_bad_value_is_one_line_before_any_job(sweep, expected, capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("TNF_DATA", str(tmp_path))
+    assert main(["train", "-m", *sweep]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(expected), err
+    assert not (tmp_path / "logs").exists()
