@@ -317,8 +317,13 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
         from tnf.settings import check_settings
 
         try:
-            check_settings(cfg)  # every job of a sweep checks its own settings before any work
-            return fn(cfg)
+            try:
+                check_settings(cfg)  # every job of a sweep checks its own settings before any work
+                return fn(cfg)
+            except (MemoryError, RuntimeError) as e:
+                if isinstance(e, RuntimeError) and not _is_out_of_memory(e):
+                    raise
+                raise TnfError(_out_of_memory(str(getattr(fn, "__module__", "")).rpartition(".")[2], e)) from e
         except TnfError as e:
             if os.environ.get("HYDRA_FULL_ERROR") == "1":
                 raise
@@ -328,6 +333,31 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
     task.__name__ = getattr(fn, "__name__", "task")
     task.__module__ = getattr(fn, "__module__", __name__)
     return task
+
+
+def _is_out_of_memory(e: BaseException) -> bool:
+    """True for the errors PyTorch raises when an allocation fails (CPU or CUDA)."""
+    text = str(e).lower()
+    return "out of memory" in text or "can't allocate memory" in text or "cannot allocate memory" in text
+
+
+def _out_of_memory(stage: str, e: BaseException) -> str:
+    """One line for an allocation that failed where no estimate caught it first: what it asked, what there is."""
+    import re
+
+    from tnf.runtime import available_memory
+
+    m = re.search(r"allocate ([\d.]+) (bytes|[KMGT]i?B)", str(e))
+    asked = ""
+    if m:
+        scale = {"bytes": 1, "KiB": 2**10, "MiB": 2**20, "GiB": 2**30, "TiB": 2**40}.get(m.group(2), 1)
+        asked = f" asking for {float(m.group(1)) * scale / 2**30:.1f} GiB"
+    have = available_memory()
+    free = f"; this machine has {have / 2**30:.1f} GiB available" if have is not None else ""
+    return (
+        f"tnf {stage.replace('_', '-')} ran out of memory{asked}{free}: lower the settings that size its work "
+        "(batch sizes, batch_rays, resolutions, sensor.width and sensor.height)"
+    )
 
 
 def report_error(e: BaseException) -> None:

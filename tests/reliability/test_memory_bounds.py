@@ -26,3 +26,15 @@ def test_a_huge_sensor_is_refused_before_anything_is_allocated(size, capsys, tmp
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "GiB of memory" in err[0] and f"sensor.width={size}, sensor.height={size}" in err[0]
     assert not (tmp_path / "touch").exists()  # nothing written
+
+
+def test_an_allocation_no_estimate_caught_is_one_line_naming_its_size(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("TNF_DATA", str(tmp_path))
+    assert main(["capture", "debug=tiny", "object_names=[ball]", "progress=false"]) == 0
+    capsys.readouterr()
+    assert (
+        main(["fit-scene", "debug=tiny", "object_names=[ball]", "progress=false", "fit.batch_rays=100000000000"]) == 1
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: tnf fit-scene ran out of memory asking for"), err
+    assert not list((tmp_path / "scenes").rglob("manifest.json"))
