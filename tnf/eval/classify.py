@@ -348,4 +348,6 @@ def load_touch_images(
             out[i] = img if size == SIZE else resize_uint8(img, size)
         except FileNotFoundError:
             raise TnfError(f"touch image {path} listed in {folder / 'manifest.json'} is missing") from None
+        except (OSError, ValueError, SyntaxError) as e:  # truncated or not an image
+            raise TnfError(f"touch image {path} is not a readable image ({e}); `tnf clean` its item and redo") from None
     return torch.from_numpy(out).permute(0, 3, 1, 2).contiguous()
