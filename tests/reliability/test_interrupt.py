@@ -169,6 +169,16 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
         steps_a = sorted(float(s["step"]) for s in oa["state"].values())
         steps_b = sorted(float(s["step"]) for s in ob["state"].values())
         assert steps_a == steps_b, "optimiser step counters differ from an uninterrupted run"
+
+    # The metrics history is an uninterrupted run's: every epoch's validation row, once, with the same values.
+    def val_rows(folder):
+        import csv
+
+        rows = [r for r in csv.DictReader(open(folder / "metrics.csv")) if r.get("val_l1")]
+        return [(int(r["epoch"]), round(float(r["val_l1"]), 5)) for r in rows]
+
+    assert val_rows(run_dir) == val_rows(ref / "models" / "tn_cgan_digit-hashgrid")
+    assert [e for e, _ in val_rows(run_dir)] == [0, 1, 2, 3]
     # The weights are an uninterrupted run's, whatever the augmentation (its draws are not in the checkpoint).
     for k, wa in a["state_dict"].items():
         assert torch.allclose(wa.float(), b["state_dict"][k].float(), rtol=1e-4, atol=1e-5), (
