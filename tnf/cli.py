@@ -223,7 +223,7 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     from tnf.env import conf_dir
-    from tnf.settings import check_settings
+    from tnf.settings import check_settings, check_sizes
 
     name = "stage/" + stage.replace("-", "_")
     plain = [o for o in overrides if o not in multirun]
@@ -242,6 +242,7 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
                     lines = [ln for ln in str(e).splitlines() if ln.strip() and "search path" not in ln.lower()]
                     raise TnfError(" ".join(lines[:2])) from None
                 check_settings(cfg)  # before Hydra makes its run folder
+                check_sizes(cfg, stage)
     finally:
         GlobalHydra.instance().clear()
 
@@ -314,11 +315,12 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
     """Print a TnfError as one line and exit 1, instead of Hydra's traceback report."""
 
     def task(cfg: object) -> object:
-        from tnf.settings import check_settings
+        from tnf.settings import check_settings, check_sizes
 
         try:
             try:
                 check_settings(cfg)  # every job of a sweep checks its own settings before any work
+                check_sizes(cfg, str(getattr(fn, "__module__", "")).rpartition(".")[2])
                 return fn(cfg)
             except (MemoryError, RuntimeError) as e:
                 if isinstance(e, RuntimeError) and not _is_out_of_memory(e):

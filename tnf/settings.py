@@ -95,3 +95,44 @@ def _check(value: Any, default: Any, where: str) -> None:
     elif isinstance(default, list):
         if value is not None and not isinstance(value, list):
             raise TnfError(f"{where}: expected a list, got {value!r}")
+
+
+# Bytes that one unit of each size setting needs at the least (a lower bound: a refusal is never wrong).
+_RAY_BYTES = 128  # a fitting ray: origin, direction, target colour, index and at least one sample's features
+_PAIR_PIXEL_BYTES = 16  # a rendered RGB-D pixel as float32
+_IMAGE_BYTES = 128 * 128 * 10 * 4 * 2  # a 128 px training pair (RGB, depth, background, tactile) and its gradient
+
+
+def size_demands(cfg: Any, stage: str) -> list[tuple[float, str, str]]:
+    """``(bytes at least, what, settings)`` for the size settings that ``stage`` (or the pipeline) allocates by."""
+    every = stage == "pipeline"
+
+    def get(section: str, key: str) -> Any:
+        node = cfg.get(section) if hasattr(cfg, "get") else None
+        value = node.get(key) if node is not None and hasattr(node, "get") else None
+        return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+    out: list[tuple[float, str, str]] = []
+    rays = get("fit", "batch_rays")
+    if rays and (every or stage == "fit_scene"):
+        out.append((rays * _RAY_BYTES, "fitting a scene", f"fit.batch_rays={rays}"))
+    batch, px = get("pair", "render_batch"), get("pair", "render_px")
+    if batch and px and (every or stage == "pair"):
+        out.append(
+            (batch * px * px * _PAIR_PIXEL_BYTES, "rendering pairs", f"pair.render_batch={batch}, pair.render_px={px}")
+        )
+    b = get("data", "batch_size")
+    if b and (every or stage in ("train", "finetune")):
+        out.append((b * _IMAGE_BYTES, "a training batch", f"data.batch_size={b}"))
+    g = get("generate", "batch_size")
+    if g and (every or stage == "generate"):
+        out.append((g * _IMAGE_BYTES / 2, "a generation batch", f"generate.batch_size={g}"))
+    return out
+
+
+def check_sizes(cfg: Any, stage: str) -> None:
+    """Refuse (one line) a size setting whose least memory is over what the machine has available."""
+    from tnf.runtime import check_memory
+
+    for need, what, settings in size_demands(cfg, stage.replace("-", "_")):
+        check_memory(need, what, settings)
