@@ -1,6 +1,6 @@
 """Indenter presses: real tactile frames of a known shape pressed into the gel, the data ``tnf calibrate`` fits.
 
-A press folder, which any lab can record (the README gives the protocol)::
+A press folder, which any lab can record (docs/calibration.md gives the protocol)::
 
     <folder>/
         presses.json        what the frames show (below)

@@ -1,4 +1,4 @@
-"""The README's table of settings that change the results names real config keys, with the values they take by
+"""docs/settings.md's table of settings that change the results names real config keys, with the values they take by
 default and in experiment=sim_digit, so the table cannot drift from the configs."""
 
 from pathlib import Path
@@ -9,8 +9,8 @@ from omegaconf import OmegaConf
 
 from tnf.testing import compose
 
-README = Path(__file__).resolve().parents[2] / "README.md"
-SECTION = "## Settings that change the results"
+DOC = Path(__file__).resolve().parents[2] / "docs" / "settings.md"
+SECTION = "# Settings that change the results"
 
 
 def _value(cell: str, default: object = None) -> object:
@@ -21,9 +21,9 @@ def _value(cell: str, default: object = None) -> object:
 
 
 def settings_rows() -> list[tuple[str, object, object]]:
-    """(config key, default value, sim_digit value) for each key of each row of the README's settings table."""
-    text = README.read_text(encoding="utf-8")
-    assert SECTION in text, f"README.md has no section {SECTION!r}"
+    """(config key, default value, sim_digit value) for each key of each row of docs/settings.md's table."""
+    text = DOC.read_text(encoding="utf-8")
+    assert SECTION in text, f"docs/settings.md has no section {SECTION!r}"
     section = text.split(SECTION, 1)[1].split("\n## ", 1)[0]
     rows = []
     for line in section.splitlines():
@@ -51,7 +51,7 @@ def test_readme_setting_matches_the_configs(key, default, sim_digit):
     missing = object()
     for overrides, stated in (([], default), (["experiment=sim_digit"], sim_digit)):
         value = OmegaConf.select(compose("train", overrides), key, default=missing)
-        assert value is not missing, f"README names {key}, which the config does not have"
+        assert value is not missing, f"docs/settings.md names {key}, which the config does not have"
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value)
-        assert value == stated, f"README says {key} is {stated!r} with {overrides or 'the defaults'}, config: {value!r}"
+        assert value == stated, f"docs/settings.md says {key} is {stated!r} with {overrides or 'the defaults'}, config: {value!r}"
