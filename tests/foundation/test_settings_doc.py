@@ -54,4 +54,6 @@ def test_readme_setting_matches_the_configs(key, default, sim_digit):
         assert value is not missing, f"docs/settings.md names {key}, which the config does not have"
         if OmegaConf.is_config(value):
             value = OmegaConf.to_container(value)
-        assert value == stated, f"docs/settings.md says {key} is {stated!r} with {overrides or 'the defaults'}, config: {value!r}"
+        assert value == stated, (
+            f"docs/settings.md says {key} is {stated!r} with {overrides or 'the defaults'}, config: {value!r}"
+        )

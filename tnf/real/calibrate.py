@@ -189,8 +189,6 @@ class _Design:
     slope's) and the targets (real minus background), for one fall-off."""
 
     def __init__(self, sensor: Sensor, sp: SensorPresses, u: np.ndarray, st: FitSettings):
-        from scipy.ndimage import gaussian_filter1d  # noqa: F401 - imported once here, used in fit
-
         n, k = st.table_size, st.table_size**2
         h0 = sensor.gel_surface()
         s0 = sensor.surface_slopes(h0)

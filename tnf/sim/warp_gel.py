@@ -181,6 +181,14 @@ def _gap_histogram(
                 first[b] = o + d * tv
 
 
+@wp.func
+def _stiffness(area: float, e_star: float, thickness: float) -> float:
+    # dF/dd = 2 E* a, a = sqrt(area / pi), stiffened for a thin bonded layer by 1 + 1.33 (a/h) + 1.33 (a/h)^3.
+    a = wp.sqrt(area / wp.pi)
+    s = a / thickness
+    return 2.0 * e_star * a * (1.0 + 1.33 * s + 1.33 * s * s * s)
+
+
 @wp.kernel
 def _solve_force(
     hist: wp.array2d(dtype=wp.int32),
@@ -207,10 +215,7 @@ def _solve_force(
     n = hist.shape[1]
     for k in range(n):
         cnt = float(hist[b, k])
-        area = (below + 0.5 * cnt) * pixel_area
-        a = wp.sqrt(area / wp.pi)
-        s = a / thickness
-        df = 2.0 * e_star * a * (1.0 + 1.33 * s + 1.33 * s * s * s) * step
+        df = _stiffness((below + 0.5 * cnt) * pixel_area, e_star, thickness) * step
         if f + df >= f_target and df > 0.0:
             frac = (f_target - f) / df
             depth[b] = (float(k) + frac) * step
@@ -251,10 +256,7 @@ def _force_at_depth(
         if lo >= d:
             break
         cnt = float(hist[b, k])
-        area = (below + 0.5 * cnt) * pixel_area
-        a = wp.sqrt(area / wp.pi)
-        s = a / thickness
-        f += 2.0 * e_star * a * (1.0 + 1.33 * s + 1.33 * s * s * s) * (wp.min(d - lo, step))
+        f += _stiffness((below + 0.5 * cnt) * pixel_area, e_star, thickness) * wp.min(d - lo, step)
         below += cnt
     depth[b] = d
     force[b] = f
@@ -429,6 +431,21 @@ def _power(x: float, e: float, ie: int) -> float:
     return out
 
 
+@wp.func
+def _slope(h0: wp.array2d(dtype=float), u: wp.array3d(dtype=float), b: int, r: int, c: int, dx: float, dy: float):
+    # Slope (dh/dx, dh/dy) of the deformed gel's outward height h = h0 - u at pixel (r, c): central differences,
+    # one-sided at the border (``Sensor.surface_slopes`` on the host). Rows grow toward -y.
+    hh = u.shape[1]
+    ww = u.shape[2]
+    rm = wp.max(r - 1, 0)
+    rp = wp.min(r + 1, hh - 1)
+    cm = wp.max(c - 1, 0)
+    cp = wp.min(c + 1, ww - 1)
+    sx = (h0[r, cp] - u[b, r, cp] - h0[r, cm] + u[b, r, cm]) / (float(cp - cm) * dx)
+    sy = (h0[rm, c] - u[b, rm, c] - h0[rp, c] + u[b, rp, c]) / (float(rp - rm) * dy)
+    return wp.vec2(sx, sy)
+
+
 @wp.kernel
 def _shade(
     u: wp.array3d(dtype=float),
@@ -451,26 +468,16 @@ def _shade(
     diff: wp.array3d(dtype=wp.vec3),
 ):
     b, r, jb = wp.tid()
-    hh = u.shape[1]
     ww = u.shape[2]
     c0 = jb * span
     c1 = wp.min(c0 + span, ww)
-    rm = wp.max(r - 1, 0)
-    rp = wp.min(r + 1, hh - 1)
     for c in range(c0, c1):
         if gel[r, c] == wp.uint8(0):
             diff[b, r, c] = wp.vec3(0.0)
         else:
-            # Outward height of the deformed gel; the surface is z = -(cam_dist + height).
-            cm = wp.max(c - 1, 0)
-            cp = wp.min(c + 1, ww - 1)
-            hcp = h0[r, cp] - u[b, r, cp]
-            hcm = h0[r, cm] - u[b, r, cm]
-            hrp = h0[rp, c] - u[b, rp, c]
-            hrm = h0[rm, c] - u[b, rm, c]
-            dzdx = -(hcp - hcm) / (float(cp - cm) * dx)
-            dzdy = (hrp - hrm) / (float(rp - rm) * dy)  # rows grow toward -y
-            n = _unit(wp.vec3(-dzdx, -dzdy, 1.0))
+            # Outward height of the deformed gel; the surface is z = -(cam_dist + height), its normal (sx, sy, 1).
+            sl = _slope(h0, u, b, r, c, dx, dy)
+            n = _unit(wp.vec3(sl[0], sl[1], 1.0))
             p2 = xy[r, c]
             p = wp.vec3(p2[0], p2[1], -(cam_dist + h0[r, c] - u[b, r, c]))
             view = _unit(-p)
@@ -506,34 +513,24 @@ def _shade_table(
     h0: wp.array2d(dtype=float),
     gel: wp.array2d(dtype=wp.uint8),
     table: wp.array2d(dtype=wp.vec3),
+    base: wp.array2d(dtype=wp.vec3),
     max_slope: float,
     dx: float,
     dy: float,
     span: int,
     diff: wp.array3d(dtype=wp.vec3),
 ):
-    # Calibrated shading: the colour change is the table at the deformed surface's slope minus the table at the
-    # undeformed slope. Slopes by central differences, clamped at the border (``surface_slopes`` on the host).
+    # Calibrated shading: the table at the deformed surface's slope minus ``base``, the table at the undeformed
+    # slope (computed once on the host, as the lit undeformed gel is for ``_shade``).
     b, r, jb = wp.tid()
-    hh = u.shape[1]
-    ww = u.shape[2]
     c0 = jb * span
-    c1 = wp.min(c0 + span, ww)
-    rm = wp.max(r - 1, 0)
-    rp = wp.min(r + 1, hh - 1)
+    c1 = wp.min(c0 + span, u.shape[2])
     for c in range(c0, c1):
         if gel[r, c] == wp.uint8(0):
             diff[b, r, c] = wp.vec3(0.0)
         else:
-            cm = wp.max(c - 1, 0)
-            cp = wp.min(c + 1, ww - 1)
-            gx = 1.0 / (float(cp - cm) * dx)
-            gy = 1.0 / (float(rp - rm) * dy)  # rows grow toward -y
-            sx0 = (h0[r, cp] - h0[r, cm]) * gx
-            sy0 = (h0[rm, c] - h0[rp, c]) * gy
-            sx = (h0[r, cp] - u[b, r, cp] - h0[r, cm] + u[b, r, cm]) * gx
-            sy = (h0[rm, c] - u[b, rm, c] - h0[rp, c] + u[b, rp, c]) * gy
-            diff[b, r, c] = _table(table, sx, sy, max_slope) - _table(table, sx0, sy0, max_slope)
+            sl = _slope(h0, u, b, r, c, dx, dy)
+            diff[b, r, c] = _table(table, sl[0], sl[1], max_slope) - base[r, c]
 
 
 @wp.kernel
@@ -695,7 +692,10 @@ class WarpGel:
         self.calibration = cal
         self.falloff = cal.falloff if cal is not None else cfg.falloff
         self.noise_std = cal.noise_std if cal is not None else s.cfg.noise_std
-        self._table = wp.array(cal.table, dtype=wp.vec3, device=dev) if cal is not None else None
+        self._table = self._table_base = None
+        if cal is not None:
+            self._table = wp.array(cal.table, dtype=wp.vec3, device=dev)
+            self._table_base = wp.array(cal.shade(s.surface_slopes(h0)), dtype=wp.vec3, device=dev)
         sigma = cal.blur_sigma if cal is not None else s.cfg.blur_sigma
         if sigma > 0:
             radius = max(1, int(math.ceil(3 * sigma)))
@@ -926,7 +926,7 @@ class WarpGel:
         if self._table is not None:
             cal = self.calibration
             assert cal is not None
-            args = [u, self._h0, self._gel, self._table, cal.max_slope, dx, dy, span, diff]
+            args = [u, self._h0, self._gel, self._table, self._table_base, cal.max_slope, dx, dy, span, diff]
             wp.launch(_shade_table, rows, args, device=dev)
         elif s.custom_shading:
             diff = self._shade_on_host(u)
