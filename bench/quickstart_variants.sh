@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Quick-start variants on several seeds, scored on the validation split only (never a test split).
+# Usage: bash bench/quickstart_variants.sh   (env: SEEDS="0 1 2", VARIANTS="base sensor residual more",
+#        DEVICE=cuda TRAINER=gpu, ROOT=/tmp/qs, OUT=folder for the logs and the table)
+# Per seed, capture and fit-scene run once; each variant then copies the fitted scenes and runs touch, pair and
+# train on its own store, all variants and seeds in parallel. Each run is scored with bench/val_metrics.py
+# (mirror-averaged, as the quick start generates) beside BG; the table goes to $OUT/variants.txt.
+set -euo pipefail
+export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+seeds=(${SEEDS:-0 1 2})
+variants=(${VARIANTS:-base sensor residual more})
+root=${ROOT:-/tmp/qs}
+out=${OUT:-$root/out}
+dev=(device=${DEVICE:-cuda} trainer=${TRAINER:-gpu} progress=false ${EXTRA:-})
+[[ ${TRAINER:-gpu} == gpu ]] && dev+=(trainer.precision=32-true)
+mkdir -p "$out"
+tnf() { python -m tnf.cli "$@"; }
+overrides() {  # the settings of each variant, on top of experiment=quickstart
+  case $1 in
+    base) ;;
+    sensor) echo pair.crop_extent=sensor ;;
+    residual) echo pair.crop_extent=sensor generator=tn_cgan ;;
+    more) echo pair.crop_extent=sensor generator=tn_cgan touch.n_touches=200 train.epochs=15 train.decay_epochs=8 ;;
+    *) echo "unknown variant $1" >&2; return 1 ;;
+  esac
+}
+t0=$SECONDS
+for s in "${seeds[@]}"; do
+  (tnf pipeline "${dev[@]}" seed=$s data_root=$root/s$s/scenes "pipeline.stages=[capture,fit-scene]" \
+    >"$out/scenes-s$s.log" 2>&1 || { tail -20 "$out/scenes-s$s.log"; exit 1; }) &
+done
+wait
+echo "scenes: $((SECONDS - t0)) s"
+for s in "${seeds[@]}"; do
+  for v in "${variants[@]}"; do
+    (
+      r=$root/s$s/$v
+      mkdir -p "$r" && cp -r "$root/s$s/scenes/." "$r/"
+      read -ra o <<<"$(overrides "$v")"
+      tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v \
+        "pipeline.stages=[touch,pair,train]" >"$out/$v-s$s.log" 2>&1 || { tail -30 "$out/$v-s$s.log"; exit 1; }
+      ds=$(basename "$(ls -d "$r"/pairs/*/ | head -1)")
+      python bench/val_metrics.py --data-root "$r" --dataset "$ds" --split val --mirror-average \
+        --device "${DEVICE:-cuda}" "$v" >"$out/val-$v-s$s.txt" 2>&1
+    ) &
+  done
+done
+wait
+echo "variants: $((SECONDS - t0)) s"
+for f in "$out"/val-*.txt; do echo "== $(basename "$f" .txt)"; tail -8 "$f"; done | tee "$out/variants.txt"
