@@ -344,3 +344,23 @@ def test_parallel_jobs_rebuild_the_report_one_at_a_time(data_root, capsys):
         rebuilds
         and "| Novel view | T-N | 0.970 ± 0.000 | 0.980 ± 0.001 | 21.0 ± 1.0 |" in (report / "report.md").read_text()
     )
+
+
+def test_report_opens_with_its_verdict_in_plain_words(tmp_path):
+    results = [_result("main", "T-N", s, 0.97, 20.0, 95.0) for s in range(3)]
+    write_report(results, tmp_path / "ok", name="tiny", next_step="Next: `tnf pipeline experiment=sim_digit`.")
+    first = (tmp_path / "ok" / "report.md").read_text().split("\n\n")[1]
+    assert first.startswith("**Every claim of the paper that this run checks holds (3 of 3, on 3 seeds).**")
+    assert "T-N's generated touches are closer to the true ones than the background image on novel objects" in first
+    assert "a better object classifier (96.0 ± 0.6 % against 81.0 ± 0.6 %)" in first
+    assert "T-N's SSIM here (novel view / novel object: 0.970 / 0.960) is below the paper's (0.980 / 0.961)" in first
+    assert first.endswith("Next: `tnf pipeline experiment=sim_digit`.")
+    # T-N under BG in SSIM on the novel object: the verdict names the failed claim first, and no longer says
+    # that T-N's images beat the background image
+    write_report([_result("main", "T-N", 0, 0.91, 20.0, 95.0)], tmp_path / "bad", name="tiny")
+    first = (tmp_path / "bad" / "report.md").read_text().split("\n\n")[1]
+    assert first.startswith(
+        "**2 of 3 claims of the paper hold on 1 seed; these do not: T-N above BG in SSIM on novel objects "
+        "(0.900 against 0.920).**"
+    )
+    assert "closer to the true ones" not in first

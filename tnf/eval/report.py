@@ -18,6 +18,7 @@ import csv
 import io
 import json
 import math
+import re
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -270,19 +271,98 @@ def environments(runs: Sequence[dict[str, Any]]) -> list[str]:
     return [*lines, ""]
 
 
+def _plain(claim: str) -> str:
+    """A check's claim in words: ``T-N SSIM > BG SSIM (novel view)`` -> ``T-N above BG in SSIM on novel views``."""
+    m = re.fullmatch(r"(\S+) (SSIM|MSE) ([<>]) (\S+) (?:SSIM|MSE) \((.+)\)", claim)
+    if not m:
+        return claim.replace(" > ", " above ").replace(" < ", " below ")
+    a, metric, op, b, where = m.groups()
+    return f"{a} {'above' if op == '>' else 'below'} {b} in {metric} on {where}s"
+
+
+def verdict(tables: dict[str, TableData], next_step: str | None = None) -> str:
+    """The report's first paragraph, in plain words: whether the paper's claims that the run checks hold, how
+    the primary method's SSIM compares with the paper's, then ``next_step`` (the experiment's own words)."""
+    parts: list[str] = []
+    for table in sorted(tables, key=lambda t: (t not in TABLES, t)):
+        data = tables[table]
+        cks = checks(table, data)
+        if not cks:
+            continue
+        label = f" (Table {TABLES.get(table, (table,))[0]})" if len(tables) > 1 else ""
+        seeds = len({r["seed"] for r in data.runs if r["method"] == PRIMARY})
+        on = f"on {seeds} seed{'s' if seeds != 1 else ''}" if seeds else "so far"
+        failed = [(c, d) for c, v, d in cks if v == "FAILS"]
+        noisy = sum(v == "holds (within noise)" for _, v, _ in cks)
+        if failed:
+            listed = "; ".join(f"{_plain(c)} ({d.replace(' vs ', ' against ')})" for c, d in failed)
+            held = f"{len(cks) - len(failed)} of {len(cks)}"
+            parts.append(f"**{held} claims of the paper hold{label} {on}; these do not: {listed}.**")
+        else:
+            close = f", {noisy} of them by less than the spread between seeds" if noisy else ""
+            count = f"{len(cks)} of {len(cks)}, {on}{close}"
+            parts.append(f"**Every claim of the paper that this run checks holds{label} ({count}).**")
+        test_sets = sorted({k[0] for k in data.image} - {"all"}, key=lambda t: (t != "novel_view", t))
+        image_failed = any("accuracy" not in c for c, _ in failed)
+        baselines = [m for m in _ordered_methods(table, data) if not m.startswith(PRIMARY)]
+        compared = [
+            t for t in test_sets if (t, PRIMARY) in data.image and any((t, m) in data.image for m in [BG, *baselines])
+        ]
+        if compared and not image_failed:
+            rivals = ["the background image"] + baselines
+            where = " and ".join(TEST_SET_NAMES.get(t, t).lower() + "s" for t in compared)
+            parts.append(
+                f"{PRIMARY}'s generated touches are closer to the true ones than {', '.join(rivals)} on {where}, "
+                "in SSIM and in MSE."
+            )
+        sim, with_primary = data.accuracy.get("Sim"), data.accuracy.get(f"Sim + {PRIMARY}")
+        if sim and with_primary:
+            better = "a better" if with_primary.mean > sim.mean else "no better"
+            parts.append(
+                f"Added to the simulator's touches, {PRIMARY}'s touches train {better} object classifier "
+                f"({fmt_stat(with_primary, 'acc')} % against {fmt_stat(sim, 'acc')} %)."
+            )
+        paper = PAPER.get(table, {}).get("image", {})
+        ours = [
+            (t, data.image[(t, PRIMARY)]["ssim"], paper[(t, PRIMARY)]["ssim"])
+            for t in test_sets
+            if "ssim" in data.image.get((t, PRIMARY), {}) and (t, PRIMARY) in paper
+        ]
+        if ours:
+            names = " / ".join(TEST_SET_NAMES.get(t, t).lower() for t, _, _ in ours)
+            here = " / ".join(fmt_stat(o, "ssim").split(" ")[0] for _, o, _ in ours)
+            theirs = " / ".join(fmt_stat(p, "ssim").split(" ")[0] for _, _, p in ours)
+            level = (
+                "below"
+                if all(o.mean < p[0] for _, o, p in ours)
+                else "at or above"
+                if all(o.mean >= p[0] for _, o, p in ours)
+                else "around"
+            )
+            parts.append(f"{PRIMARY}'s SSIM here ({names}: {here}) is {level} the paper's ({theirs}).")
+    if not parts:
+        parts.append("**No claim of the paper can be checked yet**: the rows it compares are missing.")
+    if next_step and next_step.strip():
+        parts.append(next_step.strip())
+    return " ".join(parts)
+
+
 def render_markdown(
     name: str,
     tables: dict[str, TableData],
     figures: dict[str, list[tuple[str, str]]],
     notes: str | None = None,
     timings: Sequence[dict[str, Any]] = (),
+    next_step: str | None = None,
 ) -> str:
     """The report as Markdown; ``figures[table]`` lists (caption, relative path) of its PNGs; ``timings`` are the
     pipeline's wall times per model (see ``wall_times``); ``notes`` (the experiment's own words, e.g. why a
-    figure falls short of the paper's) end it."""
+    figure falls short of the paper's) end it; ``next_step`` (what to run next) ends the opening verdict."""
     n_runs = sum(len(t.runs) for t in tables.values())
     lines = [
         f"# tnf evaluation report: {name}",
+        "",
+        verdict(tables, next_step),
         "",
         f"Written {time.strftime('%Y-%m-%d %H:%M')} from {n_runs} evaluated run(s). Every number is the mean ± "
         "standard error over seeds (column `seeds`; one seed: its value alone); the paper's figures are beside "
@@ -358,7 +438,11 @@ def render_markdown(
 
 
 def write_report(
-    results: Sequence[dict[str, Any]], folder: str | Path, name: str | None = None, notes: str | None = None
+    results: Sequence[dict[str, Any]],
+    folder: str | Path,
+    name: str | None = None,
+    notes: str | None = None,
+    next_step: str | None = None,
 ) -> dict[str, TableData]:
     """Aggregate ``results`` (per-run dicts, see tnf.eval.aggregate) and write the report into ``folder``.
 
@@ -439,7 +523,7 @@ def write_report(
                     figs.append((caption, _relpath(ex, folder)))
         figures[table] = figs
     timings = [json.loads(p.read_text()) for p in sorted((folder / "timings").glob("*.json"))]
-    md = render_markdown(name or folder.name, tables, figures, notes, timings)
+    md = render_markdown(name or folder.name, tables, figures, notes, timings, next_step)
     write_bytes(folder / "report.md", md.encode())
     return tables
 

@@ -72,7 +72,7 @@ def run(cfg: Any) -> dict[str, Any]:
         # Everything that changes the numbers; not the report's name or notes, progress or the sweep folder, nor
         # where the store lives (a store that is moved or mounted elsewhere keeps its finished results).
         hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate", "data_root")}
-        report_only = ("name", "notes", "sweep_dir", "force")
+        report_only = ("name", "notes", "next", "sweep_dir", "force")
         hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in report_only}
         chash = config_hash(hashed)
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
@@ -109,7 +109,14 @@ def run(cfg: Any) -> dict[str, Any]:
         if not files:
             raise nothing
         notes = ecfg.get("notes")
-        tables = write_report(load_results(files), report_dir, name=str(ecfg.name), notes=str(notes) if notes else None)
+        next_step = ecfg.get("next")
+        tables = write_report(
+            load_results(files),
+            report_dir,
+            name=str(ecfg.name),
+            notes=str(notes) if notes else None,
+            next_step=str(next_step) if next_step else None,
+        )
     _print_summary(console, tables, report_dir)
     out["report"] = report_dir / "report.md"
     out["tables"] = tables
@@ -369,8 +376,9 @@ def _seeds(stats: Mapping[str, Any]) -> str:
 def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) -> None:
     from rich.table import Table
 
-    from tnf.eval.report import TABLES, accuracy_rows, against_paper, checks, fmt_stat, image_rows
+    from tnf.eval.report import TABLES, accuracy_rows, against_paper, checks, fmt_stat, image_rows, verdict
 
+    console.print(verdict(dict(tables)).replace("**", ""))
     for name, data in tables.items():
         num = TABLES.get(name, (name,))[0]
         rows = image_rows(name, data)

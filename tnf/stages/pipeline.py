@@ -11,6 +11,7 @@ model per job and all jobs fill one report.
 from __future__ import annotations
 
 import importlib
+import json
 import time
 from typing import Any
 
@@ -49,11 +50,15 @@ def run(cfg: Any) -> dict[str, Any]:
 
     times: dict[str, float] = {}
     results: dict[str, Any] = {}
+    expected = expected_times(cfg)
     t_all = time.perf_counter()
     for i, stage in enumerate(stages, 1):
         if stage == "evaluate":  # the report it writes shows this run's wall times so far
             _write_timings(cfg, times, None)
-        console.rule(f"[bold]pipeline {i}/{len(stages)}: {stage}")
+        left = time_left(stages[i - 1 :], times, expected)
+        eta = f" · about {_clock(left)} left" if left is not None else ""
+        so_far = _clock(time.perf_counter() - t_all)
+        console.rule(f"[bold]pipeline {i}/{len(stages)}: {stage}[/] · {so_far} so far{eta}")
         module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
         t0 = time.perf_counter()
         results[stage] = module.run(cfg)
@@ -61,6 +66,44 @@ def run(cfg: Any) -> dict[str, Any]:
     total = time.perf_counter() - t_all
     _summary(console, cfg, stages, times, total, results.get("evaluate"))
     return {"times": times, "total": total, "model": str(cfg.generate.model)}
+
+
+def expected_times(cfg: Any) -> dict[str, float]:
+    """Seconds each stage is expected to take: the last finished run of this experiment in this store (its
+    ``timings`` file), else the experiment's ``pipeline.expected_s`` (measured on 2 CPU cores), else none."""
+    from tnf.artifacts import ArtifactStore
+
+    folder = ArtifactStore(cfg.data_root).path("reports", str(cfg.evaluate.name), "timings")
+    done = []
+    for path in folder.glob("*.json") if folder.is_dir() else []:
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(record, dict) and record.get("total_s") and isinstance(record.get("stages"), dict):
+            done.append((path.stat().st_mtime, record["stages"]))
+    if done:
+        return {str(k): float(v) for k, v in max(done, key=lambda d: d[0])[1].items()}
+    given = cfg.pipeline.get("expected_s")
+    return {str(k): float(v) for k, v in given.items()} if given else {}
+
+
+def time_left(todo: list[str], done: dict[str, float], expected: dict[str, float]) -> float | None:
+    """Seconds left for the stages ``todo``: their expected times, scaled by how the stages ``done`` so far
+    compared with theirs. Stages that took under a quarter of their expected time (work the store already held)
+    do not set the scale. None when a stage to do has no expected time."""
+    if any(s not in expected for s in todo):
+        return None
+    ran = [s for s in done if s in expected and expected[s] > 0 and done[s] >= 0.25 * expected[s]]
+    scale = sum(done[s] for s in ran) / sum(expected[s] for s in ran) if ran else 1.0
+    return scale * sum(expected[s] for s in todo)
+
+
+def _clock(seconds: float) -> str:
+    """``m:ss`` (``h:mm:ss`` from an hour)."""
+    m, s = divmod(round(seconds), 60)
+    h, m = divmod(m, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
 
 
 def model_run_name(cfg: Any) -> str:
