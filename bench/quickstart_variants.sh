@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
 # Quick-start variants on several seeds, scored on the validation split only (never a test split).
 # Usage: bash bench/quickstart_variants.sh   (env: SEEDS="0 1 2", VARIANTS="base sensor residual more",
-#        DEVICE=cuda TRAINER=gpu, ROOT=/tmp/qs, OUT=folder for the logs and the table)
+#        DEVICE=cuda TRAINER=gpu, ROOT=/tmp/qs, OUT=folder for the logs and the table, CLASSIFY=1)
 # Per seed, capture and fit-scene run once; each variant then copies the fitted scenes and runs touch, pair and
 # train on its own store, all variants and seeds in parallel. Each run is scored with bench/val_metrics.py
-# (mirror-averaged, as the quick start generates) beside BG; the table goes to $OUT/variants.txt.
+# (mirror-averaged, as the quick start generates) beside BG; the table goes to $OUT/variants.txt. CLASSIFY=1 also
+# generates and runs the classification task with the validation touches as its test set (evaluate.name=val,
+# no image metrics), and adds each run's Sim and Sim + T-N accuracy to the table.
 set -euo pipefail
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 seeds=(${SEEDS:-0 1 2})
@@ -21,6 +23,8 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     sensor) echo pair.crop_extent=sensor ;;
     residual) echo pair.crop_extent=sensor generator=tn_cgan ;;
     more) echo pair.crop_extent=sensor generator=tn_cgan touch.n_touches=200 train.epochs=15 train.decay_epochs=8 ;;
+    cls) echo "$(overrides more) touch.n_val=20 touch.n_novel_view=30 generate.n_poses=40" \
+      evaluate.classifier.real_fraction=0.5 evaluate.classifier.steps=300 ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
@@ -42,6 +46,12 @@ for s in "${seeds[@]}"; do
       ds=$(basename "$(ls -d "$r"/pairs/*/ | head -1)")
       python bench/val_metrics.py --data-root "$r" --dataset "$ds" --split val --mirror-average \
         --device "${DEVICE:-cuda}" "$v" >"$out/val-$v-s$s.txt" 2>&1
+      if [[ ${CLASSIFY:-0} == 1 ]]; then
+        tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v "pipeline.stages=[generate,evaluate]" \
+          evaluate.name=val "evaluate.splits=[]" "evaluate.classify.test_splits=[val]" >"$out/cls-$v-s$s.log" 2>&1 ||
+          { tail -30 "$out/cls-$v-s$s.log"; exit 1; }
+        grep -E "^(Sim|Sim \+ T-N)," "$r/reports/val/table1b_accuracy.csv" >>"$out/val-$v-s$s.txt"
+      fi
     ) &
   done
 done
