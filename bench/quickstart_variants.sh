@@ -25,6 +25,9 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     more) echo pair.crop_extent=sensor generator=tn_cgan touch.n_touches=200 train.epochs=15 train.decay_epochs=8 ;;
     cls) echo "$(overrides more) touch.n_val=20 touch.n_novel_view=30 generate.n_poses=40" \
       evaluate.classifier.real_fraction=0.5 evaluate.classifier.steps=300 ;;
+    gan) echo "$(overrides more) generator.lambda_gan=0.1" ;;
+    gancls) echo "$(overrides cls) generator.lambda_gan=0.1" ;;
+    gan1cls) echo "$(overrides cls) generator.lambda_gan=1.0" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
