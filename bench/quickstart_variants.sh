@@ -6,7 +6,9 @@
 # train on its own store, all variants and seeds in parallel. Each run is scored with bench/val_metrics.py
 # (mirror-averaged, as the quick start generates) beside BG; the table goes to $OUT/variants.txt. CLASSIFY=1 also
 # generates and runs the classification task with the validation touches as its test set (evaluate.name=val,
-# no image metrics), and adds each run's Sim and Sim + T-N accuracy to the table.
+# no image metrics), and adds each run's Sim and Sim + T-N accuracy to the table. With NOVEL=1 that evaluation
+# also scores the novel_object split: give the variants validation objects of their own to hold out (never the
+# quick start's test object), and SCENE_OBJECTS=a,b,... every object the variants use, fitted once per seed.
 set -euo pipefail
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 seeds=(${SEEDS:-0 1 2})
@@ -28,12 +30,17 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     gan) echo "$(overrides more) generator.lambda_gan=0.1" ;;
     gancls) echo "$(overrides cls) generator.lambda_gan=0.1" ;;
     gan1cls) echo "$(overrides cls) generator.lambda_gan=1.0" ;;
+    # round 4: bottle and gear held out as validation novel objects (drawn at random), banana left out
+    r3v) echo "$(overrides gan1cls) object_names=[box,can,mug,bottle,gear] pair.novel_objects=[bottle,gear]" ;;
+    widev) echo "$(overrides gan1cls) object_names=[box,can,mug,pepper,spray_can,bottle,gear]" \
+      pair.novel_objects=[bottle,gear] touch.n_touches=120 ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
 t0=$SECONDS
 for s in "${seeds[@]}"; do
   (tnf pipeline "${dev[@]}" seed=$s data_root=$root/s$s/scenes "pipeline.stages=[capture,fit-scene]" \
+    ${SCENE_OBJECTS:+object_names=[$SCENE_OBJECTS]} \
     >"$out/scenes-s$s.log" 2>&1 || { tail -20 "$out/scenes-s$s.log"; exit 1; }) &
 done
 wait
@@ -51,9 +58,11 @@ for s in "${seeds[@]}"; do
         --device "${DEVICE:-cuda}" "$v" >"$out/val-$v-s$s.txt" 2>&1
       if [[ ${CLASSIFY:-0} == 1 ]]; then
         tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v "pipeline.stages=[generate,evaluate]" \
-          evaluate.name=val "evaluate.splits=[]" "evaluate.classify.test_splits=[val]" >"$out/cls-$v-s$s.log" 2>&1 ||
+          evaluate.name=val "evaluate.splits=[${NOVEL:+novel_object}]" "evaluate.classify.test_splits=[val]" \
+          >"$out/cls-$v-s$s.log" 2>&1 ||
           { tail -30 "$out/cls-$v-s$s.log"; exit 1; }
         grep -E "^(Sim|Sim \+ T-N)," "$r/reports/val/table1b_accuracy.csv" >>"$out/val-$v-s$s.txt"
+        [[ -z ${NOVEL:-} ]] || grep -E "^novel_object,(T-N|BG)," "$r/reports/val/table1a_image.csv" >>"$out/val-$v-s$s.txt"
       fi
     ) &
   done
