@@ -98,6 +98,8 @@ def dev(session: nox.Session) -> None:
 # TACTO 0.0.3 as released: its urdfpy needs networkx 2.2, which imports on Python 3.8 at the latest, and it uses
 # np.float, which numpy 1.24 removed.
 TACTO = ["tacto==0.0.3", "numpy<1.24", "pyglet<2"]
+# The Python 3.8 that TACTO's environment is made with (under pyenv: $(pyenv root)/versions/3.8.18/bin/python3.8).
+TACTO_PYTHON = os.environ.get("TNF_TACTO_PYTHON", "python3.8")
 
 
 @nox.session(python=PYTHON)
@@ -109,6 +111,6 @@ def peers(session: nox.Session) -> None:
     session.install("jax==0.10.2", "jaxlib==0.10.2")
     tacto = ROOT / ".nox" / "peers-tacto"
     if not (tacto / "bin" / "python").is_file():
-        session.run("python3.8", "-m", "venv", str(tacto), external=True)
+        session.run(TACTO_PYTHON, "-m", "venv", str(tacto), external=True)
         session.run(str(tacto / "bin" / "pip"), "install", *TACTO, external=True)
     session.run("python", "bench/peers.py", "--tacto-python", str(tacto / "bin" / "python"), *session.posargs, env=ENV)
