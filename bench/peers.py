@@ -196,7 +196,9 @@ def taxim_maps(centres: np.ndarray, depths_mm: np.ndarray, runs: int, with_shado
 def row(workload: str, size: str, name: str, r: dict, ref: dict | None, note: str = "") -> str:
     best, median = min(r["wall_ms"]), statistics.median(r["wall_ms"])
     ratio = f"{min(r['wall_ms']) / min(ref['wall_ms']):.1f}x" if ref is not None else "1.0x"
-    return f"| {workload} | {size} | {name} | {best:.2f} | {median:.2f} | {1e3 / best:,.0f} | {ratio} | {note} |"
+    cpu = min(r["cpu_ms"])
+    cells = [workload, size, name, f"{best:.2f}", f"{median:.2f}", f"{cpu:.2f}", f"{1e3 / best:,.0f}", ratio, note]
+    return "| " + " | ".join(cells) + " |"
 
 
 def main() -> None:
@@ -224,8 +226,9 @@ def main() -> None:
     machine = f"{env.get('accelerator')}, {cores} CPU cores, load average {load} at the start"
     print(f"machine: {machine}", flush=True)
     lines = [
-        "| workload | size (w x h) | simulator | best ms/frame | median ms/frame | frames/s | time vs tnf | notes |",
-        "|---|---|---|---|---|---|---|---|",
+        "| workload | size (w x h) | simulator | best ms/frame | median ms/frame | CPU ms/frame | frames/s "
+        "| time vs tnf | notes |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     skipped: list[str] = []
 
@@ -267,7 +270,22 @@ def main() -> None:
                 print(lines[-1], flush=True)
         except ImportError as e:
             skipped.append(f"Taxim: {e} (pip install taxim jax)")
-    report = "\n".join([f"Machine: {machine}.", "", *lines, ""])
+    here = Path.cwd()
+    shown = [
+        os.path.relpath(a, here) if Path(a).is_absolute() and Path(a).is_relative_to(here) else a for a in sys.argv
+    ]
+    command = "python bench/peers.py " + " ".join(shown[1:])
+    head = [
+        "# Peers timed side by side",
+        "",
+        f"Machine: {machine}. Command: `{command}` (`nox -s peers` runs it with TACTO's environment).",
+        "",
+        "ms/frame: wall clock, best and median of the runs. CPU ms/frame: this process's CPU time (TACTO's: its",
+        "process's, Mesa's threads included), best run. Time vs tnf: the best wall time over tnf's on the same",
+        "workload. The workloads, and what each simulator does per frame: the docstring of bench/peers.py.",
+        "",
+    ]
+    report = "\n".join([*head, *lines, ""])
     if skipped:
         report += "\nNot run: " + "; ".join(skipped) + ".\n"
         print("not run: " + "; ".join(skipped))
