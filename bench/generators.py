@@ -2,6 +2,7 @@
 
     python bench/generators.py --device cuda [--generators tn_cgan,lee,cyclegan] [--steps 30] [--json out.json]
     python bench/generators.py --device cuda --generators cyclegan --compile   # networks through torch.compile
+    python bench/generators.py --device cpu --flops    # FLOPs per pair of one training step (counted, not timed)
 
 A generator may carry config overrides after colons: ``--generators tn_cgan,tn_cgan:lambda_gan=1`` times
 tn_cgan with its defaults (no adversarial term) and with the paper's cGAN term. A list value is JSON, its commas
@@ -92,6 +93,22 @@ def bench_train(
     return steps * batch / (time.perf_counter() - t)
 
 
+def train_flops(name: str, device: str, batch: int = 2) -> float:
+    """Floating-point operations of one training step per pair (forward and backward, every network), as torch's
+    FlopCounterMode counts them (convolutions and matrix products; norms and pointwise ops are not counted)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from tnf.generators import PlainOptimisation
+
+    g = build(name, device, channels_last=False).train()
+    opt = PlainOptimisation(g)
+    data = batch_on(device, batch, channels_last=False)
+    g.training_step(data, opt)  # the first step allocates the optimiser's state
+    with FlopCounterMode(display=False) as counter:
+        g.training_step(data, opt)
+    return counter.get_total_flops() / batch
+
+
 def bench_generate(name: str, device: str, batch: int, steps: int, channels_last: bool) -> float:
     g = build(name, device, channels_last).eval()
     data = batch_on(device, batch, channels_last=channels_last)
@@ -117,6 +134,7 @@ def main() -> None:
     ap.add_argument("--no-channels-last", action="store_true")
     ap.add_argument("--compile", action="store_true", help="train with each network through torch.compile")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ap.add_argument("--flops", action="store_true", help="only count each generator's training FLOPs per pair")
     args = ap.parse_args()
 
     if args.device.startswith("cuda"):
@@ -128,7 +146,13 @@ def main() -> None:
     print(f"device: {name_dev}; torch {torch.__version__}; channels_last={cl}")
     results = {"device": name_dev, "torch": torch.__version__, "channels_last": cl, "train": {}, "generate": {}}
     results["compile"] = args.compile
-    for name in re.split(r",(?![^\[]*\])", args.generators):
+    names = re.split(r",(?![^\[]*\])", args.generators)
+    if args.flops:
+        for name in names:
+            flops = train_flops(name, args.device)
+            print(f"flops    {name:9s} {flops / 1e9:7.1f} GFLOP per pair per training step", flush=True)
+        return
+    for name in names:
         for spec in args.train_batches.split(","):
             b, prec = spec.split(":")
             rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl, args.compile)

@@ -2,7 +2,7 @@
 
     nox -s peers                                   # CPU: makes TACTO's environment, then runs this script
     python bench/peers.py --tacto-python .nox/peers/bin/python --out results/sim/peers_cpu.md
-    python bench/peers.py --device cuda            # tnf on a GPU; TACTO and Taxim where their environments exist
+    python bench/peers.py --device cuda --maps 256 --out results/gpu/peers_cuda.md   # tnf on a GPU
 
 Two workloads, each run by every simulator that takes it:
 
@@ -15,6 +15,10 @@ Two workloads, each run by every simulator that takes it:
   presses them with ``press_heights`` (its uncalibrated optics); Taxim renders them with its JAX backend and its own
   GelSight Mini calibration, with and without its shadows. Taxim's torch backend needs torch-scatter, which PyPI
   ships as source only; it is not built here.
+
+On a GPU only tnf runs on the GPU: TACTO's environment is not there unless made with ``nox -s peers`` (its EGL
+rendering could then use the GPU), Taxim's JAX backend runs on the GPU only with a CUDA build of jaxlib (with the
+CPU build its rows say ``cpu``), and its torch backend needs torch-scatter.
 
 TACTO pins old numpy and pyrender: it runs in a separate interpreter (``--tacto-python``, the environment that
 ``nox -s peers`` makes) as a subprocess of this run, on the same machine, right after tnf. Every simulator runs
