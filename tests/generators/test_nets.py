@@ -486,3 +486,31 @@ def test_tn_cgan_with_coords_trains():
     # Without coords (the default, and every configuration saved before the option) the layout is as before.
     plain = build("tn_cgan", image_size=32)
     assert plain.cfg.coords == [] and plain.net_g.encoders["depth_and_slope"].blocks[0].in_channels == 3
+
+
+def test_compiled_networks_compute_the_eager_losses_and_gradients_in_fp32():
+    # train.compile: CycleGAN's training step with its networks through torch.compile computes the eager step's
+    # losses and gradients to float tolerance, and the state dict keeps its keys. At lr 0 the weights stay put, so
+    # every step compares the same computation (with lr > 0 the runs part: Adam moves each weight whose gradient
+    # is only rounding noise, such as a bias before an instance norm, by a whole learning rate either way).
+    import copy
+
+    from tnf.generators.system import compile_networks
+
+    torch.manual_seed(0)
+    eager = build("cyclegan", image_size=32, lr=0.0)
+    compiled = copy.deepcopy(eager)
+    compile_networks(compiled)
+    assert list(compiled.state_dict()) == list(eager.state_dict())
+    batch = make_pairs(4, 32)
+    losses = []
+    for g in (eager, compiled):
+        random.seed(0)
+        opt = PlainOptimisation(g)
+        losses.append([g.training_step(batch, opt) for _ in range(2)])
+    for step_eager, step_compiled in zip(*losses, strict=True):
+        for key, value in step_eager.items():
+            torch.testing.assert_close(step_compiled[key], value, rtol=1e-5, atol=1e-6, msg=key)
+    # Each parameter's gradient, as a whole: 1e-4 of its norm, plus 1e-4 for those whose gradient is rounding noise.
+    for (name, p), q in zip(eager.named_parameters(), compiled.parameters(), strict=True):
+        assert (q.grad - p.grad).norm() <= 1e-4 * p.grad.norm() + 1e-4, name
