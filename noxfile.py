@@ -1,4 +1,4 @@
-"""nox sessions: tests (a small dependency matrix), lint, typecheck, dev, demo, plugins, slow.
+"""nox sessions: tests (a small dependency matrix), lint, typecheck, dev, demo, plugins, slow, peers.
 
 torch is installed first and pinned, so that pip never replaces it with a multi-GB CUDA build on a CPU
 machine. Set TNF_TORCH to install another torch spec (for example on a GPU machine).
@@ -93,3 +93,24 @@ def dev(session: nox.Session) -> None:
     session.run(pip, "install", TORCH, "-c", str(CONSTRAINTS["pinned"]))
     session.run(pip, "install", "-e", ".[test]", "ruff", "mypy", "nox", "-c", str(CONSTRAINTS["pinned"]))
     session.log(f"activate with: source {venv}/bin/activate")
+
+
+# TACTO 0.0.3 as released: its urdfpy needs networkx 2.2, which imports on Python 3.8 at the latest, and it uses
+# np.float, which numpy 1.24 removed.
+TACTO = ["tacto==0.0.3", "numpy<1.24", "pyglet<2"]
+# The Python 3.8 that TACTO's environment is made with (under pyenv: $(pyenv root)/versions/3.8.18/bin/python3.8).
+TACTO_PYTHON = os.environ.get("TNF_TACTO_PYTHON", "python3.8")
+
+
+@nox.session(python=PYTHON)
+def peers(session: nox.Session) -> None:
+    """Time tnf's simulator, TACTO and Taxim side by side (bench/peers.py): tnf and Taxim (JAX backend) in this
+    session, TACTO in its own Python 3.8 environment (.nox/peers-tacto), run by bench/peers.py in the same run.
+    Arguments go to bench/peers.py, e.g. `nox -s peers -- --out results/sim/peers_cpu.md`."""
+    install(session, extras="real")
+    session.install("jax==0.10.2", "jaxlib==0.10.2")
+    tacto = ROOT / ".nox" / "peers-tacto"
+    if not (tacto / "bin" / "python").is_file():
+        session.run(TACTO_PYTHON, "-m", "venv", str(tacto), external=True)
+        session.run(str(tacto / "bin" / "pip"), "install", *TACTO, external=True)
+    session.run("python", "bench/peers.py", "--tacto-python", str(tacto / "bin" / "python"), *session.posargs, env=ENV)

@@ -1,6 +1,8 @@
 """Generator speed: training pairs per second and generated images per second at 128 x 128.
 
     python bench/generators.py --device cuda [--generators tn_cgan,lee,cyclegan] [--steps 30] [--json out.json]
+    python bench/generators.py --device cuda --generators cyclegan --compile   # networks through torch.compile
+    python bench/generators.py --device cpu --flops    # FLOPs per pair of one training step (counted, not timed)
 
 A generator may carry config overrides after colons: ``--generators tn_cgan,tn_cgan:lambda_gan=1`` times
 tn_cgan with its defaults (no adversarial term) and with the paper's cGAN term. A list value is JSON, its commas
@@ -57,19 +59,25 @@ def parse_spec(spec: str) -> dict:
     return out
 
 
-def build(spec: str, device: str, channels_last: bool):
+def build(spec: str, device: str, channels_last: bool, compile_nets: bool = False):
     from tnf.registry import GENERATORS
 
     g = GENERATORS.build(parse_spec(spec)).to(device)
     if channels_last:
         g = g.to(memory_format=torch.channels_last)
+    if compile_nets:  # each network (net_g, net_d, ...) through torch.compile; the training step stays eager
+        for name, child in list(g.named_children()):
+            if name.startswith("net_"):
+                setattr(g, name, torch.compile(child))
     return g
 
 
-def bench_train(name: str, device: str, batch: int, bf16: bool, steps: int, channels_last: bool) -> float:
+def bench_train(
+    name: str, device: str, batch: int, bf16: bool, steps: int, channels_last: bool, compile_nets: bool = False
+) -> float:
     from tnf.generators import PlainOptimisation
 
-    g = build(name, device, channels_last).train()
+    g = build(name, device, channels_last, compile_nets).train()
     opt = PlainOptimisation(g)
     data = batch_on(device, batch, channels_last=channels_last)
     amp = torch.autocast(device.split(":")[0], dtype=torch.bfloat16) if bf16 else nullcontext()
@@ -83,6 +91,22 @@ def bench_train(name: str, device: str, batch: int, bf16: bool, steps: int, chan
             g.training_step(data, opt)
     sync(device)
     return steps * batch / (time.perf_counter() - t)
+
+
+def train_flops(name: str, device: str, batch: int = 2) -> float:
+    """Floating-point operations of one training step per pair (forward and backward, every network), as torch's
+    FlopCounterMode counts them (convolutions and matrix products; norms and pointwise ops are not counted)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from tnf.generators import PlainOptimisation
+
+    g = build(name, device, channels_last=False).train()
+    opt = PlainOptimisation(g)
+    data = batch_on(device, batch, channels_last=False)
+    g.training_step(data, opt)  # the first step allocates the optimiser's state
+    with FlopCounterMode(display=False) as counter:
+        g.training_step(data, opt)
+    return counter.get_total_flops() / batch
 
 
 def bench_generate(name: str, device: str, batch: int, steps: int, channels_last: bool) -> float:
@@ -108,7 +132,9 @@ def main() -> None:
     ap.add_argument("--train-batches", default="64:fp32,64:bf16,256:bf16", help="batch:precision pairs for training")
     ap.add_argument("--gen-batch", type=int, default=1024, help="images per generate call")
     ap.add_argument("--no-channels-last", action="store_true")
+    ap.add_argument("--compile", action="store_true", help="train with each network through torch.compile")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    ap.add_argument("--flops", action="store_true", help="only count each generator's training FLOPs per pair")
     args = ap.parse_args()
 
     if args.device.startswith("cuda"):
@@ -119,12 +145,20 @@ def main() -> None:
     name_dev = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else "cpu"
     print(f"device: {name_dev}; torch {torch.__version__}; channels_last={cl}")
     results = {"device": name_dev, "torch": torch.__version__, "channels_last": cl, "train": {}, "generate": {}}
-    for name in re.split(r",(?![^\[]*\])", args.generators):
+    results["compile"] = args.compile
+    names = re.split(r",(?![^\[]*\])", args.generators)
+    if args.flops:
+        for name in names:
+            flops = train_flops(name, args.device)
+            print(f"flops    {name:9s} {flops / 1e9:7.1f} GFLOP per pair per training step", flush=True)
+        return
+    for name in names:
         for spec in args.train_batches.split(","):
             b, prec = spec.split(":")
-            rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl)
-            results["train"][f"{name}/{prec}/b{b}"] = rate
-            print(f"train    {name:9s} {prec:5s} batch {int(b):4d}: {rate:9.0f} pairs/s", flush=True)
+            rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl, args.compile)
+            tag = "/compiled" if args.compile else ""
+            results["train"][f"{name}/{prec}/b{b}{tag}"] = rate
+            print(f"train    {name:9s} {prec:5s} batch {int(b):4d}{tag}: {rate:9.0f} pairs/s", flush=True)
             if args.device.startswith("cuda"):
                 torch.cuda.empty_cache()
         rate = bench_generate(name, args.device, args.gen_batch, args.steps, cl)

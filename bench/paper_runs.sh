@@ -2,7 +2,8 @@
 # The paper-scale runs of results/paper/ on one GPU, one phase per call so that each fits a 10-minute job.
 # Usage: bash bench/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
 #   digit-data    digit-scenes then digit-pairs                                            (sim_digit)
-#   digit-scenes  capture, fit-scene (FIT_WORKERS processes share the GPU); every scene's figures to scenes.txt/.csv
+#   digit-scenes  capture, fit-scene (a sweep of FIT_WORKERS jobs over object shards through Hydra's joblib launcher,
+#                 spread over the visible GPUs by tnf); every scene's figures to scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
 #                 process each (on one H100, one seed's three generators take 664-712 s, three tn_cgan seeds of 45
@@ -21,15 +22,15 @@ export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 out=${OUT:-$TNF_DATA/out}
 seeds=${SEEDS:-0}
 fit_workers=${FIT_WORKERS:-6}
-# On a machine of several GPUs, GPUS=N deals the parallel processes of digit-scenes (the fit workers),
-# digit-models and transfer (one per generator and seed) round-robin over the first N (CUDA_VISIBLE_DEVICES);
-# capture, touch and pair run on the GPU that CUDA_VISIBLE_DEVICES names.
+# On a machine of several GPUs, GPUS=N deals the parallel processes of digit-models and transfer (one per generator
+# and seed) round-robin over the first N (CUDA_VISIBLE_DEVICES); capture, touch and pair run on the GPU that
+# CUDA_VISIBLE_DEVICES names; the fit sweep's jobs spread over every visible GPU by themselves (docs/cluster.md).
 gpus=${GPUS:-1}
 on_gpu() {  # on_gpu I: in a subshell, pin it to GPU I mod N when GPUS=N > 1
   if ((gpus > 1)); then export CUDA_VISIBLE_DEVICES=$(($1 % gpus)); fi
 }
-# More overrides for every command, and the objects dealt to the fit workers (default: sim_digit's). A dry run
-# on a CPU: DEVICE=cpu TRAINER=cpu FIT_WORKERS=2 OBJECTS="ball box can mug" EXTRA="debug=tiny object_names=[...] ..."
+# More overrides for every command. A dry run on a CPU:
+# DEVICE=cpu TRAINER=cpu FIT_WORKERS=2 EXTRA="debug=tiny object_names=[ball,box,can,mug] ..."
 extra=(${EXTRA:-})
 mkdir -p "$out"
 tnf() { python -m tnf.cli "$@"; }
@@ -41,16 +42,6 @@ timed() {  # timed NAME CMD...: run, log to $out/NAME.log, append the wall time 
   local name=$1 t0=$SECONDS; shift
   "$@" >"$out/$name.log" 2>&1 || { tail -40 "$out/$name.log"; echo "FAILED: $name" | tee -a "$out/stage_times.txt"; return 1; }
   echo "$name: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
-}
-parallel() {  # parallel NAME CMD-TEMPLATE... with {} replaced by each of the remaining words after --
-  local name=$1; shift
-  local cmd=() pids=() i=0
-  while [[ $1 != -- ]]; do cmd+=("$1"); shift; done; shift
-  for w in "$@"; do
-    ( on_gpu $i; timed "$name-$i" "${cmd[@]//\{\}/$w}" ) & pids+=($!); i=$((i + 1))
-  done
-  local rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
-  return $rc
 }
 case "$1" in
   bench)
@@ -67,15 +58,9 @@ case "$1" in
   digit-scenes)
     t0=$SECONDS
     timed capture tnf capture "${digit[@]}"
-    # Each fit is small for an H100: several processes keep it busy. Objects are dealt round-robin.
-    names=${OBJECTS:-$(python -c "from omegaconf import OmegaConf; print(' '.join(OmegaConf.load('conf/experiment/sim_digit.yaml').object_names))")}
-    read -ra all <<<"$names"
-    groups=()
-    for ((w = 0; w < fit_workers; w++)); do
-      g=(); for ((i = w; i < ${#all[@]}; i += fit_workers)); do g+=("${all[i]}"); done
-      [[ ${#g[@]} -gt 0 ]] && groups+=("[$(IFS=,; echo "${g[*]}")]")
-    done
-    parallel fit tnf fit-scene "${digit[@]}" "object_names={}" -- "${groups[@]}"
+    # Each fit is small for an H100: several jobs keep it busy. One sweep over object shards, as a user would run it.
+    timed fit tnf fit-scene -m hydra/launcher=joblib hydra.launcher.n_jobs=$fit_workers shards=$fit_workers \
+      "shard=range($fit_workers)" "${digit[@]}"
     echo "digit-scenes: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     # The table of every scene (hashgrid, builtin: sim_digit's); a failure here leaves the fitted scenes usable.
     python bench/scene_table.py "$TNF_DATA" --csv "$out/scenes.csv" >"$out/scenes.txt" 2>&1 && tail -2 "$out/scenes.txt" ||

@@ -31,6 +31,24 @@ def warp_device(torch_device: str) -> str:
     return "cuda:0" if torch_device == "cuda" else torch_device
 
 
+def job_device(device: str, shard: tuple[int, int] | None) -> str:
+    """The device of one job of a sweep over object shards (``tnf.objects.shard``): ``cuda`` becomes
+    ``cuda:<shard mod GPUs>`` when this process sees several GPUs, so that the jobs of a sweep on one machine
+    spread over its GPUs; a job that sees one GPU (a SLURM job given one) and every other device keep
+    ``device``. ``device``: a resolved torch device string (``resolve_device``); ``shard``: the job's
+    ``(shard, shards)`` (``tnf.objects.shard_of``), None outside such a sweep."""
+    if shard is None or device != "cuda":
+        return device
+    import torch
+
+    count = torch.cuda.device_count()
+    if count <= 1:
+        return device
+    index = shard[0] % count
+    torch.cuda.set_device(index)
+    return f"cuda:{index}"
+
+
 def environment(device: str) -> dict[str, Any]:
     """Where a result was made: the accelerator (the GPU's name, or the CPU's), CPU cores, Python and the
     versions of tnf (with its git commit where tnf runs from a checkout) and of the libraries the numbers depend

@@ -168,3 +168,32 @@ def test_mesh_source_needs_no_fitted_scene(data_root):
     hit = footprint < 1
     assert hit.any()  # the builtin objects lie in the footprint of (at least some) touches
     assert np.allclose(footprint[hit], 0.5, atol=0.02)
+
+
+def test_pair_over_shards_renders_each_object_once_then_assembles_what_one_run_makes(data_root, tmp_path, capsys):
+    # Jobs of a sweep over object shards render their own objects' caches; the run without shard assembles them.
+    make_inputs(data_root)
+    cache = data_root / "pairs" / ".cache" / "digit-hashgrid" / "builtin"
+    build(["shard=1", "shards=2"])
+    out = capsys.readouterr().out
+    assert "rendering 6 touches of 1 object(s)" in out and "shard 1 of 2" in out
+    assert sorted(p.name for p in cache.iterdir()) == ["box"]  # its share only, and no dataset yet
+    assert not (data_root / "pairs" / "digit-hashgrid").exists()
+    build(["shard=0", "shards=2"])
+    assert "rendering 6 touches of 1 object(s)" in capsys.readouterr().out
+    assert sorted(p.name for p in cache.iterdir()) == ["ball", "box"]
+    build(["shard=0", "shards=2"])  # again: nothing left to render
+    out = capsys.readouterr().out
+    assert "rendering" not in out and "1 object(s) already rendered, 0 rendered now" in out
+    build()
+    assert "rendering" not in capsys.readouterr().out  # the caches are reused
+    sharded = open_pairs(data_root / "pairs" / "digit-hashgrid")
+    # The same dataset as one run over every object makes.
+    other = tmp_path / "one-run"
+    make_inputs(other)
+    build([f"data_root={other}"])
+    whole = open_pairs(other / "pairs" / "digit-hashgrid")
+    assert sharded.manifest["objects"] == whole.manifest["objects"] == ["ball", "box"]
+    assert sharded.manifest["counts"] == whole.manifest["counts"]
+    for key in ("rgb", "depth", "tactile", "split", "object_id", "touch_index"):
+        assert np.array_equal(np.asarray(getattr(sharded, key)), np.asarray(getattr(whole, key))), key

@@ -130,3 +130,68 @@ def test_slurm_preset_is_documented_and_shown_by_the_cli(data_root):
             assert lines[i - 1].startswith("#"), f"undocumented key: {line}"
     out = tnf("train", "hydra/launcher=slurm", "--cfg", "hydra", "-p", "hydra.launcher", root=data_root)
     assert "SlurmLauncher" in out and "tasks_per_node: ${trainer.devices}" in out and "max_num_timeout: 3" in out
+
+
+SHARD_OBJECTS = ["ball", "box", "can", "mug"]
+# Enough touches that one object takes a moment, so that the killed job below dies inside an item.
+SHARD_TOUCH = [*TINY, f"object_names=[{','.join(SHARD_OBJECTS)}]", "touch.n_touches=60"]
+
+
+def made_touch_items(out):
+    """Objects whose touch item a run's output says it simulated, one entry per simulation."""
+    return sorted(line.split("/")[-1].split(":")[0] for line in out.splitlines() if " touches, " in line)
+
+
+def test_shards_split_the_objects_disjointly_and_cover_them():
+    from omegaconf import OmegaConf
+
+    from tnf.errors import TnfError
+    from tnf.objects import shard
+
+    names = [f"o{i}" for i in range(10)]
+    parts = [shard(names, OmegaConf.create({"shard": i, "shards": 3})) for i in range(3)]
+    assert sorted(sum(parts, [])) == sorted(names) and [len(p) for p in parts] == [4, 3, 3]
+    assert shard(names, OmegaConf.create({"shard": None, "shards": 3})) == names
+    for bad in ({"shard": 3, "shards": 3}, {"shard": 0, "shards": 0}, {"shard": "x", "shards": 2}):
+        with pytest.raises(TnfError, match="shard"):
+            shard(names, OmegaConf.create(bad))
+
+
+def test_joblib_sweep_over_shards_makes_each_object_once_and_redoes_a_killed_jobs_objects(data_root):
+    import signal
+    import time
+
+    plugin("hydra_joblib_launcher")
+    # A job of the sweep (shard 1 of 2: box and mug) killed while it writes its first item.
+    env = {**os.environ, "TNF_DATA": str(data_root), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "tnf.cli", "touch", "shards=2", "shard=1", *SHARD_TOUCH]
+    job = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    items = data_root / "touch" / "digit" / "builtin"
+    deadline = time.monotonic() + 300
+    while not (items.is_dir() and any(p.name.endswith(".partial") for p in items.iterdir())):
+        assert job.poll() is None, "the job ended before it was killed"
+        assert time.monotonic() < deadline, "the job wrote no item in 300 s"
+        time.sleep(0.01)
+    job.send_signal(signal.SIGKILL)
+    job.wait()
+    store = ArtifactStore(data_root)
+    done_before = {item[-1] for item in store.items("touch", 3)}
+    assert done_before < {"box", "mug"}  # the killed job left one of its objects unfinished, at least
+    assert any(p.name.endswith(".partial") for p in items.iterdir())  # and its temporary folder behind
+
+    # The sweep: two jobs at once, each simulates its shard's objects; the killed job's unfinished one is redone.
+    sweep = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "shards=2", "shard=0,1"]
+    out = tnf("touch", *sweep, *SHARD_TOUCH, root=data_root)
+    assert "launching 2 jobs" in out
+    assert made_touch_items(out) == sorted(set(SHARD_OBJECTS) - done_before)  # each once, the finished ones not
+    for name in done_before:
+        assert f"touch digit/builtin/{name}: done, skipped" in out
+    assert [item[-1] for item in store.items("touch", 3)] == sorted(SHARD_OBJECTS)
+    for name in SHARD_OBJECTS:
+        manifest = store.manifest("touch", "digit", "builtin", name)
+        assert manifest is not None and manifest["object"] == name and len(manifest["touches"]) == 60 + 4 + 4
+    assert not [p for p in items.iterdir() if p.name.startswith(".")]  # the killed job's leftovers are gone
+
+    # The sweep again: every item is done, nothing is simulated.
+    out = tnf("touch", *sweep, *SHARD_TOUCH, root=data_root)
+    assert made_touch_items(out) == [] and out.count(": done, skipped") == len(SHARD_OBJECTS)

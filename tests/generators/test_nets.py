@@ -1,5 +1,7 @@
 """Generator architectures: shapes, skip connections, configs, one optimisation step, a tiny overfit."""
 
+import random
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -8,7 +10,7 @@ from tests.generators.synthetic import make_pairs
 from tnf.errors import TnfError
 from tnf.eval import metrics
 from tnf.generators import PlainOptimisation
-from tnf.generators.nets import NoiseDropout
+from tnf.generators.nets import ImagePool, NoiseDropout
 from tnf.registry import GENERATORS
 
 TINY = {
@@ -256,7 +258,48 @@ def test_cyclegan_step_lowers_cycle_loss():
     losses = g.training_step(batch, opt)
     assert cycle() < before
     assert {"loss_cycle", "loss_idt", "loss_d"} <= set(losses)
-    assert len(g.pool_tactile.images) == 4  # the pool filled with this step's fakes
+    assert g.pool_tactile.filled == 4  # the pool filled with this step's fakes
+
+
+class LoopPool:
+    """The image pool as written image by image (pix2pix's reference code): what ImagePool must return."""
+
+    def __init__(self, size):
+        self.size, self.images = size, []
+
+    def query(self, images):
+        out = []
+        for img in images.detach():
+            img = img.unsqueeze(0)
+            if len(self.images) < self.size:
+                self.images.append(img)
+                out.append(img)
+            elif random.random() > 0.5:
+                i = random.randrange(self.size)
+                out.append(self.images[i].clone())
+                self.images[i] = img
+            else:
+                out.append(img)
+        return torch.cat(out, 0)
+
+
+@pytest.mark.parametrize("size", [3, 50])
+def test_image_pool_returns_what_the_image_by_image_pool_returns(size):
+    # Batches smaller and larger than the pool; with 40 images against 3 slots, some slot is drawn twice in one
+    # batch, and the second draw must return the image the first one stored.
+    batches = [torch.randn(n, 3, 8, 8) for n in (2, 5, 40, 1, 16)]
+    ours, reference = ImagePool(size), LoopPool(size)
+    random.seed(7)
+    got = [ours.query(b) for b in batches]
+    state = random.getstate()
+    random.seed(7)
+    want = [reference.query(b) for b in batches]
+    assert random.getstate() == state  # the same draws, so training runs stay as they were
+    for g, w in zip(got, want, strict=True):
+        assert torch.equal(g, w)
+    assert torch.equal(ours.images, torch.cat(reference.images))
+    x = torch.randn(4, 3, 8, 8)
+    assert ImagePool(0).query(x) is x
 
 
 @pytest.mark.parametrize("residual", [False, True])
@@ -443,3 +486,31 @@ def test_tn_cgan_with_coords_trains():
     # Without coords (the default, and every configuration saved before the option) the layout is as before.
     plain = build("tn_cgan", image_size=32)
     assert plain.cfg.coords == [] and plain.net_g.encoders["depth_and_slope"].blocks[0].in_channels == 3
+
+
+def test_compiled_networks_compute_the_eager_losses_and_gradients_in_fp32():
+    # train.compile: CycleGAN's training step with its networks through torch.compile computes the eager step's
+    # losses and gradients to float tolerance, and the state dict keeps its keys. At lr 0 the weights stay put, so
+    # every step compares the same computation (with lr > 0 the runs part: Adam moves each weight whose gradient
+    # is only rounding noise, such as a bias before an instance norm, by a whole learning rate either way).
+    import copy
+
+    from tnf.generators.system import compile_networks
+
+    torch.manual_seed(0)
+    eager = build("cyclegan", image_size=32, lr=0.0)
+    compiled = copy.deepcopy(eager)
+    compile_networks(compiled)
+    assert list(compiled.state_dict()) == list(eager.state_dict())
+    batch = make_pairs(4, 32)
+    losses = []
+    for g in (eager, compiled):
+        random.seed(0)
+        opt = PlainOptimisation(g)
+        losses.append([g.training_step(batch, opt) for _ in range(2)])
+    for step_eager, step_compiled in zip(*losses, strict=True):
+        for key, value in step_eager.items():
+            torch.testing.assert_close(step_compiled[key], value, rtol=1e-5, atol=1e-6, msg=key)
+    # Each parameter's gradient, as a whole: 1e-4 of its norm, plus 1e-4 for those whose gradient is rounding noise.
+    for (name, p), q in zip(eager.named_parameters(), compiled.parameters(), strict=True):
+        assert (q.grad - p.grad).norm() <= 1e-4 * p.grad.norm() + 1e-4, name

@@ -137,28 +137,52 @@ class ResnetGenerator(nn.Module):
 
 class ImagePool:
     """A history of generated images (Shrivastava et al.): the discriminator sees a mix of current and older
-    fakes, which damps oscillation. ``size=0`` returns the input unchanged."""
+    fakes, which damps oscillation. ``size=0`` returns the input unchanged.
+
+    While the pool fills, each image enters it and is returned; then each image is, with probability 1/2, swapped
+    with a random stored one (the stored one is returned) or returned as it is. The draws are made image by image
+    from Python's ``random``; the images move in one gather and one scatter per batch, not one copy each.
+    """
 
     def __init__(self, size: int = 50):
         self.size = size
-        self.images: list[torch.Tensor] = []
+        self.images: torch.Tensor | None = None  # [filled, C, H, W], the stored images
+        self.filled = 0
 
     def query(self, images: torch.Tensor) -> torch.Tensor:
+        """The images ``[B, C, H, W]`` the discriminator sees in place of ``images`` (detached)."""
         if self.size == 0:
             return images
-        out = []
-        for img in images.detach():
-            img = img.unsqueeze(0)
-            if len(self.images) < self.size:
-                self.images.append(img)
-                out.append(img)
+        images = images.detach()
+        n = images.shape[0]
+        if self.images is None or self.images.shape[1:] != images.shape[1:]:
+            self.images = images.new_empty((self.size, *images.shape[1:]))
+            self.filled = 0
+        elif self.images.dtype != images.dtype or self.images.device != images.device:
+            self.images = self.images.to(images)
+        # Decide every image's fate first. source[j]: index into cat(stored, batch) of what image j returns;
+        # slot_from[i]: the batch image that slot i holds after this batch.
+        source: list[int] = []
+        slot_from: dict[int, int] = {}
+        for j in range(n):
+            if self.filled < self.size:
+                slot_from[self.filled] = j
+                self.filled += 1
+                source.append(self.size + j)
             elif random.random() > 0.5:
                 i = random.randrange(self.size)
-                out.append(self.images[i].clone())
-                self.images[i] = img
+                source.append(self.size + slot_from[i] if i in slot_from else i)
+                slot_from[i] = j
             else:
-                out.append(img)
-        return torch.cat(out, 0)
+                source.append(self.size + j)
+        index = torch.tensor(source, device=images.device)
+        out = torch.cat([self.images, images], 0).index_select(0, index)
+        if slot_from:
+            slots = torch.tensor(list(slot_from), device=images.device)
+            self.images.index_copy_(
+                0, slots, images.index_select(0, torch.tensor(list(slot_from.values()), device=images.device))
+            )
+        return out
 
 
 def set_requires_grad(nets: nn.Module | list[nn.Module], flag: bool) -> None:

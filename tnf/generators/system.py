@@ -74,6 +74,14 @@ def generator_spec(spec: Mapping[str, Any] | str) -> dict[str, Any]:
     return {"name": name, **config_to_dict(GENERATORS.config(name, params))}
 
 
+def compile_networks(generator: torch.nn.Module) -> None:
+    """Run each network of ``generator`` (its ``net_*`` children) through ``torch.compile``, in place: the training
+    step stays eager, and the state dict keeps its keys, so checkpoints are the same with and without."""
+    for name, child in generator.named_children():
+        if name.startswith("net_"):
+            child.compile()
+
+
 class GeneratorSystem(L.LightningModule):
     """Trains and validates the generator named in ``generator`` (``{"name": ..., **config}``).
 
@@ -101,9 +109,11 @@ class GeneratorSystem(L.LightningModule):
         grid_dir: str | None = None,
         finite_check_every: int = 50,
         ema_decay: float | None = None,
+        compile_nets: bool = False,
     ):
         super().__init__()
         spec = generator_spec(generator)
+        self.compile_nets = compile_nets  # a speed setting, not a hyperparameter: checkpoints do not record it
         if decay_epochs < 0 or decay_epochs > epochs:
             raise TnfError(f"decay_epochs must be in [0, epochs={epochs}], got {decay_epochs}")
         ema_decay = _decay(ema_decay)
@@ -154,6 +164,8 @@ class GeneratorSystem(L.LightningModule):
         # (torch's "Grad strides do not match bucket view strides" warning).
         if self.trainer.strategy.root_device.type == "cuda":
             self.to(memory_format=torch.channels_last)
+        if self.compile_nets:
+            compile_networks(self.generator)
 
     # -- generation -------------------------------------------------------------------------------------
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:

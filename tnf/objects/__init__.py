@@ -234,6 +234,34 @@ def select(cfg: Any) -> tuple[ObjectSource, list[str]]:
     return source, list(dict.fromkeys(wanted))
 
 
+def shard_of(cfg: Any) -> tuple[int, int] | None:
+    """``(shard, shards)`` of a job in a sweep over object shards (``shard=I shards=N``), or None when the run
+    takes every selected object (``shard`` null). A bad pair raises a one-line TnfError."""
+    get = cfg.get if hasattr(cfg, "get") else lambda k, d=None: getattr(cfg, k, d)
+    index, count = get("shard", None), get("shards", 1)
+    if index in (None, ""):
+        return None
+    try:
+        i, n = int(index), int(count)
+    except (TypeError, ValueError):
+        raise TnfError(f"shard and shards must be integers, got shard={index!r} shards={count!r}") from None
+    if n < 1 or not 0 <= i < n:
+        raise TnfError(f"shard must be in 0..shards-1 and shards >= 1, got shard={i} shards={n}")
+    return i, n
+
+
+def shard(names: Sequence[str], cfg: Any) -> list[str]:
+    """This job's share of ``names``: names number ``shard``, ``shard + shards``, ... (all of them when ``shard``
+    is null). The jobs ``shard=0..shards-1`` of one sweep select the same names in the same order, so their shares
+    are disjoint and cover every name: each object is made by one job, and a rerun of the sweep redoes only what
+    a killed job left unfinished (finished items are skipped)."""
+    spec = shard_of(cfg)
+    if spec is None:
+        return list(names)
+    i, n = spec
+    return list(names)[i::n]
+
+
 def _short_list(names: Sequence[str], limit: int = 40) -> str:
     if not names:
         return "none"

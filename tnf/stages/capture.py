@@ -27,12 +27,13 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     from tnf.artifacts import ArtifactStore
     from tnf.capture import camera_distance, camera_poses, capture_config
     from tnf.capture.render import MeshRenderer, capture_object
-    from tnf.objects import select
+    from tnf.objects import select, shard
     from tnf.registry import split_spec
     from tnf.runtime import progress
 
     ccfg = capture_config(cfg.capture)
     source, names = select(cfg)
+    names = shard(names, cfg)  # a job of a sweep over shards: its share
     store = ArtifactStore(cfg.data_root)
     store.clean_partials("capture")
     _, source_params = split_spec(cfg.objects, "objects")

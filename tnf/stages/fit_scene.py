@@ -5,8 +5,9 @@ Input per object: ``<data_root>/capture/<source>/<object>/`` (``tnf capture``). 
 ``metrics.json`` (PSNR/SSIM on held-out views, depth error, training time) and ``preview.png``.
 
 Objects: ``object=NAME``, else ``object_names``, else every captured object of the source, fitted one
-after the other in this process (``-m object=a,b`` fits them as separate jobs). Objects already fitted
-with the same settings and capture are skipped; an interrupted fit resumes from its last checkpoint.
+after the other in this process. ``shard=I shards=N`` fits every N-th of them from number I: the sweep
+``-m shards=N 'shard=range(N)'`` fits them as N jobs of the Hydra launcher (docs/cluster.md). Objects already
+fitted with the same settings and capture are skipped; an interrupted fit resumes from its last checkpoint.
 """
 
 from __future__ import annotations
@@ -40,18 +41,20 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     from rich.table import Table
 
     from tnf.artifacts import ArtifactStore
+    from tnf.objects import shard, shard_of
     from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
-    from tnf.runtime import progress, resolve_device, seed_everything
+    from tnf.runtime import job_device, progress, resolve_device, seed_everything
     from tnf.scenes.fit import FitSettings, fit_object
 
     settings = from_dict(FitSettings, cfg.fit, where="fit")
     kind, params = split_spec(cfg.scene, "scene")
     SCENES.config(kind, params)  # fail early on a bad scene config
     source, _ = split_spec(cfg.objects, "objects")
-    device = resolve_device(cfg.device)
+    part = shard_of(cfg)
+    device = job_device(resolve_device(cfg.device), part)
     store = ArtifactStore(cfg.data_root)
     store.clean_partials("scenes")
-    names = selected_objects(cfg, store, source)
+    names = shard(selected_objects(cfg, store, source), cfg)  # a job of a sweep over shards: its share
     # Check every input before the first (long) fit.
     captures = {}
     for name in names:

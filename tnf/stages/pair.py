@@ -7,7 +7,9 @@ before any rendering starts.
 
 Two steps, both resumable: each object's touches are rendered and preprocessed into a cache item
 (``pairs/.cache/<name>/<source>/<object>/``, skipped when done with the same settings), then the caches are
-assembled into the dataset's memory-mapped arrays, chunk by chunk, with the split assignment.
+assembled into the dataset's memory-mapped arrays, chunk by chunk, with the split assignment. A job of a sweep over
+object shards (``-m shards=N 'shard=range(N)'``, docs/cluster.md) renders its share's caches only; a run without
+``shard`` then assembles the dataset, rendering whatever a killed job left undone.
 """
 
 from __future__ import annotations
@@ -33,9 +35,9 @@ def run(cfg: Any) -> None:
     from tnf.data.render import Framing, TouchItem, render_pairs_for_touches
     from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
     from tnf.data.store import PairWriter, dataset_name, write_manifest
-    from tnf.objects import select
+    from tnf.objects import select, shard, shard_of
     from tnf.registry import SENSORS, config_to_dict, split_spec
-    from tnf.runtime import progress, resolve_device, seed_everything, warp_device
+    from tnf.runtime import job_device, progress, resolve_device, seed_everything, warp_device
 
     p = cast(dict[str, Any], OmegaConf.to_container(cfg.pair, resolve=True))
     assert isinstance(p, dict)
@@ -51,7 +53,8 @@ def run(cfg: Any) -> None:
     sensor_dict = _plain_json(config_to_dict(sensor_cfg))
     scene_name = str(cfg.scene.name)
     name = dataset_name(cfg)
-    device = resolve_device(str(cfg.device))
+    part = shard_of(cfg)
+    device = job_device(resolve_device(str(cfg.device)), part)
     console = Console(highlight=False)
 
     # -- check every input first, so a missing one is reported before hours of rendering ----------------
@@ -126,7 +129,9 @@ def run(cfg: Any) -> None:
     if store.is_done("pairs", name, config=dataset_key):
         console.print(f"pair: dataset {store.path('pairs', name)} is up to date")
         return
-    todo = [o for o in names if not store.is_done("pairs", ".cache", name, src, o, config=cache_keys[o])]
+    # Every object's inputs decide the framing above; a job of a sweep over shards renders its share only.
+    mine = shard(names, cfg)
+    todo = [o for o in mine if not store.is_done("pairs", ".cache", name, src, o, config=cache_keys[o])]
     n_render = sum(len(inputs[o]["item"].touches) for o in todo)
     if todo:
         console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p['scene_source']})")
@@ -166,6 +171,13 @@ def run(cfg: Any) -> None:
                 for k in ("rgb", "depth", "tactile", "background", "touch_index", *optional):
                     np.save(tmp / f"{k}.npy", arrays[k])
             del arrays
+
+    if part is not None:
+        console.print(
+            f"pair: shard {part[0]} of {part[1]}: {len(mine) - len(todo)} object(s) already rendered, {len(todo)} "
+            "rendered now; `tnf pair` without shard assembles the dataset"
+        )
+        return
 
     # -- step 2: assemble ---------------------------------------------------------------------------------
     caches = {o: store.path("pairs", ".cache", name, src, o) for o in names}

@@ -2,7 +2,8 @@
 
 Writes ``<data_root>/touch/<sensor>/<source>/<object>/``: ``images/00000.png``..., ``background.png`` and a
 manifest whose info lists every touch (split, start and contact poses, contact point, force, penetration).
-Finished items are skipped; ``-m sensor=digit,omnitact`` runs several sensors.
+Finished items are skipped; ``-m sensor=digit,omnitact`` runs several sensors, ``-m shards=N 'shard=range(N)'``
+splits the objects over N jobs (docs/cluster.md).
 """
 
 from __future__ import annotations
@@ -68,9 +69,9 @@ def run(cfg: Any) -> None:
 
     from tnf.artifacts import ArtifactStore, require_space
     from tnf.errors import TnfError
-    from tnf.objects import select
+    from tnf.objects import select, shard, shard_of
     from tnf.registry import SENSORS, SIMULATORS
-    from tnf.runtime import progress, resolve_device, warp_device
+    from tnf.runtime import job_device, progress, resolve_device, warp_device
     from tnf.sim.touch import collect
 
     console = Console(highlight=False)
@@ -81,6 +82,7 @@ def run(cfg: Any) -> None:
     if tc.radius <= 0:
         raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
     source, names = select(cfg)
+    names = shard(names, cfg)  # a job of a sweep over shards: its share
     if any(source.touches(n) is not None for n in names):  # the source's own tactile frames: imported, not simulated
         from tnf.objects.captured import import_touches
 
@@ -94,7 +96,8 @@ def run(cfg: Any) -> None:
             console.print(f"touch {sensor.name}/{source.name}/{n}: done, skipped")
     if not todo:
         return
-    device = warp_device(resolve_device(cfg.device))
+    part = shard_of(cfg)
+    device = warp_device(job_device(resolve_device(cfg.device), part))
     sim = SIMULATORS.build(cfg.simulator, sensor=sensor, device=device)
     counts = {"train": int(tc.n_touches), "val": int(tc.n_val), "novel_view": int(tc.n_novel_view)}
     # What an item takes on disk, at least: its background, and each touch about the size of the background at the

@@ -40,7 +40,7 @@ def run(cfg: Any) -> dict[str, Any]:
     config = {
         "generator": spec,
         "data": run_section(cfg.data, ()),
-        "train": run_section(t, ("resume", "force", "run_name", "checkpoint_every_s")),
+        "train": run_section(t, ("resume", "force", "run_name", "checkpoint_every_s", "compile")),
         "precision": str(cfg.trainer.precision),
         "seed": int(cfg.seed),
     }
@@ -57,6 +57,7 @@ def run(cfg: Any) -> dict[str, Any]:
         grid_rows=int(t.grid_rows),
         finite_check_every=int(t.finite_check_every),
         ema_decay=t.ema_decay,
+        compile_nets=bool(t.compile),
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
     summary = fit(
