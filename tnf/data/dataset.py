@@ -161,7 +161,8 @@ class PairDataset(Dataset):
     [1, 128, 128] (-1 nearest, 1 far or empty), ``background`` [3, 128, 128], ``tactile`` [3, 128, 128];
     plus ``object_id`` (long; index into ``object_names``), ``prior`` [3, 128, 128] in datasets that hold
     it (``pair.prior=true``), ``points`` [3, 128, 128] (metres, NaN where no surface) in those that hold
-    them (``pair.points=true``) and ``force`` (float32, newtons) in those made with ``pair.force=true``. Batches have a leading batch dimension; when all
+    them (``pair.points=true``) and ``force`` (float32, newtons) in those made with ``pair.force=true``.
+    Batches have a leading batch dimension; when all
     pairs of a batch share one background (one sensor), ``background`` is a stride-0 expanded view of it:
     read it freely, but call ``.contiguous()`` before writing into it in place.
 

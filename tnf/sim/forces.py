@@ -189,7 +189,8 @@ def force_plan(spec: Any, sensor: Any) -> ForcePlan | None:
     )
     if not lo < interp[0] < interp[1] < hi:
         raise TnfError(
-            f"touch.force_range.interpolation [{interp[0]}, {interp[1]}] must lie strictly inside the range [{lo}, {hi}]"
+            f"touch.force_range.interpolation [{interp[0]}, {interp[1]}] must lie strictly inside the range "
+            f"[{lo}, {hi}]"
         )
     if extra[0] < hi:
         raise TnfError(f"touch.force_range.extrapolation [{extra[0]}, {extra[1]}] must start at or above max ({hi} N)")
@@ -214,3 +215,39 @@ def force_sampler(plan: ForcePlan, split: str, seed: int) -> Any:
         return out.astype(np.float32)
 
     return sample
+
+
+def requested_forces(value: Any, trained_with_force: bool, model: str, default: float) -> list[float] | str | None:
+    """What ``generate.touch_force`` asks for: a list of forces (newtons; a number is one, a list or a string
+    ``"low:high:count"`` sweeps), ``"sim"`` (each touch's own recorded force) or None (a model without force).
+    A model trained with force and no request generates at ``default`` (``touch.force``). One-line TnfError for a
+    negative or NaN force, a bad sweep, or a request to a model that was not trained with force."""
+    if value is None:
+        return [check_force_value(default, "touch.force")] if trained_with_force else None
+    if not trained_with_force:
+        raise TnfError(
+            f"generate.touch_force={value}: model {model!r} was not trained with force (generator.force=none); "
+            "train one with generator=tn_cgan_force on pairs made with pair.force=true, or leave it unset"
+        )
+    if isinstance(value, str):
+        if value == "sim":
+            return "sim"
+        parts = value.split(":")
+        try:
+            lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+        except (IndexError, ValueError):
+            raise TnfError(
+                f"generate.touch_force: expected newtons, a list, 'low:high:count' or sim, got {value!r}"
+            ) from None
+        if len(parts) != 3 or n < 1 or not lo <= hi:
+            raise TnfError(f"generate.touch_force={value}: a sweep 'low:high:count' needs low <= high and count >= 1")
+        check_force_value(lo, "generate.touch_force")
+        check_force_value(hi, "generate.touch_force")
+        return [float(v) for v in np.linspace(lo, hi, n)]
+    values = list(value) if isinstance(value, Sequence) else [value]
+    if not values:
+        raise TnfError("generate.touch_force: an empty list of forces")
+    out = [check_force_value(v, "generate.touch_force") for v in values]
+    if any(v == 0 for v in out):
+        raise TnfError("generate.touch_force: a press needs a force > 0 N, got 0")
+    return out
