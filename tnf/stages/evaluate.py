@@ -235,8 +235,20 @@ def image_metrics(
                 "mirror-averaged (generate.mirror_average)"
             )
 
+    uses_force = system.hparams["generator"].get("force", "none") != "none"
+    fixed_force = None
+    if uses_force and not read_json(pairs / MANIFEST, "dataset manifest").get("force"):
+        # Pairs made at one force (pair.force=false): every test touch is generated at touch.force.
+        fixed_force = float(cfg.touch.force)
+        bar.console.print(
+            f"evaluate: dataset {pairs.name} records no forces; the model generates every touch at touch.force="
+            f"{fixed_force:g} N, and the evaluation by force is skipped"
+        )
+
     def generate(batch: Any) -> torch.Tensor:
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+        if fixed_force is not None:
+            moved["force"] = torch.full((len(moved["rgb"]),), fixed_force, device=device)
         return system.generate(moved, mirror)
 
     out: dict[str, Any] = {}
@@ -281,7 +293,7 @@ def image_metrics(
     if bg_all is not None:
         results["all"] = {BG: bg_all.summary()}
     force = None
-    if system.hparams["generator"].get("force", "none") != "none":
+    if uses_force and fixed_force is None:
         from tnf.eval.force import by_force
 
         force = by_force(cfg, pairs, object_names, generate, device, bar)
