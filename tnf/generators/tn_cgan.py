@@ -417,9 +417,12 @@ class ForceFiLM(nn.Module):
         self.channels = list(channels)
         self.net = nn.Sequential(nn.Linear(1, hidden), nn.ReLU(True), nn.Linear(hidden, 2 * sum(self.channels)))
 
-    def zero_last(self) -> None:
-        last = self.net[-1]
-        assert isinstance(last, nn.Linear)
+    def reset(self) -> None:
+        """PyTorch's default initialisation for the first layer (the GAN's N(0, 0.02) would leave its features
+        near zero, and the force with them) and zeros for the last: FiLM starts as the identity."""
+        first, last = self.net[0], self.net[-1]
+        assert isinstance(first, nn.Linear) and isinstance(last, nn.Linear)
+        first.reset_parameters()
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
 
@@ -625,7 +628,7 @@ class TNcGAN(Generator):
         init_weights(self.net_g)
         init_weights(self.net_d)
         if self.net_g.film is not None:
-            self.net_g.film.zero_last()
+            self.net_g.film.reset()
         for m in self.net_g.modules():
             if isinstance(m, NoiseDropout):
                 m.always_on = cfg.dropout_at_generation

@@ -75,14 +75,14 @@ def run(cfg: Any) -> None:
     from tnf.objects import select
     from tnf.registry import SENSORS, SIMULATORS
     from tnf.runtime import progress, resolve_device, warp_device
-    from tnf.sim.forces import check_force_value, force_plan, force_sampler
+    from tnf.sim.forces import force_plan, force_sampler
     from tnf.sim.touch import collect
 
     console = Console(highlight=False)
     tc = cfg.touch
     store = ArtifactStore(cfg.data_root)
     sensor = SENSORS.build(cfg.sensor)
-    sensor.check_force(check_force_value(tc.force, "touch.force"))
+    sensor.check_force(float(tc.force))
     plan = force_plan(tc.get("force_range"), sensor)  # None: every touch presses with touch.force
     if tc.radius <= 0:
         raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
