@@ -169,7 +169,7 @@ def fmt(x: float | None, digits: int = 4) -> str:
 def by_force(
     cfg: Any,
     pairs: Any,
-    object_names: Sequence[str],
+    object_names: Sequence[str] | None,
     generate: Callable[[dict[str, torch.Tensor]], torch.Tensor],
     device: str,
     bar: Any,
@@ -177,6 +177,7 @@ def by_force(
     """Evaluation by force of a force-conditioned model on the test splits of dataset ``pairs`` (a folder):
     ``({"plan", "sweep", "area_threshold", <split>: score_split(...), "figure": {...}}, figure PNG bytes)``.
     ``generate`` makes the model's images of a batch (its ``force`` key, newtons, sets the press)."""
+    import functools
     import io
 
     from torch.utils.data import DataLoader
@@ -206,7 +207,9 @@ def by_force(
         )
         loader = DataLoader(ds, batch_size=int(ecfg.batch_size), shuffle=False, collate_fn=collate_pairs)
         task = bar.add_task(f"by force {split}", total=len(loader))
-        out[split] = score_split(loader, generate, plan, sweep, threshold, on_batch=lambda t=task: bar.advance(t))
+        out[split] = score_split(
+            loader, generate, plan, sweep, threshold, on_batch=functools.partial(bar.advance, task)
+        )
 
     # The figure: the figure split's first touch that shows a contact, pressed again at each force of the sweep.
     split = str(bf.figure_split) if bf.figure_split in splits else splits[0]

@@ -167,6 +167,11 @@ class Encoder(nn.Module):
         return feats
 
 
+def _out_channels(conv: nn.Module) -> int:
+    assert isinstance(conv, (nn.Conv2d, nn.ConvTranspose2d))
+    return int(conv.out_channels)
+
+
 class UNetDecoder(nn.Module):
     """U-Net decoder from a concatenated bottleneck, with skip features concatenated at every level.
 
@@ -218,7 +223,8 @@ class UNetDecoder(nn.Module):
             if not last:
                 cin = cout + skip_ch[level - 1]
         self.blocks = nn.ModuleList(blocks)
-        self.out_channels = [b[1].out_channels for b in blocks]  # each block's output channels (its conv's)
+        # Each block's output channels (its transposed convolution's).
+        self.out_channels = [_out_channels(b[1]) for b in blocks]
 
     def forward(
         self,

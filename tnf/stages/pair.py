@@ -124,12 +124,12 @@ def run(cfg: Any) -> None:
     # A finished dataset made from the same inputs needs nothing, not even its (deleted) render caches.
     novel = choose_novel_objects(names, p["novel_objects"], int(p["num_novel_objects"]), int(cfg.seed))
     dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
-    forces = None
+    touch_force = None
     if p.get("force"):  # pair.force: each pair's touch force (force.npy), read from the touch manifests
         from tnf.data.forces import touch_forces
 
-        forces = touch_forces({o: inputs[o]["item"] for o in names})
-        dataset_key["force"] = forces.record
+        touch_force = touch_forces({o: inputs[o]["item"] for o in names})
+        dataset_key["force"] = touch_force.record
     if store.is_done("pairs", name, config=dataset_key):
         console.print(f"pair: dataset {store.path('pairs', name)} is up to date")
         return
@@ -215,7 +215,7 @@ def run(cfg: Any) -> None:
                         split=codes[s:end],
                         sensor_id=np.zeros(n_chunk, np.int16),
                         **{k: arr[k][s:end] for k in optional},
-                        **({"force": forces.of(o, arr["touch_index"][s:end])} if forces is not None else {}),
+                        **({"force": touch_force.of(o, arr["touch_index"][s:end])} if touch_force is not None else {}),
                     )
                 start += counts[o]
         first = inputs[names[0]]["item"].manifest
@@ -239,7 +239,7 @@ def run(cfg: Any) -> None:
                 # pair.points: points.npy holds each RGB-D pixel's surface point (tnf.data.render.crop_points).
                 "points": {"frame": "object", "unit": "m"} if p["points"] else None,
                 # pair.force: force.npy holds each pair's touch force; the touches' force range and bands.
-                "force": forces.record if forces is not None else None,
+                "force": touch_force.record if touch_force is not None else None,
                 "scene": _plain_json(cfg.scene) if p["scene_source"] == "fitted" else {"name": "mesh"},
                 "scene_checkpoints": {
                     o: (str(inputs[o]["scene_dir"] / "scene.pt") if p["scene_source"] == "fitted" else None)
