@@ -149,3 +149,12 @@ def test_a_force_model_on_fixed_force_pairs_generates_at_touch_force(models, tmp
     over = [*_base(models), "generator=tn_cgan_force", "evaluate.model=film", "evaluate.classify.enabled=false"]
     out = evaluate.run(compose("evaluate", [*over, "evaluate.dataset=fixed-pairs", "evaluate.name=fixed"]))
     assert "force" not in out["results"] and out["results"]["image"]["novel_view"]["T-N"]["n"] > 0
+
+
+def test_training_a_force_model_on_pairs_without_force_is_one_line(models, capsys):
+    assert main(["pair", f"data_root={models}", *MESH, "pair.name=fixed-pairs"]) == 0
+    capsys.readouterr()
+    over = [f"data_root={models}", *MESH, "generator=tn_cgan_force", "data.datasets=[fixed-pairs]"]
+    assert main(["train", *over, "train.run_name=no-force"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("the force comes with datasets made with pair.force=true")
