@@ -97,3 +97,11 @@ def test_touches_record_their_force_and_band(data_root):
     cfg = compose("touch", over)
     assert "force_range" not in item_config(cfg, DIGIT)["touch"]
     assert item_config(cfg, DIGIT)["touch"]["force"] == 3.0
+
+
+def test_a_force_given_to_the_redo_switch_points_to_touch_force(data_root, capsys):
+    assert main(["generate", "debug=tiny", "generate.force=3.5"]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: generate.force: expected true or false, got 3.5 (it redoes finished images; the force of a "
+        "generated touch is generate.touch_force)"
+    ]
