@@ -136,7 +136,10 @@ def test_evaluate_reports_by_force_band_with_the_physical_check(models):
     # The simulator pressed again at the sweep's forces: its contact area grows with the force.
     sim_area = f["figure"]["simulated_area"]
     assert all(b >= a for a, b in zip(sim_area, sim_area[1:], strict=False)) and sim_area[-1] > sim_area[0]
+    # ... and on the figure split's poses pressed again, it grows on most (the generator's reference).
+    assert f["simulator_monotonic"]["n"] == 6 and f["simulator_monotonic"]["share"] >= 0.5
     report = (models / "reports" / "force" / "report.md").read_text()
+    assert "| simulator | area grows with force (reference, 6 poses pressed again) |" in report
     assert "## Evaluation by force" in report and "force_sweep.png" in report
     assert (models / "reports" / "force" / "runs" / "main_T-N_seed0" / "force_sweep.png").is_file()
 

@@ -184,8 +184,7 @@ def by_force(
 
     from tnf.artifacts import MANIFEST, ArtifactStore, read_json
     from tnf.data import PairDataset, collate_pairs
-    from tnf.data.preprocess import SIZE
-    from tnf.data.render import TouchItem
+    from tnf.data.preprocess import SIZE, resize_uint8
     from tnf.objects import select
     from tnf.registry import SENSORS, SIMULATORS
     from tnf.runtime import warp_device
@@ -224,10 +223,38 @@ def by_force(
     sensor = SENSORS.get(sensor_name)(SENSORS.config(sensor_name, manifest["sensor"]["config"]))
     source, _ = select(cfg)
     store = ArtifactStore(cfg.data_root)
-    item = TouchItem.load(store.require("touch", sensor_name, source.name, obj, hint="run `tnf touch` first"))
-    touch = next(t for t in item.touches if int(t["index"]) == touch_index)
+    touch = _touch(store, sensor_name, source.name, obj, touch_index)
     sim = SIMULATORS.build(cfg.simulator, sensor=sensor, device=warp_device(device))
     simulated = resimulate(sensor, sim, source.load(obj), np.asarray(touch["start_c2w"]), sweep, SIZE)
+    # The simulator's own growth with force on the figure split's first poses: what the generator's is measured
+    # against (a pose the simulator does not grow on cannot be asked of the generator).
+    n_ref = min(int(bf.simulator_poses), len(ds))
+    if n_ref > 0:
+        ref = ds.__getitems__(list(range(n_ref)))
+        starts: dict[str, list[tuple[int, np.ndarray]]] = {}
+        for i in range(n_ref):
+            o = ds.arrays.objects[int(ds.arrays.object_id[ds.index[i]])]
+            items = starts.setdefault(o, [])
+            items.append(
+                (
+                    i,
+                    np.asarray(
+                        _touch(store, sensor_name, source.name, o, int(ds.arrays.touch_index[ds.index[i]]))["start_c2w"]
+                    ),
+                )
+            )
+        ref_areas = np.zeros((n_ref, len(sweep)))
+        hit = np.ones(n_ref, bool)
+        for o, poses in starts.items():
+            c2w = np.repeat(np.stack([p for _, p in poses]), len(sweep), 0)
+            press = sim.press(source.load(o), c2w, np.tile(np.asarray(sweep, np.float32), len(poses)), seed=0)
+            img = torch.from_numpy(resize_uint8(press.images, SIZE)).permute(0, 3, 1, 2).float() / 127.5 - 1
+            a = contact_area(img, ref["background"][:1], threshold).numpy().reshape(len(poses), len(sweep))
+            for j, (i, _) in enumerate(poses):
+                ref_areas[i] = a[j]
+                hit[i] = bool(press.hit[j * len(sweep) : (j + 1) * len(sweep)].all())
+        grows = monotonic(ref_areas[hit])
+        out["simulator_monotonic"] = {"share": float(grows.mean()) if len(grows) else None, "n": int(hit.sum())}
     one = {k: v[row : row + 1] for k, v in batch.items()}
     many = {k: v.expand(len(sweep), *v.shape[1:]) for k, v in one.items()}
     many["force"] = torch.tensor(sweep, dtype=torch.float32)
@@ -247,3 +274,11 @@ def by_force(
     buf = io.BytesIO()
     img.save(buf, "PNG")
     return out, buf.getvalue()
+
+
+def _touch(store: Any, sensor: str, source: str, obj: str, index: int) -> dict[str, Any]:
+    """Touch ``index`` of an object's touch item (its manifest entry: start pose, force...)."""
+    from tnf.data.render import TouchItem
+
+    item = TouchItem.load(store.require("touch", sensor, source, obj, hint="run `tnf touch` first"))
+    return next(t for t in item.touches if int(t["index"]) == index)

@@ -89,6 +89,15 @@ def force_section(runs: Sequence[dict[str, Any]], folder: Path) -> list[str]:
                 verdicts.append(
                     f"| {split} | {m} | extrapolation band (no target) | - | SSIM {_fmt(ssim_by['extrapolation'], 4)} |"
                 )
+    for m in methods:
+        ref = [r["force"].get("simulator_monotonic") for r in runs if r["method"] == m]
+        st = _stat([x["share"] for x in ref if x])
+        if st:
+            n = next(x["n"] for x in ref if x)
+            verdicts.append(
+                f"| {runs[0]['force'].get('figure', {}).get('split', '-')} | simulator | area grows with force "
+                f"(reference, {n} poses pressed again) | - | {_fmt(st, 3)} |"
+            )
     lines += ["", "| Test set | Method | Target | Verdict | Ours |", "|---|---|---|---|---|", *verdicts, ""]
     for m in methods:
         first = sorted((r for r in runs if r["method"] == m and r.get("force_figure")), key=lambda r: r["seed"])
