@@ -79,6 +79,11 @@ def force_section(runs: Sequence[dict[str, Any]], folder: Path) -> list[str]:
             if r_:
                 ok = "meets" if r_[0] >= TARGETS["area_r"] else "misses"
                 verdicts.append(f"| {split} | {m} | contact area r >= {TARGETS['area_r']} | {ok} | r {_fmt(r_, 3)} |")
+            elif mine:  # no seed's areas vary (e.g. a generator that draws no contact anywhere): no correlation
+                verdicts.append(
+                    f"| {split} | {m} | contact area r >= {TARGETS['area_r']} | misses | undefined: the areas do "
+                    "not vary |"
+                )
             if mono:
                 ok = "meets" if mono[0] >= TARGETS["monotonic"] else "misses"
                 verdicts.append(

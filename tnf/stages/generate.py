@@ -158,6 +158,12 @@ def run(cfg: Any) -> dict[str, Any]:
             own = TouchItem.load(
                 store.require("touch", sensor.name, src, obj, hint=f"run `tnf touch object={obj}` first")
             ).touches
+            unknown = [t["index"] for t in own if not isinstance(t.get("force"), (int, float))]
+            if unknown:
+                raise TnfError(
+                    f"generate.touch_force=sim: touch {unknown[0]} of {obj!r} records no force (imported touches "
+                    "record none); request a force in newtons instead"
+                )
             poses = np.asarray([t["start_c2w"] for t in own], dtype=np.float64)
         else:
             poses = (
