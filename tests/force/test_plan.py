@@ -36,6 +36,8 @@ def test_training_forces_skip_the_interpolation_band_and_test_forces_cover_every
     assert (f < 4.0).any() and (f > 5.0).any()
     if dist == "uniform":  # the density is flat over what is left: 3 N below the band, 3 N above it
         assert abs((f < 4.0).mean() - 0.5) < 0.02
+    near = p.adjacent([2.9, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 6.0, 6.1])
+    assert near.tolist() == [False, True, True, False, False, False, True, True, False]
     t, bands = p.test_forces(rng, 300)
     assert [bands.count(b) for b in BANDS] == [100, 100, 100]
     assert p.band_of(t) == bands

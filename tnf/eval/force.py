@@ -2,7 +2,8 @@
 
 On each test split, with each touch generated at its own (simulated) force:
 
-- SSIM and MSE per force band (``train``, ``interpolation``, ``extrapolation``; ``tnf.sim.forces``);
+- SSIM and MSE per force band (``train``, ``interpolation``, ``extrapolation``; ``tnf.sim.forces``), and on
+  ``adjacent`` training forces (within one band width of the interpolation band: a press like the band's);
 - the physical check: the contact area of each generated image against the simulator's image of the same touch
   (same pose, same force), as a Pearson correlation over the split's touches;
 - the monotonic growth of contact area with force: each test pose generated at a sweep of forces from light to
@@ -80,7 +81,7 @@ def score_split(
 
     Returns ``{"bands": {band: {ssim, mse, n}}, "area": {r, n, generated_mean, simulated_mean},
     "monotonic": {share, n}, "rows": [(object_id, touch row in the batch order, force)]}``."""
-    per: dict[str, dict[str, list[float]]] = {b: {"ssim": [], "mse": []} for b in (*BANDS, "outside")}
+    per: dict[str, dict[str, list[float]]] = {b: {"ssim": [], "mse": []} for b in (*BANDS, "adjacent", "outside")}
     a_fake: list[float] = []
     a_real: list[float] = []
     mono: list[bool] = []
@@ -91,9 +92,11 @@ def score_split(
             bg = batch["background"]
             fake = generate(batch).detach().float().to(real.device)
             s, m = ssim(fake, real).tolist(), mse(fake, real).tolist()
-            for band, si, mi in zip(plan.band_of(force.tolist()), s, m, strict=True):
-                per[band]["ssim"].append(si)
-                per[band]["mse"].append(mi)
+            near = plan.adjacent(force.tolist())
+            for band, si, mi, ni in zip(plan.band_of(force.tolist()), s, m, near, strict=True):
+                for b in (band, "adjacent") if ni else (band,):
+                    per[b]["ssim"].append(si)
+                    per[b]["mse"].append(mi)
             a_fake += contact_area(fake, bg, threshold).tolist()
             a_real += contact_area(real, bg, threshold).tolist()
             areas = []
@@ -110,7 +113,7 @@ def score_split(
     bands = {
         b: {"ssim": mean(v["ssim"]), "mse": mean(v["mse"]), "n": len(v["ssim"])}
         for b, v in per.items()
-        if v["ssim"] or b != "outside"
+        if v["ssim"] or b not in ("outside",)
     }
     r = pearson(a_fake, a_real)
     return {

@@ -61,12 +61,18 @@ def force_section(runs: Sequence[dict[str, Any]], folder: Path) -> list[str]:
         for m in methods:
             mine = [r["force"][split] for r in runs if r["method"] == m and split in r["force"]]
             ssim_by = {}
-            for band in BANDS:
+            for band in (*BANDS, "adjacent"):
                 rows = [x["bands"].get(band, {}) for x in mine]
                 s, e = _stat([b.get("ssim") for b in rows]), _stat([b.get("mse") for b in rows])
                 ssim_by[band] = s
                 n = rows[0].get("n", 0) if rows else 0
                 lines.append(f"| {split} | {m} | {band} | {_fmt(s, 4)} | {_fmt(e, 1)} | {n} | {s[2] if s else 0} |")
+            if ssim_by["adjacent"] and ssim_by["interpolation"]:
+                gap = ssim_by["adjacent"][0] - ssim_by["interpolation"][0]
+                verdicts.append(
+                    f"| {split} | {m} | interpolation SSIM against adjacent training forces (no target) | - | "
+                    f"gap {gap:.4f} |"
+                )
             r_ = _stat([x["area"]["r"] for x in mine])
             mono = _stat([x["monotonic"]["share"] for x in mine])
             if ssim_by["train"] and ssim_by["interpolation"]:

@@ -138,6 +138,14 @@ class ForcePlan:
                 out.append("outside")
         return out
 
+    def adjacent(self, forces: np.ndarray | Sequence[float]) -> np.ndarray:
+        """[N] bool: training forces within one interpolation-band width below or above that band (3-4 and 5-6 N
+        for 4-5 N): the trained forces to compare the held-out band with, at a similar press."""
+        f = np.asarray(forces, dtype=np.float64).ravel()
+        a, b = self.interpolation
+        w = b - a
+        return ((f >= max(self.min, a - w)) & (f < a)) | ((f > b) & (f <= min(self.max, b + w)))
+
     def sweep(self, n: int = 6) -> list[float]:
         """``n`` forces from the range's minimum to the extrapolation band's top, evenly spaced (newtons)."""
         return [round(float(v), 3) for v in np.linspace(self.min, self.extrapolation[1], n)]
