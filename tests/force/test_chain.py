@@ -151,6 +151,7 @@ def test_a_force_model_on_fixed_force_pairs_generates_at_touch_force(models, tmp
     from tnf.stages import evaluate
 
     assert main(["pair", f"data_root={models}", *MESH, "pair.name=fixed-pairs"]) == 0
+    assert "force" not in open_pairs(models / "pairs" / "fixed-pairs").manifest  # as before forces existed
     over = [*_base(models), "generator=tn_cgan_force", "evaluate.model=film", "evaluate.classify.enabled=false"]
     out = evaluate.run(compose("evaluate", [*over, "evaluate.dataset=fixed-pairs", "evaluate.name=fixed"]))
     assert "force" not in out["results"] and out["results"]["image"]["novel_view"]["T-N"]["n"] > 0

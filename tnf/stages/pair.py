@@ -239,7 +239,7 @@ def run(cfg: Any) -> None:
                 # pair.points: points.npy holds each RGB-D pixel's surface point (tnf.data.render.crop_points).
                 "points": {"frame": "object", "unit": "m"} if p["points"] else None,
                 # pair.force: force.npy holds each pair's touch force; the touches' force range and bands.
-                "force": touch_force.record if touch_force is not None else None,
+                **({"force": touch_force.record} if touch_force is not None else {}),
                 "scene": _plain_json(cfg.scene) if p["scene_source"] == "fitted" else {"name": "mesh"},
                 "scene_checkpoints": {
                     o: (str(inputs[o]["scene_dir"] / "scene.pt") if p["scene_source"] == "fitted" else None)
