@@ -187,7 +187,6 @@ def run(cfg: Any) -> dict[str, Any]:
                 if k not in ("force", "batch_size", "render_chunk", "run_name")
                 and not (k == "touch_force" and v is None)  # (hashes of items made before forces existed)
             },
-            "touch_forces": [t.get("force") for t in own] if own is not None else None,
             "seed": int(cfg.seed),
             # What makes the prior of a model that takes it: other settings make other images.
             "prior": (
@@ -196,6 +195,8 @@ def run(cfg: Any) -> dict[str, Any]:
                 else None
             ),
         }
+        if own is not None:  # generate.touch_force=sim: the touches' forces make the images too
+            config["touch_forces"] = [t["force"] for t in own]
         if not g.force and store.is_done("generated", run_name, src, obj, config=config):
             console.print(f"generate: {run_name}/{src}/{obj} is up to date")
             continue
