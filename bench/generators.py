@@ -12,7 +12,9 @@ Training runs each generator's own training step (with its defaults, tn_cgan's u
 Lee's and CycleGAN's also their discriminators) on random batches already on the device, as ``tnf train``
 does inside Lightning: fp32 at batch 64 (TF32 convolutions), bf16 autocast at batch 64 (what ``trainer=gpu``
 trains sim_digit with: ``bf16-mixed``, ``data.batch_size=64``) and at batch 256, channels-last memory.
-Generation runs ``generate`` in eval mode under ``inference_mode`` with bf16 autocast. On a CPU use small
+Generation runs ``generate`` in eval mode under ``inference_mode`` with bf16 autocast. Batches carry a force
+(1-8 N), so ``tn_cgan:force=plane`` and ``tn_cgan:force=film`` time the force-conditioned generator
+(``generator=tn_cgan_force``, docs/force.md). On a CPU use small
 ``--steps`` and batches (``--train-batches 8:fp32 --gen-batch 32``).
 """
 
@@ -36,7 +38,9 @@ def batch_on(device: str, n: int, size: int = 128, channels_last: bool = True) -
         "tactile": torch.rand(n, 3, size, size, generator=g) * 2 - 1,
     }
     fmt = torch.channels_last if channels_last else torch.contiguous_format
-    return {k: v.to(device).contiguous(memory_format=fmt) for k, v in out.items()}
+    batch = {k: v.to(device).contiguous(memory_format=fmt) for k, v in out.items()}
+    batch["force"] = (1 + 7 * torch.rand(n, generator=g)).to(device)  # newtons, for a force-conditioned generator
+    return batch
 
 
 def sync(device: str) -> None:

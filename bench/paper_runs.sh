@@ -35,7 +35,8 @@ extra=(${EXTRA:-})
 mkdir -p "$out"
 tnf() { python -m tnf.cli "$@"; }
 dev=(device=${DEVICE:-cuda} trainer=${TRAINER:-gpu} progress=false "${extra[@]}")
-# EXPERIMENT runs the digit-* phases on another experiment of sim_digit's objects (sim_gelsight_mini_gpu).
+# EXPERIMENT runs the digit-* phases on another experiment of sim_digit's objects (sim_gelsight_mini_gpu;
+# sim_digit_force in its own TNF_DATA, with GENERATORS=tn_cgan_force: docs/force.md gives its phases).
 experiment=${EXPERIMENT:-sim_digit}
 digit=(experiment=$experiment "${dev[@]}")
 timed() {  # timed NAME CMD...: run, log to $out/NAME.log, append the wall time to $out/stage_times.txt

@@ -33,6 +33,8 @@ SECTIONS = (
 """Config sections with a ``default.yaml`` that sets every key's type."""
 TOP_LEVEL = {"seed": 0, "progress": True}
 """Run-wide settings and their defaults (their types)."""
+HINTS = {"generate.force": " (it redoes finished images; the force of a generated touch is generate.touch_force)"}
+"""What a refused setting's line adds, where a value is likely meant for another setting."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -81,7 +83,7 @@ def _check(value: Any, default: Any, where: str) -> None:
         return
     if isinstance(default, bool):
         if not isinstance(value, bool):
-            raise TnfError(f"{where}: expected true or false, got {value!r}")
+            raise TnfError(f"{where}: expected true or false, got {value!r}{HINTS.get(where, '')}")
     elif isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             raise TnfError(f"{where}: expected a whole number, got {value!r}")

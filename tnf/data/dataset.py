@@ -160,8 +160,9 @@ class PairDataset(Dataset):
     batch of indices) are dicts of float32 tensors in [-1, 1]: ``rgb`` [3, 128, 128], ``depth``
     [1, 128, 128] (-1 nearest, 1 far or empty), ``background`` [3, 128, 128], ``tactile`` [3, 128, 128];
     plus ``object_id`` (long; index into ``object_names``), ``prior`` [3, 128, 128] in datasets that hold
-    it (``pair.prior=true``) and ``points`` [3, 128, 128] (metres, NaN where no surface) in those that hold
-    them (``pair.points=true``). Batches have a leading batch dimension; when all
+    it (``pair.prior=true``), ``points`` [3, 128, 128] (metres, NaN where no surface) in those that hold
+    them (``pair.points=true``) and ``force`` (float32, newtons) in those made with ``pair.force=true``.
+    Batches have a leading batch dimension; when all
     pairs of a batch share one background (one sensor), ``background`` is a stride-0 expanded view of it:
     read it freely, but call ``.contiguous()`` before writing into it in place.
 
@@ -267,6 +268,8 @@ class PairDataset(Dataset):
                 out["prior"] = _take_rows(a.prior, rows)
             if a.points is not None:  # float32 either way: served as the float batches serve them
                 out["points"] = _points_chw(_take_rows(a.points, rows))
+            if a.force is not None:
+                out["force"] = _take_rows(a.force, rows)
             return out
         # Rows gathered out of the page cache (the memory maps) as stored, then converted in cache-sized steps.
         rgb = _to_unit_range(a.rgb, rows)
@@ -278,6 +281,8 @@ class PairDataset(Dataset):
             batch["prior"] = _to_unit_range(a.prior, rows)
         if a.points is not None:
             batch["points"] = _points_chw(_take_rows(a.points, rows))
+        if a.force is not None:
+            batch["force"] = _take_rows(a.force, rows)
         if self.augment:
             augment_batch(batch, self.augment, self.mirror)
         return batch
@@ -499,7 +504,7 @@ def augment_batch(
 
 class MixedPairDataset(Dataset):
     """Several ``PairDataset``s served as one (e.g. simulated and generated touches); batches as above, with
-    ``prior`` and ``points`` only when every dataset holds them."""
+    ``prior``, ``points`` and ``force`` only when every dataset holds them."""
 
     def __init__(self, datasets: Sequence[PairDataset]):
         if not datasets:
@@ -507,7 +512,7 @@ class MixedPairDataset(Dataset):
         self.datasets = list(datasets)
         self.offsets = np.cumsum([0] + [len(d) for d in self.datasets])
         self._drop = tuple(
-            k for k in ("prior", "points") if not all(getattr(d.arrays, k) is not None for d in self.datasets)
+            k for k in ("prior", "points", "force") if not all(getattr(d.arrays, k) is not None for d in self.datasets)
         )
 
     def __len__(self) -> int:

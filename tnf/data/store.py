@@ -14,6 +14,8 @@
   ``prior`` says how): the simulator's image of the pair's depth crop (``tnf.data.prior``);
 - ``points.npy`` float32 [N, 128, 128, 3], only in datasets made with ``pair.points=true`` (the manifest's
   ``points``): the surface point each RGB-D pixel sees, in the object's frame (metres; NaN where none);
+- ``force.npy`` float32 [N], only in datasets made with ``pair.force=true`` (the manifest's ``force``): the
+  normal force of each pair's touch, newtons (``tnf.sim.forces``);
 - ``manifest.json``: provenance and counts; ``previews/``: a few pairs as PNG.
 
 Arrays are written in place through ``np.lib.format.open_memmap`` so a dataset of any size is built with
@@ -51,9 +53,10 @@ PAIR_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
 OPTIONAL_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {
     "prior": ("uint8", (SIZE, SIZE, 3)),
     "points": ("float32", (SIZE, SIZE, 3)),
+    "force": ("float32", ()),
 }
 """Arrays a dataset holds only when its manifest names them (``prior``: ``pair.prior=true``; ``points``:
-``pair.points=true``)."""
+``pair.points=true``; ``force``: ``pair.force=true``)."""
 
 
 class PairWriter:
@@ -141,6 +144,7 @@ class PairArrays:
     sensor_id: np.ndarray
     prior: np.ndarray | None = None
     points: np.ndarray | None = None
+    force: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.rgb)

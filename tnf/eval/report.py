@@ -524,6 +524,10 @@ def write_report(
         figures[table] = figs
     timings = [json.loads(p.read_text()) for p in sorted((folder / "timings").glob("*.json"))]
     md = render_markdown(name or folder.name, tables, figures, notes, timings, next_step)
+    from tnf.eval.force_report import force_section
+
+    if section := force_section(results, folder):  # a force-conditioned model's evaluation by force
+        md += "\n" + "\n".join(section)
     write_bytes(folder / "report.md", md.encode())
     return tables
 

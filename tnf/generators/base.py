@@ -92,6 +92,7 @@ class Generator(nn.Module):
                 f"(batch has {sorted(batch)})"
                 + ("; the prior comes with datasets made with pair.prior=true" if "prior" in missing else "")
                 + ("; surface points come with datasets made with pair.points=true" if "points" in missing else "")
+                + ("; the force comes with datasets made with pair.force=true" if "force" in missing else "")
             )
 
     def freeze(self, prefixes: Iterable[str]) -> list[str]:

@@ -167,6 +167,11 @@ class Encoder(nn.Module):
         return feats
 
 
+def _out_channels(conv: nn.Module) -> int:
+    assert isinstance(conv, (nn.Conv2d, nn.ConvTranspose2d))
+    return int(conv.out_channels)
+
+
 class UNetDecoder(nn.Module):
     """U-Net decoder from a concatenated bottleneck, with skip features concatenated at every level.
 
@@ -218,13 +223,23 @@ class UNetDecoder(nn.Module):
             if not last:
                 cin = cout + skip_ch[level - 1]
         self.blocks = nn.ModuleList(blocks)
+        # Each block's output channels (its transposed convolution's).
+        self.out_channels = [_out_channels(b[1]) for b in blocks]
 
-    def forward(self, bottleneck: torch.Tensor, skips: list[list[torch.Tensor]]) -> torch.Tensor:
-        """``skips[level]``: tensors to concatenate after upsampling to ``level``'s resolution."""
+    def forward(
+        self,
+        bottleneck: torch.Tensor,
+        skips: list[list[torch.Tensor]],
+        modulate: Callable[[int, torch.Tensor], torch.Tensor] | None = None,
+    ) -> torch.Tensor:
+        """``skips[level]``: tensors to concatenate after upsampling to ``level``'s resolution. ``modulate(k, x)``
+        (FiLM, ``ForceFiLM``) rewrites block ``k``'s output before its skips join it."""
         x = bottleneck
         n = len(self.blocks)
         for k, block in enumerate(self.blocks):
             x = block(x)
+            if modulate is not None:
+                x = modulate(k, x)
             level = n - 2 - k
             if level >= 0 and skips[level]:
                 x = torch.cat([x, *skips[level]], 1)
@@ -267,8 +282,12 @@ class MultiEncoderUNet(nn.Module):
         coords: tuple[str, ...] | list[str] = (),
         residual_on: str = "background",
         channels: dict[str, int] | None = None,
+        force: str = "none",
     ):
         super().__init__()
+        if force not in FORCE_MODES:
+            raise ValueError(f"force must be one of {', '.join(FORCE_MODES)}, got {force!r}")
+        self.force = force
         if residual and residual_on not in inputs:
             raise ValueError(f"residual output adds to the {residual_on} image: inputs {inputs} must include it")
         self.residual = residual
@@ -281,7 +300,7 @@ class MultiEncoderUNet(nn.Module):
         self.position_grid: torch.Tensor
         self.register_buffer("position_grid", coordinate_grid(2**n), persistent=False)
         channels = {**CHANNELS, **(channels or {})}
-        ch = {k: channels[k] + 2 * (k in self.coords) for k in self.inputs}
+        ch = {k: channels[k] + 2 * (k in self.coords) + (force == "plane") for k in self.inputs}
         self.encoders = nn.ModuleDict({k: Encoder(ch[k], ngf, n, norm, kernel) for k in self.inputs})
         bottleneck = len(self.inputs) * level_channels(ngf, n - 1)
         skip_ch = [len(self.skips) * level_channels(ngf, lv) for lv in range(n - 1)]
@@ -299,6 +318,9 @@ class MultiEncoderUNet(nn.Module):
             image_out=not full_res_head,
             tanh=not residual,
         )
+        self.film: ForceFiLM | None = None
+        if force == "film":  # the bottleneck and every decoder block's output
+            self.film = ForceFiLM([bottleneck, *self.decoder.out_channels[: n - (not full_res_head)]])
         self.head: nn.Module | None = None
         if full_res_head:
             cin = ngf + sum(ch[k] for k in self.skips)
@@ -325,8 +347,14 @@ class MultiEncoderUNet(nn.Module):
             y = y + F.conv2d(relu(small), conv.weight[:, c:], None, conv.stride, conv.padding)
         return self.head[2:](y)
 
-    def forward(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+    def forward(self, inputs: dict[str, torch.Tensor], force: torch.Tensor | None = None) -> torch.Tensor:
+        """``force``: [B] the normalised force (``force_input``), needed when the network was built with one."""
         base = inputs.get(self.residual_on)
+        if self.force != "none" and force is None:
+            raise TnfError("this generator is conditioned on the force: its batches need the force (batch key force)")
+        if self.force == "plane":
+            assert force is not None
+            inputs = {k: torch.cat([v, force_plane(force, v)], 1) for k, v in inputs.items()}
         if self.coords:
             grid = self.position_grid
             inputs = {
@@ -337,7 +365,17 @@ class MultiEncoderUNet(nn.Module):
         bottleneck = torch.cat([feats[k][-1] for k in self.inputs], 1)
         n = len(next(iter(feats.values())))
         skips = [[feats[k][lv] for k in self.skips] for lv in range(n - 1)]
-        out = self.decoder(bottleneck, skips)
+        modulate = None
+        if self.film is not None:
+            assert force is not None
+            film = self.film(force)
+            bottleneck = film(0, bottleneck)
+            last = len(film.params) - 1
+
+            def modulate(k: int, x: torch.Tensor) -> torch.Tensor:
+                return film(k + 1, x) if k < last else x
+
+        out = self.decoder(bottleneck, skips, modulate)
         if self.head is not None:
             out = self._head(out, [inputs[k] for k in self.skips])
         if not self.residual:
@@ -346,6 +384,61 @@ class MultiEncoderUNet(nn.Module):
         out = base + out
         # Training sees the unclipped sum, so that the L1 and SSIM terms still pull back a pixel that overshoots.
         return out if self.training else out.clamp(-1, 1)
+
+
+FORCE_MODES = ("none", "film", "plane")
+"""How a generator sees the touch's force: not at all, FiLM (a scale and shift of the bottleneck and every decoder
+block's features, from a small network of the force) or a constant input plane appended to every input."""
+
+
+def force_input(force: torch.Tensor, center: float, scale: float) -> torch.Tensor:
+    """[B] forces in newtons -> [B] float32 ``(force - center) / scale`` (the training range maps to [-1, 1])."""
+    return (force.float() - center) / scale
+
+
+def force_plane(force: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """[B, 1, H, W] planes holding each image's normalised force, in ``like``'s dtype and size."""
+    b, _, h, w = like.shape
+    return force.to(like.dtype).view(b, 1, 1, 1).expand(b, 1, h, w)
+
+
+class _Film:
+    """Per-layer (scale, shift) pairs of one batch: ``film(i, x)`` = ``x * (1 + scale_i) + shift_i``."""
+
+    def __init__(self, params: list[tuple[torch.Tensor, torch.Tensor]]):
+        self.params = params
+
+    def __call__(self, i: int, x: torch.Tensor) -> torch.Tensor:
+        g, b = self.params[i]
+        return x * (1 + g.to(x.dtype)[..., None, None]) + b.to(x.dtype)[..., None, None]
+
+
+class ForceFiLM(nn.Module):
+    """FiLM (Perez et al. 2018) from the force: a two-layer network maps the [B] normalised force to a scale and
+    a shift per channel of each layer in ``channels``. Its last layer starts at zero, so an untrained FiLM leaves
+    every feature as it is."""
+
+    def __init__(self, channels: list[int], hidden: int = 64):
+        super().__init__()
+        self.channels = list(channels)
+        self.net = nn.Sequential(nn.Linear(1, hidden), nn.ReLU(True), nn.Linear(hidden, 2 * sum(self.channels)))
+
+    def reset(self) -> None:
+        """PyTorch's default initialisation for the first layer (the GAN's N(0, 0.02) would leave its features
+        near zero, and the force with them) and zeros for the last: FiLM starts as the identity."""
+        first, last = self.net[0], self.net[-1]
+        assert isinstance(first, nn.Linear) and isinstance(last, nn.Linear)
+        first.reset_parameters()
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
+
+    def forward(self, force: torch.Tensor) -> _Film:
+        y = self.net(force.float().view(-1, 1))
+        params, at = [], 0
+        for c in self.channels:
+            params.append((y[:, at : at + c], y[:, at + c : at + 2 * c]))
+            at += 2 * c
+        return _Film(params)
 
 
 def gan_loss(logits: torch.Tensor, real: bool, mode: str) -> torch.Tensor:
@@ -427,6 +520,13 @@ class TNcGAN(Generator):
         """Inputs that also get each pixel's x and y position as two channels (``coordinate_grid``), for their
         encoder and, if skipped, the head: where on the gel a pixel lies changes how a press there looks (the
         gel's sag, the lights' directions). Empty: the network sees positions only through its borders."""
+        force: str = "none"
+        """How the generator sees each touch's force (datasets made with ``pair.force=true``; docs/force.md):
+        none, film (FiLM on the bottleneck and the decoder's features) or plane (a constant input plane)."""
+        force_center: float = 4.5
+        """With a force: the force (newtons) that maps to 0; the training range's middle."""
+        force_scale: float = 3.5
+        """With a force: the force span (newtons) that maps to 1; the training range's half width."""
         surface_levels: int = 5
         """With ``surface`` in inputs: the surface field's grid levels (``tnf.generators.field``)."""
         surface_features: int = 2
@@ -490,6 +590,12 @@ class TNcGAN(Generator):
                     f"residual adds to the {self.residual_on} image: inputs {self.inputs} must include "
                     f"{self.residual_on} (or set generator.residual=false)"
                 )
+            if self.force not in FORCE_MODES:
+                raise ValueError(f"force must be one of {', '.join(FORCE_MODES)}, got {self.force!r}")
+            if not (math.isfinite(self.force_center) and math.isfinite(self.force_scale) and self.force_scale > 0):
+                raise ValueError(
+                    f"force_center must be finite and force_scale > 0, got {self.force_center}, {self.force_scale}"
+                )
             if self.ngf < 1 or self.ndf < 1:
                 raise ValueError(f"ngf and ndf must be >= 1, got {self.ngf}, {self.ndf}")
 
@@ -521,21 +627,41 @@ class TNcGAN(Generator):
             coords=cfg.coords,
             residual_on=cfg.residual_on,
             channels=channels,
+            force=cfg.force,
         )
-        cond_ch = sum({**CHANNELS, **channels}[k] for k in self.inputs)
+        cond_ch = sum({**CHANNELS, **channels}[k] for k in self.inputs) + (cfg.force != "none")
         self.net_d = PatchDiscriminator(cond_ch + 3, cfg.ndf, cfg.d_layers, cfg.norm)
         init_weights(self.net_g)
         init_weights(self.net_d)
+        if self.net_g.film is not None:
+            self.net_g.film.reset()
         for m in self.net_g.modules():
             if isinstance(m, NoiseDropout):
                 m.always_on = cfg.dropout_at_generation
 
+    @property
+    def uses_force(self) -> bool:
+        """Whether the generator is conditioned on the touch's force (batch key ``force``, newtons)."""
+        return self.cfg.force != "none"
+
+    def _force(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        if not self.uses_force:
+            return None
+        return force_input(batch["force"], self.cfg.force_center, self.cfg.force_scale)
+
+    def _keys(self) -> tuple[str, ...]:
+        return (*needed_keys(self.inputs), *(("force",) if self.uses_force else ()))
+
     def condition(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat(list(conditions(batch, self.inputs, self.field).values()), 1)
+        cond = list(conditions(batch, self.inputs, self.field).values())
+        f = self._force(batch)
+        if f is not None:  # the discriminator judges the press at its force
+            cond.append(force_plane(f, cond[0]))
+        return torch.cat(cond, 1)
 
     def generate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        self.check_batch(batch, needed_keys(self.inputs))
-        return self.net_g(conditions(batch, self.inputs, self.field))
+        self.check_batch(batch, self._keys())
+        return self.net_g(conditions(batch, self.inputs, self.field), self._force(batch))
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         betas = (self.cfg.beta1, self.cfg.beta2)
@@ -550,7 +676,7 @@ class TNcGAN(Generator):
         return opts
 
     def training_step(self, batch: dict[str, torch.Tensor], opt: Optimisation) -> dict[str, torch.Tensor]:
-        self.check_batch(batch, (*needed_keys(self.inputs), "tactile"))
+        self.check_batch(batch, (*self._keys(), "tactile"))
         opts = opt.optimizers()  # [generator's, discriminator's] ([generator's] without the adversarial term)
         opt_g = opts[0]
         real = batch["tactile"]

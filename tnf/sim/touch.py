@@ -6,7 +6,7 @@ metres, in the object's world frame (the same frame as the capture stage's camer
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -89,6 +89,7 @@ class Collected:
     start_c2w: np.ndarray
     results: Any  # TouchBatch of the kept touches
     discarded: int
+    target_force: np.ndarray | None = None  # [n] target force of each kept touch, newtons (with a force sampler)
 
 
 def collect(
@@ -98,7 +99,7 @@ def collect(
     rng: np.random.Generator,
     *,
     radius: float,
-    force: float,
+    force: float | Callable[[int], np.ndarray],
     batch_size: int,
     axis: Sequence[float],
     cone_deg: float,
@@ -110,12 +111,16 @@ def collect(
 ) -> Collected:
     """Simulate touches in batches until ``n`` made contact; touches without contact are discarded and counted.
 
+    ``force`` is every press's force (newtons), or a sampler ``k -> [k]`` forces called once per batch (each
+    kept touch's target then comes back in ``target_force``).
+
     Raises a TnfError when fewer than ``n`` touches hit after ``max_attempts * n`` tries.
     """
     from tnf.sim.warp_gel import TouchBatch
 
     kept: list[TouchBatch] = []
     starts: list[np.ndarray] = []
+    targets: list[np.ndarray] = []
     got, discarded, tries, k = 0, 0, 0, 0
     while got < n:
         if tries >= max_attempts * max(n, 1):
@@ -126,15 +131,18 @@ def collect(
         b = min(batch_size, max(n - got, 1))
         dirs = sphere_directions(rng, b, axis, cone_deg, inside)
         poses = start_poses(rng, dirs, radius, up=up, random_roll=random_roll)
-        out = sim.press(mesh, poses, force, seed=seed * 100003 + k)
+        f = force(b) if callable(force) else force
+        out = sim.press(mesh, poses, f, seed=seed * 100003 + k)
         k += 1
         tries += b
         keep = np.flatnonzero(out.hit)[: n - got]
         discarded += int((~out.hit).sum())
         kept.append(_take(out, keep))
         starts.append(poses[keep])
+        targets.append(np.broadcast_to(np.asarray(f, dtype=np.float64), (b,))[keep])
         got += len(keep)
-    return Collected(np.concatenate(starts), _concat(kept), discarded)
+    target = np.concatenate(targets) if callable(force) else None
+    return Collected(np.concatenate(starts), _concat(kept), discarded, target)
 
 
 def _take(batch: Any, idx: np.ndarray) -> Any:

@@ -85,13 +85,15 @@ def run(cfg: Any) -> dict[str, Any]:
             results = load_results([old])[0]
             results.pop("_path")
         else:
-            results, examples_png = evaluate_model(cfg, store, method)
+            results, examples_png, figures = evaluate_model(cfg, store, method)
             results["config_hash"] = chash
             # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile. Nothing
             # of this run is in the row's folder until here, so a refused run leaves the other model's intact.
             _check_not_another_models(old, str(ecfg.model), method, cfg.seed, force)
             if examples_png is not None:
                 write_bytes(folder / str(results["examples"]), examples_png)
+            for file, png in figures.items():
+                write_bytes(folder / file, png)
             write_json(folder / RESULTS_FILE, results)
         _copy_to_hydra_output(folder)
         out["results"] = results
@@ -154,9 +156,10 @@ def _method_label(cfg: Any) -> str:
     return METHOD_LABELS.get(name, name)
 
 
-def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], bytes | None]:
-    """Image metrics and the classification task for ``cfg.evaluate.model``: the results dict, and the example
-    figure as PNG bytes (None without image metrics), which the caller writes beside the results."""
+def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], bytes | None, dict[str, bytes]]:
+    """Image metrics and the classification task for ``cfg.evaluate.model``: the results dict, the example
+    figure as PNG bytes (None without image metrics) and further figures by file name (a force-conditioned
+    model's force sweep), which the caller writes beside the results."""
     from tnf.eval.aggregate import SCHEMA
     from tnf.runtime import environment, progress, resolve_device, seed_everything
 
@@ -164,6 +167,7 @@ def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], b
     device = resolve_device(str(cfg.device))
     t0 = time.perf_counter()
     examples_png = None
+    figures: dict[str, bytes] = {}
     results: dict[str, Any] = {
         "schema": SCHEMA,
         "table": str(ecfg.table),
@@ -179,8 +183,11 @@ def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], b
     with progress(bool(cfg.progress)) as bar:
         if list(ecfg.splits):
             seed_everything(int(cfg.seed))
-            image, examples = image_metrics(cfg, store, device, bar)
+            image, examples, force = image_metrics(cfg, store, device, bar)
             results["image"] = image
+            if force is not None:  # a model conditioned on the force: its evaluation by force (tnf.eval.force)
+                results["force"], figures["force_sweep.png"] = force
+                results["force_figure"] = "force_sweep.png"
             if examples is not None:
                 from tnf.eval.figures import example_grid
 
@@ -196,11 +203,14 @@ def evaluate_model(cfg: Any, store: Any, method: str) -> tuple[dict[str, Any], b
             results["classify"] = info
             results["warnings"] += warnings
     results["evaluate_s"] = time.perf_counter() - t0
-    return results, examples_png
+    return results, examples_png, figures
 
 
-def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str, Any], dict[str, Any] | None]:
-    """SSIM/MSE per test split for the model and BG, and the example touches (from novel_object if scored)."""
+def image_metrics(
+    cfg: Any, store: Any, device: str, bar: Any
+) -> tuple[dict[str, Any], dict[str, Any] | None, tuple[dict[str, Any], bytes] | None]:
+    """SSIM/MSE per test split for the model and BG, the example touches (from novel_object if scored), and for
+    a model conditioned on the force its evaluation by force (``tnf.eval.force.by_force``; None otherwise)."""
     import torch
     from torch.utils.data import DataLoader
 
@@ -232,8 +242,20 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
                 "mirror-averaged (generate.mirror_average)"
             )
 
+    uses_force = system.hparams["generator"].get("force", "none") != "none"
+    fixed_force = None
+    if uses_force and not read_json(pairs / MANIFEST, "dataset manifest").get("force"):
+        # Pairs made at one force (pair.force=false): every test touch is generated at touch.force.
+        fixed_force = float(cfg.touch.force)
+        bar.console.print(
+            f"evaluate: dataset {pairs.name} records no forces; the model generates every touch at touch.force="
+            f"{fixed_force:g} N, and the evaluation by force is skipped"
+        )
+
     def generate(batch: Any) -> torch.Tensor:
         moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+        if fixed_force is not None:
+            moved["force"] = torch.full((len(moved["rgb"]),), fixed_force, device=device)
         return system.generate(moved, mirror)
 
     out: dict[str, Any] = {}
@@ -277,7 +299,12 @@ def image_metrics(cfg: Any, store: Any, device: str, bar: Any) -> tuple[dict[str
         results[split] = {method: rows["G"], BG: rows[BG]}
     if bg_all is not None:
         results["all"] = {BG: bg_all.summary()}
-    return results, examples
+    force = None
+    if uses_force and fixed_force is None:
+        from tnf.eval.force import by_force
+
+        force = by_force(cfg, pairs, object_names, generate, device, bar)
+    return results, examples, force
 
 
 def _object_names(ds: Any) -> list[str] | None:

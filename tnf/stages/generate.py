@@ -68,6 +68,7 @@ def run(cfg: Any) -> dict[str, Any]:
     from tnf.registry import SENSORS
     from tnf.runtime import progress, resolve_device
     from tnf.scenes import load_scene
+    from tnf.sim.forces import requested_forces
 
     g = cfg.generate
     console = Console(highlight=False)
@@ -86,6 +87,13 @@ def run(cfg: Any) -> dict[str, Any]:
     if size != SIZE:
         raise TnfError(f"model {g.model} generates {size} px images; tnf datasets use {SIZE} px")
     run_name = str(g.run_name or g.model)
+    # The force of each image (generate.touch_force): a list of forces, "sim" or None (a model without force).
+    wanted = requested_forces(
+        g.get("touch_force"),
+        system.hparams["generator"].get("force", "none") != "none",
+        str(g.model),
+        float(cfg.touch.force),
+    )
     source, names = select(cfg)
     src = source.name
     sensor = SENSORS.build(cfg.sensor)
@@ -143,11 +151,26 @@ def run(cfg: Any) -> dict[str, Any]:
 
             prior = DepthPrior(sensor, cfg.simulator, framing, device=warp_device(device))
         seed = (int(cfg.seed) * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
-        poses = (
-            file_poses
-            if file_poses is not None
-            else sample_poses(int(g.n_poses), float(g.radius), g.up, bool(g.random_roll), seed)
-        )
+        own: list[dict[str, Any]] | None = None  # generate.touch_force=sim: the object's simulated touches
+        if wanted == "sim":
+            from tnf.data.render import TouchItem
+
+            own = TouchItem.load(
+                store.require("touch", sensor.name, src, obj, hint=f"run `tnf touch object={obj}` first")
+            ).touches
+            unknown = [t["index"] for t in own if not isinstance(t.get("force"), (int, float))]
+            if unknown:
+                raise TnfError(
+                    f"generate.touch_force=sim: touch {unknown[0]} of {obj!r} records no force (imported touches "
+                    "record none); request a force in newtons instead"
+                )
+            poses = np.asarray([t["start_c2w"] for t in own], dtype=np.float64)
+        else:
+            poses = (
+                file_poses
+                if file_poses is not None
+                else sample_poses(int(g.n_poses), float(g.radius), g.up, bool(g.random_roll), seed)
+            )
         config = {
             "model": str(g.model),
             "checkpoint": str(g.checkpoint),
@@ -159,7 +182,10 @@ def run(cfg: Any) -> dict[str, Any]:
             "framing": dataclasses.asdict(framing),
             "poses": poses.round(9).tolist() if file_poses is not None else None,
             "settings": {
-                k: v for k, v in settings.items() if k not in ("force", "batch_size", "render_chunk", "run_name")
+                k: v
+                for k, v in settings.items()
+                if k not in ("force", "batch_size", "render_chunk", "run_name")
+                and not (k == "touch_force" and v is None)  # (hashes of items made before forces existed)
             },
             "seed": int(cfg.seed),
             # What makes the prior of a model that takes it: other settings make other images.
@@ -169,17 +195,27 @@ def run(cfg: Any) -> dict[str, Any]:
                 else None
             ),
         }
+        if own is not None:  # generate.touch_force=sim: the touches' forces make the images too
+            config["touch_forces"] = [t["force"] for t in own]
         if not g.force and store.is_done("generated", run_name, src, obj, config=config):
             console.print(f"generate: {run_name}/{src}/{obj} is up to date")
             continue
-        jobs.append((obj, scene_dir, focal, framing, poses, config, seed))
+        jobs.append((obj, scene_dir, focal, framing, poses, config, seed, own))
 
     bg_t = torch.from_numpy(background).to(device).permute(2, 0, 1).float().div(127.5).sub(1)
     batch_size = int(g.batch_size)
     written = {}
     with progress(bool(cfg.progress)) as bar:
-        task = bar.add_task("generate", total=sum(len(j[4]) for j in jobs))
-        for obj, scene_dir, focal, framing, poses, config, seed in jobs:
+        per_pose = len(wanted) if isinstance(wanted, list) else 1
+        task = bar.add_task("generate", total=sum(len(j[4]) * per_pose for j in jobs))
+        for obj, scene_dir, focal, framing, poses, config, seed, own in jobs:
+            # Each pose at each requested force: images pose-major (index = pose * forces + force's place).
+            forces = (
+                np.asarray([t["force"] for t in own], np.float32)
+                if own is not None
+                else np.asarray(wanted if isinstance(wanted, list) else [np.nan], np.float32)
+            )
+            step = max(1, batch_size // per_pose)
             # The generator's noise (dropout kept on when generating, as in pix2pix) comes from torch's RNG: seed
             # it per object, so that an object's images depend on the seed only and not on which objects this
             # process generated before (a resumed run generates only the missing ones).
@@ -194,8 +230,8 @@ def run(cfg: Any) -> dict[str, Any]:
                 saves: list[Future] = []
                 (tmp / "images").mkdir()
                 Image.fromarray(background_full).save(tmp / "background.png")
-                for s in range(0, len(poses), batch_size):
-                    c2w = torch.as_tensor(poses[s : s + batch_size], dtype=torch.float32, device=device)
+                for s in range(0, len(poses), step):
+                    c2w = torch.as_tensor(poses[s : s + step], dtype=torch.float32, device=device)
                     b = len(c2w)
                     with torch.no_grad():
                         rgb8, depth01, contact, points = render_rgbd_crops(
@@ -214,28 +250,38 @@ def run(cfg: Any) -> dict[str, Any]:
                     if prior is not None:
                         p8 = prior(depth01, float(cfg.touch.force))
                         batch["prior"] = torch.from_numpy(p8).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1)
+                    image_force: list[float | None] = [None] * b
+                    if wanted is not None:
+                        batch, image_force = _at_forces(batch, forces, s, b, own is not None)
                     tactile = system.generate(batch, mirror)
                     images = ((tactile.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
                     images = images.permute(0, 2, 3, 1).cpu().numpy()
-                    for i in range(b):
-                        index = s + i
+                    k = 1 if own is not None else per_pose  # images per pose in this batch
+                    for i in range(b * k):
+                        p_i = s + i // k
+                        index = s * k + i
                         rel = f"images/{index:05d}.png"
                         saves.append(pool.submit(Image.fromarray(images[i]).save, tmp / rel))
-                        pose = poses[index]
-                        hit = bool(np.isfinite(contact[i]))
+                        pose = poses[p_i]
+                        hit = bool(np.isfinite(contact[i // k]))
                         touches.append(
                             {
                                 "index": index,
-                                "split": str(g.split),
+                                "split": str(own[p_i]["split"]) if own is not None else str(g.split),
                                 "image": rel,
                                 "start_c2w": pose.tolist(),
                                 # Where the gel first meets the surface, on the sensor's axis (-z).
-                                "contact_point": (pose[:3, 3] - contact[i] * pose[:3, 2]).tolist() if hit else None,
-                                "force": None,
+                                "contact_point": (pose[:3, 3] - contact[i // k] * pose[:3, 2]).tolist()
+                                if hit
+                                else None,
+                                # The force the generator was asked for, newtons (null: a model without force).
+                                "force": image_force[i],
                                 "penetration": None,
                             }
                         )
-                    bar.advance(task, b)
+                        if wanted is not None:
+                            touches[-1]["pose_index"] = p_i
+                    bar.advance(task, b * k)
                 for f in saves:
                     f.result()  # re-raises a failed write
                 from tnf.artifacts import write_json
@@ -254,6 +300,17 @@ def run(cfg: Any) -> dict[str, Any]:
                             "checkpoint": str(ckpt),
                         },
                         "image_size": SIZE,
+                        **(
+                            {
+                                "force": {
+                                    "unit": "N",
+                                    "requested": wanted,
+                                    "per_pose": 1 if own is not None else per_pose,
+                                }
+                            }
+                            if wanted is not None
+                            else {}
+                        ),
                     },
                 )
             written[obj] = len(touches)
@@ -264,6 +321,25 @@ def run(cfg: Any) -> dict[str, Any]:
             f"{store.path('generated', run_name, src)}"
         )
     return {"run_dir": str(store.path("generated", run_name)), "written": written}
+
+
+def _at_forces(
+    batch: dict[str, Any], forces: np.ndarray, start: int, b: int, own: bool
+) -> tuple[dict[str, Any], list[float | None]]:
+    """The batch of ``b`` poses (from pose ``start``) with a ``force`` key: with ``own``, pose i's force is
+    ``forces[start + i]``; otherwise every pose is repeated at each of ``forces`` (pose-major). Returns it and the
+    force of each image, newtons."""
+    import torch
+
+    if own:
+        f = torch.from_numpy(forces[start : start + b].copy())
+        out = dict(batch)
+    else:
+        k = len(forces)
+        out = {key: v.repeat_interleave(k, 0) if isinstance(v, torch.Tensor) else v for key, v in batch.items()}
+        f = torch.from_numpy(np.tile(forces, b))
+    out["force"] = f.to(batch["rgb"].device)
+    return out, [round(float(x), 6) for x in f.tolist()]
 
 
 def _preprocessing(cfg: Any, store: Any, model_dir: Path) -> dict[str, Any]:

@@ -105,6 +105,7 @@ def run(cfg: Any) -> None:
 
     # -- step 1: per-object render caches -----------------------------------------------------------------
     optional = tuple(k for k in ("prior", "points") if p[k])
+    assembled = optional + (("force",) if p.get("force") else ())
     cache_keys: dict[str, dict[str, Any]] = {}
     for obj, i in inputs.items():
         key = {
@@ -126,6 +127,12 @@ def run(cfg: Any) -> None:
     # A finished dataset made from the same inputs needs nothing, not even its (deleted) render caches.
     novel = choose_novel_objects(names, p["novel_objects"], int(p["num_novel_objects"]), int(cfg.seed))
     dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
+    touch_force = None
+    if p.get("force"):  # pair.force: each pair's touch force (force.npy), read from the touch manifests
+        from tnf.data.forces import touch_forces
+
+        touch_force = touch_forces({o: inputs[o]["item"] for o in names})
+        dataset_key["force"] = touch_force.record
     if store.is_done("pairs", name, config=dataset_key):
         console.print(f"pair: dataset {store.path('pairs', name)} is up to date")
         return
@@ -196,7 +203,7 @@ def run(cfg: Any) -> None:
     split_counts = dict.fromkeys(SPLITS, 0)
     with store.writing("pairs", name, config=dataset_key) as tmp:
         start = 0
-        with PairWriter(tmp, n, np.stack(backgrounds), optional=optional) as writer:
+        with PairWriter(tmp, n, np.stack(backgrounds), optional=assembled) as writer:
             for oid, o in enumerate(names):
                 labels = (store.manifest("pairs", ".cache", name, src, o) or {})["splits"]
                 codes = assign_splits(labels, novel_object=o in novel)
@@ -220,6 +227,7 @@ def run(cfg: Any) -> None:
                         split=codes[s:end],
                         sensor_id=np.zeros(n_chunk, np.int16),
                         **{k: arr[k][s:end] for k in optional},
+                        **({"force": touch_force.of(o, arr["touch_index"][s:end])} if touch_force is not None else {}),
                     )
                 start += counts[o]
         first = inputs[names[0]]["item"].manifest
@@ -242,6 +250,8 @@ def run(cfg: Any) -> None:
                 "prior": {"simulator": _plain_json(cfg.simulator)} if p["prior"] else None,
                 # pair.points: points.npy holds each RGB-D pixel's surface point (tnf.data.render.crop_points).
                 "points": {"frame": "object", "unit": "m"} if p["points"] else None,
+                # pair.force: force.npy holds each pair's touch force; the touches' force range and bands.
+                **({"force": touch_force.record} if touch_force is not None else {}),
                 "scene": _plain_json(cfg.scene) if p["scene_source"] == "fitted" else {"name": "mesh"},
                 "scene_checkpoints": {
                     o: (str(inputs[o]["scene_dir"] / "scene.pt") if p["scene_source"] == "fitted" else None)

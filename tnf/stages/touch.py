@@ -23,10 +23,14 @@ def item_config(cfg: Any, sensor: Any) -> dict[str, Any]:
 
     from tnf.registry import split_spec
 
+    touch = OmegaConf.to_container(cfg.touch, resolve=True)
+    assert isinstance(touch, dict)
+    if touch.get("force_range") is None:  # fixed-force items keep the hash they had before force ranges existed
+        touch.pop("force_range", None)
     return {
         "sensor": sensor.describe(),
         "simulator": split_spec(cfg.simulator, "simulator"),
-        "touch": OmegaConf.to_container(cfg.touch, resolve=True),
+        "touch": touch,
         "seed": int(cfg.seed),
     }
 
@@ -72,6 +76,7 @@ def run(cfg: Any) -> None:
     from tnf.objects import select, shard, shard_of
     from tnf.registry import SENSORS, SIMULATORS
     from tnf.runtime import job_device, progress, resolve_device, warp_device
+    from tnf.sim.forces import force_plan, force_sampler
     from tnf.sim.touch import collect
 
     console = Console(highlight=False)
@@ -79,6 +84,7 @@ def run(cfg: Any) -> None:
     store = ArtifactStore(cfg.data_root)
     sensor = SENSORS.build(cfg.sensor)
     sensor.check_force(float(tc.force))
+    plan = force_plan(tc.get("force_range"), sensor)  # None: every touch presses with touch.force
     if tc.radius <= 0:
         raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
     source, names = select(cfg)
@@ -126,9 +132,10 @@ def run(cfg: Any) -> None:
                     if counts[split] == 0:
                         discarded[split] = 0
                         continue
+                    force = float(tc.force) if plan is None else force_sampler(plan, split, seed + split_no)
                     got = collect(
                         sim, mesh, counts[split], rng,
-                        radius=float(tc.radius), force=float(tc.force), batch_size=int(tc.batch_size),
+                        radius=float(tc.radius), force=force, batch_size=int(tc.batch_size),
                         axis=list(tc.novel_view_axis), cone_deg=float(tc.novel_view_cone),
                         inside=split == "novel_view", up=list(tc.up), random_roll=bool(tc.random_roll),
                         seed=seed + split_no, max_attempts=int(tc.max_attempts),
@@ -151,6 +158,10 @@ def run(cfg: Any) -> None:
                                 "penetration": float(r.penetration[i]),
                             }
                         )
+                        if got.target_force is not None and plan is not None:
+                            target = float(got.target_force[i])
+                            touches[-1]["force_target"] = target
+                            touches[-1]["force_band"] = plan.band_of([target])[0]
                         bar.advance(task)
                 for w in writes:
                     w.result()  # every image is on disk (or its error raised) before the item is finalised
@@ -166,5 +177,7 @@ def run(cfg: Any) -> None:
                         "intrinsics": list(sensor.intrinsics()),
                     }
                 )
+                if plan is not None:
+                    info["force_range"] = plan.describe()
             n_disc = sum(discarded.values())
             console.print(f"touch {sensor.name}/{source.name}/{name}: {len(touches)} touches, {n_disc} discarded")
