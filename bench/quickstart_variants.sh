@@ -34,6 +34,9 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v) echo "$(overrides gan1cls) object_names=[box,can,mug,bottle,gear] pair.novel_objects=[bottle,gear]" ;;
     widev) echo "$(overrides gan1cls) object_names=[box,can,mug,pepper,spray_can,bottle,gear]" \
       pair.novel_objects=[bottle,gear] touch.n_touches=120 ;;
+    # round 5: the classification rows as the mean of 5 classifiers each
+    r3v5) echo "$(overrides r3v) evaluate.classifier.restarts=5" ;;
+    widev5) echo "$(overrides widev) evaluate.classifier.restarts=5" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }

@@ -48,6 +48,21 @@ def test_same_seed_same_classifier_and_rows_share_the_schedule():
     assert len(steps) == 2 * cfg.steps  # a larger training set gets no extra steps
 
 
+def test_restarts_average_classifiers_trained_from_their_own_seeds():
+    train, test = _separable(6, seed=4), _separable(4, seed=5)
+    one = ClassifierConfig(image_size=32, width=4, steps=5, batch_size=8)
+    two = ClassifierConfig(image_size=32, width=4, steps=5, batch_size=8, restarts=2)
+    first = run_rows({"A": train}, test, 3, one, seed=3)["A"]
+    again = accuracy(
+        train_classifier(train.images, train.labels, 3, one, seed=3 * 7919 + 1), test.images, test.labels, 32
+    )
+    steps = []
+    assert run_rows({"A": train}, test, 3, two, seed=3, on_step=steps.append)["A"] == pytest.approx((first + again) / 2)
+    assert len(steps) == 2 * one.steps
+    with pytest.raises(TnfError, match="restarts must be >= 1"):
+        ClassifierConfig(restarts=0).validate()
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])
 def test_classifier_trains_reproducibly_after_a_training_stage_left_its_settings(device):
     """A GPU training stage leaves cuDNN autotuning on and fp32 matrix products in TF32. The classifier switches

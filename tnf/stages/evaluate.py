@@ -367,7 +367,7 @@ def classification(cfg: Any, store: Any, method: str, device: str, bar: Any) -> 
     rows = {"Sim": sim_set, f"Sim + {method}": LabelledImages.concat([sim_set, gen_set])}
     if ccfg.generated_only:
         rows[f"{method} only"] = gen_set
-    task = bar.add_task("classify", total=clf.steps * len(rows))
+    task = bar.add_task("classify", total=clf.steps * clf.restarts * len(rows))
     acc = run_rows(rows, test_set, len(objects), clf, seed, device, on_step=lambda _: bar.advance(task))
     info = {
         "classes": objects,
