@@ -90,11 +90,12 @@ def expected_times(cfg: Any) -> dict[str, float]:
 
 def time_left(todo: list[str], done: dict[str, float], expected: dict[str, float]) -> float | None:
     """Seconds left for the stages ``todo``: their expected times, scaled by how the stages ``done`` so far
-    compared with theirs. Stages that took under a quarter of their expected time (work the store already held)
-    do not set the scale. None when a stage to do has no expected time."""
+    compared with theirs. Stages expected to take under 10 s (too short to time the machine) and stages that took
+    under a quarter of their expected time (work the store already held) do not set the scale. None when a stage
+    to do has no expected time."""
     if any(s not in expected for s in todo):
         return None
-    ran = [s for s in done if s in expected and expected[s] > 0 and done[s] >= 0.25 * expected[s]]
+    ran = [s for s in done if s in expected and expected[s] >= 10 and done[s] >= 0.25 * expected[s]]
     scale = sum(done[s] for s in ran) / sum(expected[s] for s in ran) if ran else 1.0
     return scale * sum(expected[s] for s in todo)
 
