@@ -364,3 +364,17 @@ def test_report_opens_with_its_verdict_in_plain_words(tmp_path):
         "(0.900 against 0.920).**"
     )
     assert "closer to the true ones" not in first
+
+
+def test_a_claim_that_fails_by_less_than_the_spread_between_seeds_says_so(tmp_path):
+    # novel-object SSIM 0.91 ± 0.012 over three seeds against BG's 0.92: below it, within the spread
+    results = [_result("main", "T-N", s, v, 20.0, 95.0) for s, v in enumerate((0.92, 0.94, 0.90))]
+    write_report(results, tmp_path / "rep", name="tiny")
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "| T-N SSIM > BG SSIM (novel object) | FAILS (within noise) |" in md
+    assert "on novel objects (0.910 ± 0.012 against 0.920 ± 0.000, within the spread between seeds)" in md
+    # one seed has no spread: a failure is a plain failure
+    write_report(results[:1], tmp_path / "one", name="tiny")
+    assert (
+        "| T-N SSIM > BG SSIM (novel object) | FAILS | 0.910 vs 0.920 |" in (tmp_path / "one" / "report.md").read_text()
+    )

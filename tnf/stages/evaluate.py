@@ -432,7 +432,7 @@ def _print_summary(console: Any, tables: Mapping[str, Any], report_dir: Path) ->
             t.add_row(r["row"], fmt_stat(r["ours"], "acc"), fmt_stat(r["paper"], "acc"))
         console.print(t)
         console.print(_seeds({r["row"]: r["ours"] for r in rows}))
-        failed = [c for c, v, _ in checks(name, data) if v == "FAILS"]
+        failed = [c for c, v, _ in checks(name, data) if v.startswith("FAILS")]
         if failed:
             console.print(f"[yellow]claims not reproduced:[/] {'; '.join(failed)}")
         short = [c for c, v, _ in against_paper(name, data) if v == "FALLS SHORT"]
