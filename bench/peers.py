@@ -42,31 +42,16 @@ from pathlib import Path
 os.environ.setdefault("WARP_CACHE_PATH", str(Path(__file__).resolve().parents[1] / ".warp-cache"))
 
 import numpy as np  # noqa: E402
-import trimesh  # noqa: E402
+from sim import workload  # noqa: E402  (bench/sim.py: the same objects and start poses)
 
-from tnf.registry import OBJECTS, SENSORS, SIMULATORS  # noqa: E402
+from tnf.registry import SENSORS, SIMULATORS  # noqa: E402
 from tnf.runtime import environment, init_warp  # noqa: E402
-from tnf.sim.touch import sphere_directions, start_poses  # noqa: E402
 
-OBJECTS_USED = ("golf_ball", "gear", "mug", "wrench", "sponge")  # bench/sim.py's
 DIGIT_SIZES = ((120, 160), (240, 320))  # width, height
 TAXIM_PIXEL_MM = 0.0295  # Taxim's GelSight Mini calibration: gel size of one pixel
 BALL_PX = 135.0  # radius of the pressed sphere in pixels (4 mm in Taxim's pixels)
 # TACTO's Digit (tacto/config_digit.yml): camera at (0, 0, 0.015) looking along +x, gel 0.022 m in front of it.
 TACTO_GEL_X, TACTO_CAMERA_Z = 0.022, 0.015
-
-
-def objects(batch: int, seed: int = 0) -> list[tuple[str, trimesh.Trimesh, np.ndarray]]:
-    """(name, mesh, ``[batch, 4, 4]`` start poses) per object: poses on a sphere 3 cm beyond the object."""
-    src = OBJECTS.build({"name": "builtin"})
-    meshes = [(name, src.load(name)) for name in OBJECTS_USED]
-    meshes.append(("icosphere", trimesh.creation.icosphere(subdivisions=5, radius=0.01)))
-    out = []
-    for k, (name, mesh) in enumerate(meshes):
-        rng = np.random.default_rng(seed + k)
-        radius = float(np.linalg.norm(mesh.vertices, axis=1).max()) + 0.03
-        out.append((name, mesh, start_poses(rng, sphere_directions(rng, batch, (0, 0, 1), 0, False), radius)))
-    return out
 
 
 def timed(fn, runs: int) -> tuple[list[float], list[float]]:
@@ -236,7 +221,7 @@ def main() -> None:
     ]
     skipped: list[str] = []
 
-    work = objects(batch)
+    work = workload(batch)
     forces = np.linspace(1.0, 8.0, batch)
     ours: dict[tuple[int, int], dict] = {}
     for size in DIGIT_SIZES:

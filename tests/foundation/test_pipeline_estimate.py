@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from tnf.errors import TnfError
 from tnf.stages.pipeline import _clock, expected_times, time_left
 from tnf.testing import compose
 
@@ -36,3 +37,10 @@ def test_expected_times_come_from_the_last_finished_run_else_the_config(tmp_path
 
 def test_clock_format():
     assert _clock(5.4) == "0:05" and _clock(125) == "2:05" and _clock(3725) == "1:02:05"
+
+
+@pytest.mark.parametrize("bad", ["{train: soon}", "{train: -5}", "{train: .nan}", "170"])
+def test_expected_times_that_are_not_seconds_are_refused_in_one_line(tmp_path, bad):
+    cfg = compose("pipeline", [f"data_root={tmp_path}", f"pipeline.expected_s={bad}"])
+    with pytest.raises(TnfError, match="pipeline.expected_s"):
+        expected_times(cfg)

@@ -84,8 +84,15 @@ def expected_times(cfg: Any) -> dict[str, float]:
             done.append((path.stat().st_mtime, record["stages"]))
     if done:
         return {str(k): float(v) for k, v in max(done, key=lambda d: d[0])[1].items()}
-    given = cfg.pipeline.get("expected_s")
-    return {str(k): float(v) for k, v in given.items()} if given else {}
+    given = cfg.pipeline.get("expected_s") or {}
+    if not hasattr(given, "items"):
+        raise TnfError(f"pipeline.expected_s: give seconds per stage, e.g. {{train: 170}}, got {given!r}")
+    out = {}
+    for stage, seconds in given.items():
+        if isinstance(seconds, bool) or not isinstance(seconds, int | float) or not 0 <= seconds < float("inf"):
+            raise TnfError(f"pipeline.expected_s.{stage}: give seconds (a number >= 0), got {seconds!r}")
+        out[str(stage)] = float(seconds)
+    return out
 
 
 def time_left(todo: list[str], done: dict[str, float], expected: dict[str, float]) -> float | None:
