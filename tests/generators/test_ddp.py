@@ -185,3 +185,31 @@ def test_diverged_ddp_run_stops_every_process_with_a_one_line_error(data_root):
     assert "error: non-finite training loss" in out.stderr and "in DDP process" in out.stderr
     assert "Traceback" not in out.stderr
     assert not (data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("spec", "static"),
+    [({"name": "tn_cgan"}, True), ({"name": "tn_cgan", "lambda_gan": 1.0}, False), ({"name": "lee"}, False)],
+)
+def test_ddp_uses_a_static_graph_only_where_every_step_is_one_backward(spec, static):
+    # A regression (tn_cgan without its adversarial term) back-propagates through the same parameters every
+    # step; a GAN alternates between networks, which a static graph refuses at its second step.
+    from tnf.generators.training import ddp_strategy
+    from tnf.registry import GENERATORS
+
+    fixed = GENERATORS.build(spec).fixed_graph()
+    assert fixed is static
+    kwargs = ddp_strategy("ddp", fixed_graph=fixed)._ddp_kwargs
+    assert kwargs == ({"static_graph": True} if static else {"find_unused_parameters": True})
+
+
+def test_ddp_trains_a_gan_whose_steps_back_propagate_through_different_networks(data_root):
+    # With the adversarial term each step updates the discriminator, then the generator: DDP must find the
+    # parameters each backward leaves without gradients (no static graph).
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
+    tnf("train", *TINY, "generator.lambda_gan=1.0", "train.run_name=gan", root=data_root)
+    manifest = json.loads((data_root / "models" / "gan" / "manifest.json").read_text())
+    # Two optimiser steps (discriminator, generator) per batch, one batch per process and epoch, two epochs.
+    assert manifest["world_size"] == 2 and manifest["global_step"] == 4
+    rows = epoch_rows(data_root / "models" / "gan", "train/loss_d_epoch")
+    assert len(rows) == 2 and all(float(r["train/loss_d_epoch"]) > 0 for r in rows)

@@ -83,6 +83,12 @@ class Generator(nn.Module):
         """The optimisers, in the order of ``optimizer_names``; build them over ``self.trainable(module)``."""
         raise NotImplementedError
 
+    def fixed_graph(self) -> bool:
+        """True when every training step runs one backward pass through the same parameters. DDP then uses a
+        static graph instead of searching each step for parameters without gradients (a GAN's alternating
+        updates cannot: their steps back-propagate through different networks)."""
+        return False
+
     # -- shared -----------------------------------------------------------------------------------------
     def check_batch(self, batch: dict[str, torch.Tensor], keys: Iterable[str]) -> None:
         missing = [k for k in keys if k not in batch]

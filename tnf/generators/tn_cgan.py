@@ -663,6 +663,9 @@ class TNcGAN(Generator):
         self.check_batch(batch, self._keys())
         return self.net_g(conditions(batch, self.inputs, self.field), self._force(batch))
 
+    def fixed_graph(self) -> bool:
+        return self.cfg.lambda_gan == 0  # a regression: one backward through the generator every step
+
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         betas = (self.cfg.beta1, self.cfg.beta2)
         fused = next(self.parameters()).is_cuda  # one kernel per step instead of several per tensor

@@ -193,7 +193,7 @@ def fit(
     )
     targs = dict(trainer_cfg)
     targs.setdefault("num_sanity_val_steps", 0)
-    targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"))
+    targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"), fixed_graph=system.generator.fixed_graph())
     on_gpu = str(targs.get("accelerator", "auto")) != "cpu"
     if on_gpu:
         targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
@@ -355,10 +355,11 @@ class ProcessSetup(Callback):
             torch.set_float32_matmul_precision("high")
 
 
-def ddp_strategy(strategy: Any) -> Any:
+def ddp_strategy(strategy: Any, fixed_graph: bool = False) -> Any:
     """The Lightning strategy for a ``trainer.strategy`` value: ``ddp`` and ``ddp_spawn`` become a
-    ``DDPStrategy`` that starts its processes with ``torch.multiprocessing`` (spawn) and finds unused
-    parameters; anything else is passed on as it is.
+    ``DDPStrategy`` that starts its processes with ``torch.multiprocessing`` (spawn); anything else is passed on
+    as it is. With ``fixed_graph`` (``Generator.fixed_graph``: one backward through the same parameters every
+    step) DDP uses a static graph; otherwise it finds the parameters each step leaves without gradients.
 
     Lightning's ``ddp`` would start the other processes by running the command line again, which the ``tnf``
     command cannot be (its stage name is not part of the Python command line, and under ``-m`` the sweep would
@@ -370,16 +371,17 @@ def ddp_strategy(strategy: Any) -> Any:
     from lightning.pytorch.strategies import DDPStrategy
 
     # A GAN step back-propagates through one network at a time, so each backward leaves parameters unused.
+    graph = {"static_graph": True} if fixed_graph else {"find_unused_parameters": True}
     # "popen" starts no process where a cluster launcher has started them (spawn would start more).
     if processes_started_externally():
-        return DDPStrategy(find_unused_parameters=True, start_method="popen")
+        return DDPStrategy(**graph, start_method="popen")
     import multiprocessing
 
     if multiprocessing.get_start_method(allow_none=True) not in (None, "spawn", "fork", "forkserver"):
         # In a job of hydra/launcher=joblib (a loky worker) the default start method is "loky", which the
         # spawned processes would be told to use and cannot find.
         multiprocessing.set_start_method("spawn", force=True)
-    return DDPStrategy(find_unused_parameters=True, start_method="spawn")
+    return DDPStrategy(**graph, start_method="spawn")
 
 
 def processes_started_externally() -> bool:
