@@ -371,7 +371,7 @@ def ddp_strategy(strategy: Any, fixed_graph: bool = False) -> Any:
     from lightning.pytorch.strategies import DDPStrategy
 
     # A GAN step back-propagates through one network at a time, so each backward leaves parameters unused.
-    graph = {"static_graph": True} if fixed_graph else {"find_unused_parameters": True}
+    graph: dict[str, Any] = {"static_graph": True} if fixed_graph else {"find_unused_parameters": True}
     # "popen" starts no process where a cluster launcher has started them (spawn would start more).
     if processes_started_externally():
         return DDPStrategy(**graph, start_method="popen")
