@@ -10,7 +10,7 @@ also timed at 640x480 (the same table, blur doubled, over the full-size backgrou
 Each press is placed at its annotated centre. Taxim presses to the depth at which the ball crosses the gel in
 the annotated circle, as its calibration defines it; tnf to that depth times its fitted ``depth_scale``.
 
-    python bench/real_realism.py --out results/real/gelsight_mini      # ~2 min on 2 CPU cores
+    python experiments/real_realism.py --out results/real/gelsight_mini      # ~2 min on 2 CPU cores
 
 Prints the table; writes ``report.md`` and ``realism.png`` (real | tnf uncalibrated | tnf calibrated | Taxim |
 differences) into ``--out``, and the per-press figures to ``--raw`` (kept out of git).
@@ -182,7 +182,7 @@ def main() -> None:
         "",
         f"Machine: {env['accelerator']} ({env['cpu_cores']} cores), Python "
         f"{platform.python_version()}, warp {env['warp']}, tnf commit {env['commit']}, Taxim's JAX backend. Reproduce: "
-        "`python bench/real_realism.py --out results/real/gelsight_mini`.",
+        "`python experiments/real_realism.py --out results/real/gelsight_mini`.",
         "",
     ]
     (out / "report.md").write_text("\n".join(lines))

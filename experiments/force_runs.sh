@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # sim_digit_force (docs/force.md) on one machine of GPUS GPUs, one phase per call so that each fits a 10-minute job.
-# Usage: bash bench/force_runs.sh PHASE   (PHASE: data | models | decide | at-3n | report)
-#   data    sim_digit's data in PAPER_DATA (bench/paper_runs.sh digit-data), then the force store FORCE_DATA with
+# Usage: bash experiments/force_runs.sh PHASE   (PHASE: data | models | decide | at-3n | report)
+#   data    sim_digit's data in PAPER_DATA (experiments/paper_runs.sh digit-data), then the force store FORCE_DATA with
 #           sim_digit's captures and scenes linked in, and its own touches and pairs
 #   models  side by side, one process each, dealt round-robin over the GPUs: tn_cgan_force with force=plane
 #           (train, generate, evaluate), force=film (train only: the decision needs its validation SSIM), and

@@ -1,6 +1,6 @@
 """SSIM and MSE of trained generator runs on a paired dataset's validation (or training) split, beside BG.
 
-    python bench/val_metrics.py --data-root tnf-data --dataset digit-hashgrid RUN [RUN ...] [--device cuda]
+    python experiments/val_metrics.py --data-root tnf-data --dataset digit-hashgrid RUN [RUN ...] [--device cuda]
 
 Each RUN is a folder under <data-root>/models/ (its best.ckpt is scored). Generators that keep dropout on when
 generating are scored both ways (the row ``dropout off`` switches it off). This is how tn_cgan's defaults were
@@ -10,7 +10,7 @@ generalises. ``--per-object`` adds each object's SSIM (one column per run, besid
 ``--mirror-average`` also scores each run averaged with its own image of the mirrored touch (the row ``mirror
 avg``; ``GeneratorSystem.generate(batch, mirror)``), for sensors with a mirror symmetry. ``--per-pair FILE``
 writes every pair's SSIM per column to a CSV (split, object, touch index in its touch item), for analyses such as
-``bench/pose_distance.py``. Runs trained with a weight average (``train.ema_decay``) are scored with it; their
+``experiments/pose_distance.py``. Runs trained with a weight average (``train.ema_decay``) are scored with it; their
 rows ``no average`` (and ``no avg, mirror avg``) score the same checkpoint's weights as trained. ``--ensemble`` adds
 the row of the mean image of all runs (mirror-averaged too with ``--mirror-average``): what averaging independent
 models would give. Datasets made with ``pair.prior=true`` add the row ``prior``: the simulator's image of each

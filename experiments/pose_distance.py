@@ -1,9 +1,9 @@
 """Does a generator score worse on validation touches that lie far from every training touch of their object?
 
-    python bench/val_metrics.py --data-root tnf-data --per-pair val_pairs.csv RUN
-    python bench/pose_distance.py --data-root tnf-data --per-pair val_pairs.csv --column RUN
+    python experiments/val_metrics.py --data-root tnf-data --per-pair val_pairs.csv RUN
+    python experiments/pose_distance.py --data-root tnf-data --per-pair val_pairs.csv --column RUN
 
-For each validation pair of ``--per-pair`` (written by ``bench/val_metrics.py``) it finds, among the training
+For each validation pair of ``--per-pair`` (written by ``experiments/val_metrics.py``) it finds, among the training
 touches of the same object (the touch stage's manifest), the nearest contact point (mm) and the smallest angle
 between sensor view axes (degrees). Objects differ in size and in how hard their touches are, so the
 comparison is within each object: each touch's distance is ranked among its object's validation touches, and
@@ -59,7 +59,7 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data-root", default="tnf-data")
-    ap.add_argument("--per-pair", required=True, help="CSV of bench/val_metrics.py --per-pair")
+    ap.add_argument("--per-pair", required=True, help="CSV of experiments/val_metrics.py --per-pair")
     ap.add_argument("--column", required=True, help="the CSV column to relate to distance (a run)")
     ap.add_argument("--control", help="a column (BG) whose within-object linear fit is taken out of the SSIM first")
     ap.add_argument("--sensor", default="digit")

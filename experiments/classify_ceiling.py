@@ -14,7 +14,7 @@ sim_digit's by default) on ground truth only, to show what a perfect generator c
     tnf touch experiment=sim_digit                                            # TNF_DATA=A
     tnf touch experiment=sim_digit seed=1 touch.n_touches=200 touch.n_val=0 \\
         touch.n_novel_view=0 touch.novel_view_cone=0                         # TNF_DATA=B
-    python bench/classify_ceiling.py --data A --uniform B [--device cuda] [--seeds 0 1 2]
+    python experiments/classify_ceiling.py --data A --uniform B [--device cuda] [--seeds 0 1 2]
 
 ``Sim + GT uniform`` draws its batches as the experiment's evaluation does (sim_digit: half of each from
 ``Sim``, ``evaluate.classifier.real_fraction``); ``--real-fraction none`` or a number overrides it.

@@ -1,10 +1,10 @@
 """Every fitted scene's figures in one table: held-out PSNR and SSIM, median depth error, fit time, peak memory.
 
-    python bench/scene_table.py tnf-data [--scene hashgrid] [--source builtin] [--csv scenes.csv]
+    python experiments/scene_table.py tnf-data [--scene hashgrid] [--source builtin] [--csv scenes.csv]
 
 Reads ``<data_root>/scenes/<scene>/<source>/<object>/metrics.json`` (written by ``tnf fit-scene``), prints one
 line per object and a summary against the quality bars: 30 dB held-out PSNR and 1 % median depth error (of the
-object's size). ``bench/paper_runs.sh digit-scenes`` runs it after fitting sim_digit's 27 objects.
+object's size). ``experiments/paper_runs.sh digit-scenes`` runs it after fitting sim_digit's 27 objects.
 """
 
 from __future__ import annotations

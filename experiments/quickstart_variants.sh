@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Quick-start variants on several seeds, scored on the validation split only (never a test split).
-# Usage: bash bench/quickstart_variants.sh   (env: SEEDS="0 1 2", VARIANTS="base sensor residual more",
+# Usage: bash experiments/quickstart_variants.sh   (env: SEEDS="0 1 2", VARIANTS="base sensor residual more",
 #        DEVICE=cuda TRAINER=gpu, ROOT=/tmp/qs, OUT=folder for the logs and the table, CLASSIFY=1)
 # Per seed, capture and fit-scene run once; each variant then copies the fitted scenes and runs touch, pair and
-# train on its own store, all variants and seeds in parallel. Each run is scored with bench/val_metrics.py
+# train on its own store, all variants and seeds in parallel. Each run is scored with experiments/val_metrics.py
 # (mirror-averaged, as the quick start generates) beside BG; the table goes to $OUT/variants.txt. CLASSIFY=1 also
 # generates and runs the classification task with the validation touches as its test set (evaluate.name=val,
 # no image metrics), and adds each run's Sim and Sim + T-N accuracy to the table. With NOVEL=1 that evaluation
@@ -57,7 +57,7 @@ for s in "${seeds[@]}"; do
       tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v \
         "pipeline.stages=[touch,pair,train]" >"$out/$v-s$s.log" 2>&1 || { tail -30 "$out/$v-s$s.log"; exit 1; }
       ds=$(basename "$(ls -d "$r"/pairs/*/ | head -1)")
-      python bench/val_metrics.py --data-root "$r" --dataset "$ds" --split val --mirror-average \
+      python experiments/val_metrics.py --data-root "$r" --dataset "$ds" --split val --mirror-average \
         --device "${DEVICE:-cuda}" "$v" >"$out/val-$v-s$s.txt" 2>&1
       if [[ ${CLASSIFY:-0} == 1 ]]; then
         tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v "pipeline.stages=[generate,evaluate]" \

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The paper-scale runs of results/paper/ on one GPU, one phase per call so that each fits a 10-minute job.
-# Usage: bash bench/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
+# Usage: bash experiments/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
 #   digit-data    digit-scenes then digit-pairs                                            (sim_digit)
 #   digit-scenes  capture, fit-scene (a sweep of FIT_WORKERS jobs over object shards through Hydra's joblib launcher,
 #                 spread over the visible GPUs by tnf); every scene's figures to scenes.txt/.csv
@@ -64,7 +64,7 @@ case "$1" in
       "shard=range($fit_workers)" "${digit[@]}"
     echo "digit-scenes: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     # The table of every scene (hashgrid, builtin: sim_digit's); a failure here leaves the fitted scenes usable.
-    python bench/scene_table.py "$TNF_DATA" --csv "$out/scenes.csv" >"$out/scenes.txt" 2>&1 && tail -2 "$out/scenes.txt" ||
+    python experiments/scene_table.py "$TNF_DATA" --csv "$out/scenes.csv" >"$out/scenes.txt" 2>&1 && tail -2 "$out/scenes.txt" ||
       echo "scene table not written (see $out/scenes.txt)"
     ;;
   digit-pairs)

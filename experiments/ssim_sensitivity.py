@@ -1,6 +1,6 @@
 """What each kind of error costs in SSIM and MSE, measured on simulated touches with everything else exact.
 
-    python bench/ssim_sensitivity.py tnf-data/touch/digit/builtin [--objects jar mug box]
+    python experiments/ssim_sensitivity.py tnf-data/touch/digit/builtin [--objects jar mug box]
 
 Every row builds a prediction from the true tactile image T and the sensor's background B (imprint T - B):
 the background alone (the BG row of the reports), a blurred or shifted imprint, a weaker or stronger imprint,

@@ -1,7 +1,7 @@
 """How closely the fitted scenes' depth crops match the ground-truth meshes', object by object.
 
     tnf pair experiment=sim_digit pair.scene_source=mesh        # the same touches, RGB-D from the meshes
-    python bench/depth_agreement.py --data-root tnf-data --fitted digit-hashgrid --mesh digit-mesh
+    python experiments/depth_agreement.py --data-root tnf-data --fitted digit-hashgrid --mesh digit-mesh
 
 Both datasets must pair the same touches (``tnf pair`` of one touch stage). Only pixels that the gel can reach
 count: where the mesh's surface lies within ``--reach-mm`` behind the first contact. For each object it prints the
