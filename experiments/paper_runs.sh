@@ -84,7 +84,7 @@ case "$1" in
     jobs=()
     # CycleGAN's two ResNet generators train at ~200 pairs/s on an H100 (tn_cgan: ~3,500; results/generators):
     # sim_digit's 45 epochs would take 45 minutes, so it gets CYCLEGAN_EPOCHS (default 3, as every committed
-    # CycleGAN row; results/paper/README.md says so).
+    # CycleGAN row; docs/decisions/paper_gap.md says so).
     ce=${CYCLEGAN_EPOCHS:-3}
     for s in $seeds; do for g in ${GENERATORS:-tn_cgan lee cyclegan}; do
       j="generator=$g seed=$s"

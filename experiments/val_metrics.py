@@ -4,7 +4,7 @@
 
 Each RUN is a folder under <data-root>/models/ (its best.ckpt is scored). Generators that keep dropout on when
 generating are scored both ways (the row ``dropout off`` switches it off). This is how tn_cgan's defaults were
-chosen (results/generators/tn_cgan_variants.md): on the validation split, never on a test split.
+chosen (docs/decisions/): on the validation split, never on a test split.
 ``--split train`` scores the pairs a run trained on: how closely the generator fits them, apart from how it
 generalises. ``--per-object`` adds each object's SSIM (one column per run, beside BG), to see where a mean is lost.
 ``--mirror-average`` also scores each run averaged with its own image of the mirrored touch (the row ``mirror
