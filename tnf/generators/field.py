@@ -9,8 +9,8 @@ RGB-D pixel sees (``tnf.data.render.crop_points``) and learned with the generato
 trained object finds there what earlier touches of the same place taught; an object the field never saw gets
 zeros, so the generator falls back on the RGB-D crop (it is trained that way too, ``dropout``).
 
-What it does for sim_digit (results/generators/tn_cgan_variants.md, "A surface field learned from the training
-touches"): touches of places the training touches pressed gain most where the relief is finest (validation SSIM
+What it does for sim_digit (docs/decisions/generator_prior_surface.md, "The surface"):
+touches of places the training touches pressed gain most where the relief is finest (validation SSIM
 0.9772 against 0.9758 over three seeds; the flashlight's knurled grip 0.941 to 0.969); touches of places no
 training touch reached read features the field was not taught there (the table is shared and hashed) and score
 lower (novel views 0.968 against 0.974).

@@ -12,7 +12,7 @@ each epoch: 1 when, over the whole epoch, the discriminator told the two apart a
 at least ``D_SATURATED`` and at most ``1 - D_SATURATED``). The epoch it starts and the epoch it ends are also
 logged as a warning. While saturated, the generator's adversarial loss is large and pulls it away from its
 image losses: in one sim_digit run the training L1 rose from 0.025 to 0.045 within four epochs as its
-discriminator began 11 saturated ones (results/paper/README.md).
+discriminator began 11 saturated ones (docs/decisions/generator_residual.md).
 
 With ``ema_decay`` it also keeps an exponential moving average of the generator's weights (``generator_ema``,
 updated after every training step). The average is what validates and generates; checkpoints hold both, and

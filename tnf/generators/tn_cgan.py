@@ -7,7 +7,7 @@ scale. A PatchGAN discriminator judges (condition, tactile) pairs; the generator
 lambda_L1 times the L1 distance to the real image, plus lambda_SSIM times (1 - SSIM).
 
 Seven defaults depart from the paper's figure, chosen on the validation split of ``sim_digit`` (seed 0, 30
-epochs, results/generators/tn_cgan_variants.md): the paper's layout (skips from the background encoder only,
+epochs, docs/decisions/): the paper's layout (skips from the background encoder only,
 dropout 0.5 as the noise z, kept on when generating) scored SSIM 0.920 / MSE 195; depth skips 0.926 / 168;
 depth skips without dropout 0.942 / 125. With contact-framed inputs that last layout scored 0.946 / 110, a
 full-resolution head 0.952 / 97, both with an SSIM loss term of weight 60 0.959 / 94. A residual output (the

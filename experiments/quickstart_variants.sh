@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# Quick-start variants on several seeds, scored on the validation split only (never a test split).
+# Usage: bash experiments/quickstart_variants.sh   (env: SEEDS="0 1 2", VARIANTS="base sensor residual more",
+#        DEVICE=cuda TRAINER=gpu, ROOT=/tmp/qs, OUT=folder for the logs and the table, CLASSIFY=1)
+# Per seed, capture and fit-scene run once; each variant then copies the fitted scenes and runs touch, pair and
+# train on its own store, all variants and seeds in parallel. Each run is scored with experiments/val_metrics.py
+# (mirror-averaged, as the quick start generates) beside BG; the table goes to $OUT/variants.txt. CLASSIFY=1 also
+# generates and runs the classification task with the validation touches as its test set (evaluate.name=val,
+# no image metrics), and adds each run's Sim and Sim + T-N accuracy to the table. With NOVEL=1 that evaluation
+# also scores the novel_object split: give the variants validation objects of their own to hold out (never the
+# quick start's test object), and SCENE_OBJECTS=a,b,... every object the variants use, fitted once per seed.
+set -euo pipefail
+export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+seeds=(${SEEDS:-0 1 2})
+variants=(${VARIANTS:-base sensor residual more})
+root=${ROOT:-/tmp/qs}
+out=${OUT:-$root/out}
+dev=(device=${DEVICE:-cuda} trainer=${TRAINER:-gpu} progress=false ${EXTRA:-})
+[[ ${TRAINER:-gpu} == gpu ]] && dev+=(trainer.precision=32-true)
+mkdir -p "$out"
+tnf() { python -m tnf.cli "$@"; }
+overrides() {  # the settings of each variant, on top of experiment=quickstart
+  case $1 in
+    base) ;;
+    sensor) echo pair.crop_extent=sensor ;;
+    residual) echo pair.crop_extent=sensor generator=tn_cgan ;;
+    more) echo pair.crop_extent=sensor generator=tn_cgan touch.n_touches=200 train.epochs=15 train.decay_epochs=8 ;;
+    cls) echo "$(overrides more) touch.n_val=20 touch.n_novel_view=30 generate.n_poses=40" \
+      evaluate.classifier.real_fraction=0.5 evaluate.classifier.steps=300 ;;
+    gan) echo "$(overrides more) generator.lambda_gan=0.1" ;;
+    gancls) echo "$(overrides cls) generator.lambda_gan=0.1" ;;
+    gan1cls) echo "$(overrides cls) generator.lambda_gan=1.0" ;;
+    # round 4: bottle and gear held out as validation novel objects (drawn at random), banana left out
+    r3v) echo "$(overrides gan1cls) object_names=[box,can,mug,bottle,gear] pair.novel_objects=[bottle,gear]" ;;
+    widev) echo "$(overrides gan1cls) object_names=[box,can,mug,pepper,spray_can,bottle,gear]" \
+      pair.novel_objects=[bottle,gear] touch.n_touches=120 ;;
+    # round 5: the classification rows as the mean of 5 classifiers each
+    r3v5) echo "$(overrides r3v) evaluate.classifier.restarts=5" ;;
+    widev5) echo "$(overrides widev) evaluate.classifier.restarts=5" ;;
+    *) echo "unknown variant $1" >&2; return 1 ;;
+  esac
+}
+t0=$SECONDS
+for s in "${seeds[@]}"; do
+  (tnf pipeline "${dev[@]}" seed=$s data_root=$root/s$s/scenes "pipeline.stages=[capture,fit-scene]" \
+    ${SCENE_OBJECTS:+object_names=[$SCENE_OBJECTS]} \
+    >"$out/scenes-s$s.log" 2>&1 || { tail -20 "$out/scenes-s$s.log"; exit 1; }) &
+done
+wait
+echo "scenes: $((SECONDS - t0)) s"
+for s in "${seeds[@]}"; do
+  for v in "${variants[@]}"; do
+    (
+      r=$root/s$s/$v
+      mkdir -p "$r" && cp -r "$root/s$s/scenes/." "$r/"
+      read -ra o <<<"$(overrides "$v")"
+      tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v \
+        "pipeline.stages=[touch,pair,train]" >"$out/$v-s$s.log" 2>&1 || { tail -30 "$out/$v-s$s.log"; exit 1; }
+      ds=$(basename "$(ls -d "$r"/pairs/*/ | head -1)")
+      python experiments/val_metrics.py --data-root "$r" --dataset "$ds" --split val --mirror-average \
+        --device "${DEVICE:-cuda}" "$v" >"$out/val-$v-s$s.txt" 2>&1
+      if [[ ${CLASSIFY:-0} == 1 ]]; then
+        tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v "pipeline.stages=[generate,evaluate]" \
+          evaluate.name=val "evaluate.splits=[${NOVEL:+novel_object}]" "evaluate.classify.test_splits=[val]" \
+          >"$out/cls-$v-s$s.log" 2>&1 ||
+          { tail -30 "$out/cls-$v-s$s.log"; exit 1; }
+        grep -E "^(Sim|Sim \+ T-N)," "$r/reports/val/table1b_accuracy.csv" >>"$out/val-$v-s$s.txt"
+        [[ -z ${NOVEL:-} ]] || grep -E "^novel_object,(T-N|BG)," "$r/reports/val/table1a_image.csv" >>"$out/val-$v-s$s.txt"
+      fi
+    ) &
+  done
+done
+wait
+echo "variants: $((SECONDS - t0)) s"
+for f in "$out"/val-*.txt; do echo "== $(basename "$f" .txt)"; tail -8 "$f"; done | tee "$out/variants.txt"
