@@ -1,7 +1,7 @@
 """Layers are one-way: no module imports from a layer above its own, and the import graph has no cycle.
 
 Every import of every ``tnf`` module counts (module level and inside functions; relative ones resolved).
-Layers, lowest first, are in ``LAYERS``; ``docs/architecture.md`` explains them.
+Layers, lowest first, are in ``LAYERS`` (the README's "Where things are" lists them).
 """
 
 from __future__ import annotations
