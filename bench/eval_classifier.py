@@ -11,7 +11,7 @@ import time
 import torch
 
 from tnf.eval.classify import ClassifierConfig, accuracy, train_classifier
-from tnf.eval.metrics import mse, ssim
+from tnf.metrics import mse, ssim
 
 
 def main() -> None:

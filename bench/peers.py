@@ -144,7 +144,7 @@ def tnf_maps(device: str, centres: np.ndarray, depths_mm: np.ndarray, runs: int)
     """tnf's ms per GelSight Mini frame at 640x480 on the sphere height maps (``press_heights``)."""
     import warp as wp
 
-    from tnf.real.calibrate import sphere_gaps
+    from tnf.real.presses import sphere_gaps
 
     sensor = SENSORS.build({"name": "gelsight_mini", "width": 640, "height": 480})
     sim = SIMULATORS.build({"name": "warp_gel"}, sensor=sensor, device=device)

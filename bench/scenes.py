@@ -107,8 +107,10 @@ def main() -> None:
     import torch
     from PIL import Image
 
+    from tnf.cameras import read_views
     from tnf.scenes import save_scene
-    from tnf.scenes.fit import FitSettings, build_scene, evaluate_scene, fit_scene, preview_strip, read_views
+    from tnf.scenes.fit import build_scene, evaluate_scene, fit_scene, preview_strip
+    from tnf.scenes.system import FitSettings
 
     if args.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = True
@@ -211,8 +213,8 @@ def measure_rendering(scene, args: argparse.Namespace) -> dict:
     the march's counts per ray, and how far the renders are from the dense quadrature (every sample)."""
     import torch
 
+    from tnf.cameras import camera_rays
     from tnf.scenes.fit import psnr
-    from tnf.scenes.render import camera_rays
 
     cuda = args.device.startswith("cuda")
     n, s = args.render_views, args.render_size

@@ -6,7 +6,7 @@ Every row builds a prediction from the true tactile image T and the sensor's bac
 the background alone (the BG row of the reports), a blurred or shifted imprint, a weaker or stronger imprint,
 and the imprint scaled about the image centre by each touch's start-to-contact distance over the median, which
 is what one fixed crop for every touch did to the RGB-D input (pair.crop_distance=fixed). Images are compared
-as the reports compare them (tnf.eval.metrics, 128 x 128).
+as the reports compare them (tnf.metrics, 128 x 128).
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from tnf import metrics
 from tnf.data.render import TouchItem
 from tnf.errors import TnfError
-from tnf.eval import metrics
 
 
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:

@@ -29,9 +29,9 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from tnf import metrics
 from tnf.data import PairDataset, collate_pairs, sensor_mirror, training_order
 from tnf.errors import TnfError
-from tnf.eval import metrics
 from tnf.generators import load_generator
 from tnf.generators.nets import NoiseDropout
 from tnf.generators.system import AVERAGE_PREFIX, read_checkpoint

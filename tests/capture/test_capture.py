@@ -8,14 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from tnf.cameras import load_transforms, look_at
 from tnf.capture import (
     CaptureConfig,
     camera_distance,
     camera_poses,
     capture_config,
     intrinsics,
-    load_transforms,
-    look_at,
     write_views,
 )
 from tnf.capture.render import MeshRenderer

@@ -7,13 +7,13 @@ import pytest
 import torch
 from PIL import Image
 
+from tnf import metrics
 from tnf.cli import main
 from tnf.data import PairDataset, open_pairs, resize_uint8
 from tnf.data.dataset import mirror_batch
 from tnf.data.prior import DepthPrior
 from tnf.data.render import Framing
 from tnf.errors import TnfError
-from tnf.eval import metrics
 from tnf.registry import SENSORS
 
 # Built-in meshes, the warp simulator's touches without pixel noise, crops rendered from the same meshes.

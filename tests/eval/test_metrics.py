@@ -1,11 +1,11 @@
-"""tnf.eval.metrics against hand-computed values and an independent SSIM written here with scipy."""
+"""tnf.metrics against hand-computed values and an independent SSIM written here with scipy."""
 
 import numpy as np
 import pytest
 import torch
 from scipy.ndimage import correlate1d
 
-from tnf.eval.metrics import mse, ssim
+from tnf.metrics import mse, ssim
 
 
 def _images(seed: int, n: int = 2, size: int = 128) -> torch.Tensor:
@@ -107,7 +107,7 @@ def test_ssim_equals_torchmetrics_which_scored_the_committed_results():
 
 
 def test_ssim_refuses_images_smaller_than_its_window():
-    from tnf.eval.metrics import ssim_unquantised
+    from tnf.metrics import ssim_unquantised
 
     with pytest.raises(ValueError, match="larger than 5 px"):
         ssim_unquantised(torch.zeros(1, 3, 4, 4), torch.zeros(1, 3, 4, 4))
@@ -116,7 +116,7 @@ def test_ssim_refuses_images_smaller_than_its_window():
 def test_ssim_loss_in_float32_matches_float64_in_value_and_gradient():
     # The training loss computes the window's statistics in float32 (centred values, exact products); the metric
     # in float64. A prediction close to the truth is where the variances cancel most.
-    from tnf.eval.metrics import _ssim, ssim_unquantised
+    from tnf.metrics import _ssim, ssim_unquantised
 
     real = _images(3, n=3).float() / 127.5 - 1
     noise = torch.randn(real.shape, generator=torch.Generator().manual_seed(4))

@@ -62,10 +62,15 @@ def test_generate_writes_a_touch_dataset(data_root, trained_model):
 
 
 def test_generate_from_a_poses_file(data_root, trained_model, tmp_path):
-    from tnf.sim.touch import look_at
+    from tnf.cameras import look_at
     from tnf.stages import generate
 
-    poses = np.stack([look_at(np.array(e, float), np.zeros(3)) for e in ([0.1, 0, 0], [0, 0.12, 0.0], [0, 0, -0.1])])
+    poses = np.stack(
+        [
+            look_at(np.array(e, float), np.zeros(3), fallback="parallel")
+            for e in ([0.1, 0, 0], [0, 0.12, 0.0], [0, 0, -0.1])
+        ]
+    )
     np.save(tmp_path / "poses.npy", poses)
     out = generate.run(
         compose(
@@ -128,8 +133,8 @@ def test_mirror_averaged_generation(data_root, trained_model, capsys):
     import torch
 
     from tnf.data import PairDataset, mirror_batch
-    from tnf.eval.metrics import ssim
     from tnf.generators import load_generator
+    from tnf.metrics import ssim
     from tnf.stages import evaluate, generate
 
     def images(run_name, *extra):

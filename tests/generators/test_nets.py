@@ -7,8 +7,8 @@ import torch
 import torch.nn.functional as F
 
 from tests.generators.synthetic import make_pairs
+from tnf import metrics
 from tnf.errors import TnfError
-from tnf.eval import metrics
 from tnf.generators import PlainOptimisation
 from tnf.generators.nets import ImagePool, NoiseDropout
 from tnf.registry import GENERATORS
@@ -66,7 +66,7 @@ def test_tn_cgan_default_architecture():
 
 @pytest.mark.parametrize("skips", [["background"], ["background", "depth_and_slope"]])
 def test_tn_cgan_skips_come_from_the_named_encoders(skips):
-    from tnf.generators.tn_cgan import conditions
+    from tnf.generators.nets import conditions
 
     torch.manual_seed(0)
     g = build("tn_cgan", image_size=32, skips=skips).eval()
@@ -103,7 +103,7 @@ def test_tn_cgan_inputs_are_configurable():
 
 
 def test_depth_slope_is_the_scaled_clipped_gradient():
-    from tnf.generators.tn_cgan import SLOPE_GAIN, conditions, depth_slope
+    from tnf.generators.nets import SLOPE_GAIN, conditions, depth_slope
 
     cols = torch.arange(16, dtype=torch.float32)
     ramp = (0.002 * cols).expand(1, 1, 16, 16).clone()  # depth rising 0.002 per column, flat down the rows
@@ -121,7 +121,7 @@ def test_depth_slope_is_the_scaled_clipped_gradient():
 
 def test_depth_slope_equals_the_padded_central_difference():
     """The one-buffer derivation gives exactly what padding, differencing and concatenating give."""
-    from tnf.generators.tn_cgan import SLOPE_GAIN, depth_and_slope, depth_slope
+    from tnf.generators.nets import SLOPE_GAIN, depth_and_slope, depth_slope
 
     torch.manual_seed(0)
     depth = torch.rand(3, 1, 16, 24) * 0.03 - 0.5  # rough relief, non-square ...
@@ -138,7 +138,7 @@ def test_depth_slope_equals_the_padded_central_difference():
 def test_depth_slopes_are_differentiable_and_reject_other_shapes():
     """Gradients reach the depth image through the slopes, as through the padded form; a batch that is not
     [B, 1, H, W] with H, W >= 2 gets a clear error, not an unpacking or narrowing one."""
-    from tnf.generators.tn_cgan import depth_and_slope, depth_slope
+    from tnf.generators.nets import depth_and_slope, depth_slope
 
     torch.manual_seed(0)
     depth = (torch.rand(2, 1, 8, 8) * 0.01).requires_grad_(True)
@@ -326,7 +326,7 @@ def test_tn_cgan_overfits_a_handful_of_pairs(residual):
 @pytest.mark.parametrize("norm", ["batch", "none"])
 @pytest.mark.parametrize("training", [True, False])
 def test_tn_cgan_full_res_head_sees_the_skip_images(norm, training):
-    from tnf.generators.tn_cgan import conditions
+    from tnf.generators.nets import conditions
 
     torch.manual_seed(0)
     g = build("tn_cgan", image_size=32, full_res_head=True, norm=norm).train(training)
@@ -398,8 +398,8 @@ def test_tn_cgan_ssim_loss_term():
 def test_tn_cgan_reports_d_outputs_on_its_loss_scale():
     """d_real / d_fake (what the discriminator watch reads) are on the scale the loss drives to 1 and 0: sigmoid
     probabilities for the vanilla loss, the raw outputs for LSGAN (whose sigmoid would never pass 0.73)."""
+    from tnf.generators.nets import d_output
     from tnf.generators.system import discriminator_saturated
-    from tnf.generators.tn_cgan import d_output
 
     won_real, won_fake = torch.full((2, 1, 4, 4), 1.0), torch.full((2, 1, 4, 4), 0.0)
     assert d_output(won_real, "lsgan").item() == pytest.approx(1.0)
@@ -448,7 +448,7 @@ def test_tn_cgan_lambda_gan_weighs_the_adversarial_term():
 
 
 def test_tn_cgan_coords_append_the_pixel_position():
-    from tnf.generators.tn_cgan import conditions, coordinate_grid
+    from tnf.generators.nets import conditions, coordinate_grid
 
     grid = coordinate_grid(4)
     assert grid.shape == (1, 2, 4, 4)

@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from tnf.artifacts import ArtifactStore
-from tnf.capture import load_transforms, look_at
+from tnf.cameras import load_transforms, look_at
 from tnf.cli import main
 from tnf.data import open_pairs
 from tnf.data.render import TouchItem

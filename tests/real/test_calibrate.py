@@ -11,8 +11,8 @@ from PIL import Image
 from tnf.cli import main
 from tnf.errors import TnfError
 from tnf.real import realism
-from tnf.real.calibrate import FitSettings, at_sensor_size, calibrate_sensor, disk_masks, fit_calibration, sphere_gaps
-from tnf.real.presses import contact_radius_from_depth
+from tnf.real.calibrate import FitSettings, calibrate_sensor, fit_calibration
+from tnf.real.presses import at_sensor_size, contact_radius_from_depth, disk_masks, sphere_gaps
 from tnf.registry import SENSORS, SIMULATORS
 from tnf.sensors.calibration import FILE, Calibration, load_calibration
 

@@ -5,7 +5,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from tnf.real import realism
-from tnf.real.calibrate import SensorPresses, disk_masks
+from tnf.real.presses import SensorPresses, disk_masks
 
 SIGMA, K1, K2, L = 1.5, 0.01, 0.03, 255.0
 

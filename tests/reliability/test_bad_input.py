@@ -183,7 +183,7 @@ CASES = [
 
 @pytest.mark.parametrize("case", CASES)
 def test_bad_transforms_is_one_clear_error(tmp_path, captured, case):
-    from tnf.capture import load_transforms
+    from tnf.cameras import load_transforms
     from tnf.errors import TnfError
 
     item = tmp_path / "ball"

@@ -111,7 +111,7 @@ def _apply(meta: dict, ops) -> dict:
 @FUZZ
 @given(ops=mutated_transforms())
 def test_load_transforms_with_mutated_fields(ops):
-    from tnf.capture import load_transforms
+    from tnf.cameras import load_transforms
 
     with tempfile.TemporaryDirectory() as d:
         folder = Path(d)
@@ -126,7 +126,7 @@ def test_load_transforms_with_mutated_fields(ops):
 @FUZZ
 @given(top=json_values)
 def test_load_transforms_with_any_json(top):
-    from tnf.capture import load_transforms
+    from tnf.cameras import load_transforms
 
     with tempfile.TemporaryDirectory() as d:
         (Path(d) / "transforms.json").write_text(json.dumps(top))
@@ -136,7 +136,7 @@ def test_load_transforms_with_any_json(top):
 @FUZZ
 @given(data=st.binary(max_size=200), which=st.sampled_from(["transforms.json", "image", "depth"]))
 def test_load_transforms_with_bad_bytes(data, which):
-    from tnf.capture import load_transforms
+    from tnf.cameras import load_transforms
 
     with tempfile.TemporaryDirectory() as d:
         folder = Path(d)

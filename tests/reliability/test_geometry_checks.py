@@ -13,7 +13,8 @@ import trimesh
 
 from tests.objects.test_captured import small_dataset
 from tests.reliability.helpers import assert_nothing_written, finished_items
-from tnf.capture import POSE_ROTATION_TOL, CaptureConfig, camera_poses, load_transforms, pose_problem
+from tnf.cameras import POSE_ROTATION_TOL, load_transforms, pose_problem
+from tnf.capture import CaptureConfig, camera_poses
 from tnf.cli import main
 from tnf.errors import TnfError
 from tnf.registry import OBJECTS

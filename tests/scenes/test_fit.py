@@ -6,11 +6,12 @@ import resource
 import pytest
 import torch
 
+from tnf.cameras import camera_rays, look_at, read_views
 from tnf.errors import TnfError
 from tnf.scenes import load_scene, save_scene
-from tnf.scenes.fit import FitSettings, build_scene, evaluate_scene, fit_object, fit_scene, psnr, read_views
-from tnf.scenes.render import camera_rays
-from tnf.scenes.synthetic import look_at, render_sphere, sphere_poses, write_sphere_dataset
+from tnf.scenes.fit import build_scene, evaluate_scene, fit_object, fit_scene, psnr
+from tnf.scenes.synthetic import render_sphere, sphere_poses, write_sphere_dataset
+from tnf.scenes.system import FitSettings
 
 TINY = {
     "name": "hashgrid",

@@ -4,7 +4,8 @@ import math
 
 import torch
 
-from tnf.scenes.render import camera_rays, distortion_loss, interval_termination, ray_box, volume_render
+from tnf.cameras import camera_rays
+from tnf.scenes.render import distortion_loss, interval_termination, ray_box, volume_render
 
 
 def _uniform(R=4, N=100, length=1.0):

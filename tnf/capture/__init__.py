@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from tnf.errors import TnfError
+from tnf.cameras import look_at
+from tnf.registry import from_dict
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -91,30 +91,10 @@ class CaptureConfig:
 
 def capture_config(node: Any) -> CaptureConfig:
     """Validate ``cfg.capture`` (a Hydra node or dict) into a :class:`CaptureConfig`."""
-    from tnf.registry import from_dict
-
     return from_dict(CaptureConfig, node or {}, where="capture")
 
 
 # -- cameras ------------------------------------------------------------------------------------------------
-def look_at(eye: Any, target: Any = (0.0, 0.0, 0.0), up: Any = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world 4x4 (OpenGL: looks along -z, +y up) at ``eye`` looking at ``target``, metres.
-
-    When the view direction is (nearly) parallel to ``up`` the world +y axis is used as up instead.
-    """
-    eye, target, up = (np.asarray(x, dtype=float) for x in (eye, target, up))
-    back = eye - target
-    back /= np.linalg.norm(back)
-    if abs(float(np.dot(back, up / np.linalg.norm(up)))) > 0.999:
-        up = np.array([0.0, 1.0, 0.0])
-    right = np.cross(up, back)
-    right /= np.linalg.norm(right)
-    true_up = np.cross(back, right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, back, eye
-    return c2w
-
-
 def fibonacci_directions(n: int, rotation: np.ndarray | None = None) -> np.ndarray:
     """``n`` unit vectors spread evenly over the sphere (Fibonacci lattice), [n, 3]."""
     i = np.arange(n) + 0.5
@@ -256,169 +236,3 @@ def write_views(
             write_frame(folder, frame, colour, z)
         return []
     return [pool.submit(write_frame, folder, frame, colour, z) for frame, colour, z in zip(meta["frames"], rgb, depth)]
-
-
-def load_transforms(
-    path: str | os.PathLike[str],
-) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float], int, int, np.ndarray | None]:
-    """Read a ``transforms.json`` (a file, or a capture folder meaning its ``transforms.json``).
-
-    Returns:
-        images: [N, H, W, 4] uint8 RGBA (RGB images get alpha 255).
-        c2w: [N, 4, 4] float32 camera-to-world, OpenGL convention, metres.
-        intrinsics: ``(fx, fy, cx, cy)`` in pixels (from fl_x/fl_y/cx/cy, or camera_angle_x).
-        w, h: image size in pixels.
-        depth: [N, H, W] float32 z-depth metres (0 = empty) when every frame has ``depth_file_path``, else None.
-
-    Raises a one-line TnfError naming the file (and the frame) for anything unusable, a ``transform_matrix``
-    that is not a rigid pose included (:func:`pose_problem`: scaled, sheared, mirrored, or a last row other
-    than [0, 0, 0, 1]).
-    """
-    path = Path(path)
-    if path.is_dir():
-        path = path / "transforms.json"
-    if not path.is_file():
-        raise TnfError(f"transforms file not found: {path}")
-    try:
-        meta = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise TnfError(f"{path} is not valid JSON: {e}") from None
-    if not isinstance(meta, dict):
-        raise TnfError(f"{path}: expected a JSON object with w, h and frames, got {type(meta).__name__}")
-    for key in ("w", "h", "frames"):
-        if key not in meta:
-            raise TnfError(f"{path}: missing key {key!r}")
-    w, h = _field(meta, "w", path, int), _field(meta, "h", path, int)
-    if "fl_x" in meta:
-        fx = _field(meta, "fl_x", path)
-        fy = _field(meta, "fl_y", path) if "fl_y" in meta else fx
-    elif "camera_angle_x" in meta:
-        ax = _field(meta, "camera_angle_x", path, limit=math.pi)
-        fx = w / 2 / math.tan(ax / 2)
-        fy = (
-            h / 2 / math.tan(_field(meta, "camera_angle_y", path, limit=math.pi) / 2)
-            if "camera_angle_y" in meta
-            else fx
-        )
-    else:
-        raise TnfError(f"{path}: missing key 'fl_x' or 'camera_angle_x' (the focal length)")
-    cx = _field(meta, "cx", path, positive=False) if "cx" in meta else w / 2
-    cy = _field(meta, "cy", path, positive=False) if "cy" in meta else h / 2
-    frames = meta["frames"]
-    if not isinstance(frames, list):
-        raise TnfError(f"{path}: 'frames' must be a list of frames, got {type(frames).__name__}")
-    if not frames:
-        raise TnfError(f"{path}: 'frames' is empty")
-    images, poses, depths = [], [], []
-    for i, fr in enumerate(frames):
-        if not isinstance(fr, dict):
-            raise TnfError(f"{path}: frame {i} must be an object with file_path and transform_matrix")
-        for key in ("file_path", "transform_matrix"):
-            if key not in fr:
-                raise TnfError(f"{path}: frame {i} is missing key {key!r}")
-        try:
-            m = np.asarray(fr["transform_matrix"], dtype=np.float32)
-        except (ValueError, TypeError):
-            raise TnfError(f"{path}: frame {i} transform_matrix is not a 4x4 matrix of numbers") from None
-        if m.shape != (4, 4):
-            raise TnfError(f"{path}: frame {i} transform_matrix has shape {list(m.shape)}, expected [4, 4]")
-        if not np.isfinite(m).all():
-            raise TnfError(f"{path}: frame {i} transform_matrix holds NaN or infinite values")
-        rel = _rel_path(fr, "file_path", path, i)
-        problem = pose_problem(m)
-        if problem is not None:
-            raise TnfError(f"{path}: frame {i} ({rel!r}) transform_matrix is not a rigid camera pose: {problem}")
-        img_path = path.parent / rel
-        if not img_path.suffix and not img_path.is_file():
-            img_path = img_path.with_suffix(".png")  # instant-ngp files may omit the extension
-        if not img_path.is_file():
-            raise TnfError(f"{path}: frame {i} image not found: {img_path}")
-        arr = _read_image(img_path)
-        if arr.shape[:2] != (h, w):
-            raise TnfError(f"{img_path}: image is {arr.shape[1]}x{arr.shape[0]}, transforms file says {w}x{h}")
-        images.append(arr)
-        poses.append(m)
-        if "depth_file_path" in fr:
-            dp = path.parent / _rel_path(fr, "depth_file_path", path, i)
-            if not dp.is_file():
-                raise TnfError(f"{path}: frame {i} depth file not found: {dp}")
-            try:
-                d = np.load(dp).astype(np.float32)
-            except (OSError, ValueError, TypeError, EOFError) as e:  # not .npy, pickled objects, truncated
-                raise TnfError(f"{dp}: not a readable depth array (.npy float): {e}") from None
-            if d.shape != (h, w):
-                raise TnfError(f"{dp}: depth is {list(d.shape)}, expected [{h}, {w}]")
-            depths.append(d)
-    depth = np.stack(depths) if len(depths) == len(frames) else None
-    return np.stack(images), np.stack(poses), (fx, fy, cx, cy), w, h, depth
-
-
-# A camera pose's rotation may deviate this much from orthonormal (max |R^T R - I|) and its last row this much
-# from [0, 0, 0, 1]. Poses tnf writes are rigid to float32 rounding (~1e-7); a 4-decimal JSON export is ~1e-4.
-POSE_ROTATION_TOL = 1e-3
-POSE_LAST_ROW_TOL = 1e-6
-
-
-def pose_problem(m: np.ndarray) -> str | None:
-    """What makes the finite 4x4 matrix ``m`` not a rigid transform (rotation + translation), or None.
-
-    Checks the last row against [0, 0, 0, 1] (within ``POSE_LAST_ROW_TOL``) and the 3x3 part for unit-length,
-    orthogonal columns (max |R^T R - I| within ``POSE_ROTATION_TOL``) and a positive determinant (no reflection).
-    """
-    m = np.asarray(m, dtype=np.float64)
-    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > POSE_LAST_ROW_TOL:
-        return f"its last row is {_fmt(m[3])}, expected [0, 0, 0, 1]"
-    r = m[:3, :3]
-    gram, tol = r.T @ r, POSE_ROTATION_TOL
-    problems = []
-    if np.abs(np.diag(gram) - 1).max() > tol:
-        problems.append(f"columns not unit length (lengths {_fmt(np.sqrt(np.diag(gram)))}, tolerance {tol:g}: scaled)")
-    off = float(np.abs(gram - np.diag(np.diag(gram))).max())
-    if off > tol:
-        problems.append(f"columns not orthogonal (largest dot product {off:.3g}, tolerance {tol:g}: sheared)")
-    det = float(np.linalg.det(r))
-    if det < 0:
-        problems.append(f"a reflection (det {det:.3g}: a mirrored axis)")
-    if problems:
-        return f"not a rotation: {', '.join(problems)}"
-    return None
-
-
-def _fmt(values: np.ndarray) -> str:
-    return "[" + ", ".join(f"{float(x):.4g}" for x in values) + "]"
-
-
-def _field(meta: dict[str, Any], key: str, path: Path, kind: type = float, positive: bool = True, limit=None) -> Any:
-    """``meta[key]`` as a finite number (``kind``: int or float), > 0 when ``positive``, < ``limit`` if given."""
-    value = meta[key]
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if ok and kind is int:
-        ok = float(value).is_integer()
-    if ok and positive:
-        ok = value > 0
-    if ok and limit is not None:
-        ok = value < limit
-    if not ok:
-        what = "a positive integer" if kind is int else ("a positive number" if positive else "a finite number")
-        raise TnfError(f"{path}: {key!r} must be {what}{f' below {limit:g}' if limit else ''}, got {value!r}")
-    return kind(value)
-
-
-def _rel_path(frame: dict[str, Any], key: str, path: Path, i: int) -> str:
-    value = frame[key]
-    if not isinstance(value, str) or not value or "\x00" in value:
-        raise TnfError(f"{path}: frame {i} {key} must be a file path, got {value!r}")
-    return value
-
-
-def _read_image(img_path: Path) -> np.ndarray:
-    """An RGB or RGBA image file as uint8 [H, W, 4] (RGB gets alpha 255)."""
-    from PIL import Image
-
-    try:
-        with Image.open(img_path) as im:
-            if im.mode not in ("RGB", "RGBA"):
-                raise TnfError(f"{img_path}: expected an RGB or RGBA image, got mode {im.mode}")
-            return np.asarray(im.convert("RGBA"))
-    except (OSError, ValueError, Image.DecompressionBombError) as e:  # not an image, truncated, huge
-        raise TnfError(f"{img_path}: not a readable image ({e})") from None

@@ -7,7 +7,7 @@ every view, as a scene representation fitted to the images expects.
 
 Pixel convention: pixel ``(row i, column j)`` shows the scene at the pixel centre, image coordinates
 ``(j + 0.5, i + 0.5)`` with ``(0, 0)`` the top-left corner of the image, as in nerfstudio and in
-:func:`tnf.scenes.render.camera_rays`: its ray's camera-space direction is ``((j + 0.5 - cx) / fx,
+:func:`tnf.cameras.camera_rays`: its ray's camera-space direction is ``((j + 0.5 - cx) / fx,
 -(i + 0.5 - cy) / fy, -1)``. Depth is sampled there exactly (no multisampling of depth), so it agrees with
 ray casting the mesh to float precision.
 """

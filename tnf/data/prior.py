@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.errors import TnfError
+from tnf.registry import SIMULATORS
 
 
 class DepthPrior:
@@ -40,8 +41,6 @@ class DepthPrior:
                 "pair.prior needs crops pixel-aligned with the tactile image and metric depth: set "
                 f"pair.crop_extent=sensor and pair.depth_norm=contact (got {framing.crop_extent}, {framing.depth_norm})"
             )
-        from tnf.registry import SIMULATORS
-
         # The prior is the mean image: without the sensor's pixel noise.
         noiseless = type(sensor)(replace(sensor.cfg, noise_std=0.0)) if sensor.cfg.noise_std else sensor
         self.sim = SIMULATORS.build(simulator, sensor=noiseless, device=device)

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from tnf.artifacts import MANIFEST, read_json
+from tnf.cameras import camera_rays
 from tnf.data.preprocess import (
     SIZE,
     contact_depth,
@@ -355,8 +356,6 @@ def crop_points(
         float32 [B, out, out, 3] in metres; NaN where no surface was hit (or a resized pixel mixes in one).
         Unlike the normalised depth, they say where on the object the crop lies, the same for every view.
     """
-    from tnf.scenes.render import camera_rays
-
     b, h, w = depth.shape
     origins, dirs, z_scale = camera_rays(c2w, intrinsics, w, h)
     hit = depth > 0

@@ -14,12 +14,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from tnf.errors import TnfError
+from tnf.objects import TOUCH_SPLITS
 
 SPLITS: tuple[str, ...] = ("train", "val", "novel_view", "novel_object")
 """Split names; a dataset stores each pair's split as its index in this tuple (int8)."""
-
-TOUCH_SPLITS = ("train", "val", "novel_view")
-"""The split labels a touch manifest may carry."""
 
 
 def split_code(name: str) -> int:

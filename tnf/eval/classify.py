@@ -24,8 +24,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tnf.artifacts import read_json
+from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.errors import TnfError
-from tnf.eval.metrics import exact_fp32_matmul
+from tnf.metrics import exact_fp32_matmul
 
 
 @dataclass
@@ -306,8 +308,6 @@ def run_rows(
 
 def touch_records(folder: str | Path) -> list[dict[str, Any]]:
     """The ``touches`` list of a touch-format folder's manifest (each has at least ``image``)."""
-    from tnf.artifacts import read_json
-
     folder = Path(folder)
     m = read_json(folder / "manifest.json", "touch manifest")
     touches = m.get("touches", m.get("info", {}).get("touches"))
@@ -332,8 +332,6 @@ def load_touch_images(
     (chosen with ``seed``, in the manifest's order), the way the ``Sim`` set takes a fixed number per object.
     """
     from PIL import Image
-
-    from tnf.data.preprocess import SIZE, resize_uint8
 
     folder = Path(folder)
     recs = [t for t in touch_records(folder) if splits is None or t.get("split") in splits]

@@ -14,7 +14,7 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from tnf.eval.aggregate import Stat
-from tnf.eval.metrics import to_uint8_scale
+from tnf.metrics import to_uint8_scale
 
 COLUMNS = ("RGB", "depth", "generated", "real", "difference")
 # Colour-blind-safe palette (Okabe-Ito); BG is drawn grey.

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from tnf.errors import TnfError
-from tnf.eval.metrics import mse, ssim
+from tnf.metrics import mse, ssim
 from tnf.sim.forces import BANDS, ForcePlan
 
 

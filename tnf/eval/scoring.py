@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from tnf.eval.metrics import mse, ssim
+from tnf.metrics import mse, ssim
 
 BG = "BG"
 

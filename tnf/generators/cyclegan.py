@@ -14,8 +14,7 @@ import torch
 import torch.nn.functional as F
 
 from tnf.generators.base import Generator, Optimisation
-from tnf.generators.nets import ImagePool, PatchDiscriminator, ResnetGenerator, init_weights
-from tnf.generators.tn_cgan import gan_loss
+from tnf.generators.nets import ImagePool, PatchDiscriminator, ResnetGenerator, gan_loss, init_weights
 from tnf.registry import GENERATORS
 
 

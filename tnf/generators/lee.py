@@ -16,8 +16,16 @@ import torch.nn.functional as F
 from torch import nn
 
 from tnf.generators.base import Generator, Optimisation
-from tnf.generators.nets import NoiseDropout, init_weights, norm_layer
-from tnf.generators.tn_cgan import CHANNELS, MultiEncoderUNet, conditions, gan_loss, needed_keys
+from tnf.generators.nets import (
+    CHANNELS,
+    MultiEncoderUNet,
+    NoiseDropout,
+    conditions,
+    gan_loss,
+    init_weights,
+    needed_keys,
+    norm_layer,
+)
 from tnf.registry import GENERATORS
 
 

@@ -4,7 +4,7 @@ It builds the generator from its registry name and config (both stored in the ch
 path, so a checkpoint loads wherever the generator's package is installed), runs the generator's own GAN
 step with Lightning's manual optimisation (mixed precision and gradient scaling come from the trainer's
 ``precision``), applies the learning-rate schedule (constant, then linear decay to zero), validates with
-``tnf.eval.metrics`` (L1, SSIM, MSE), writes an image grid each epoch and stops on a non-finite loss.
+``tnf.metrics`` (L1, SSIM, MSE), writes an image grid each epoch and stops on a non-finite loss.
 
 It also watches the adversarial game. Generators that report their discriminator's mean outputs on real and
 generated images (``d_real``, ``d_fake`` among their training-step losses) get ``train/d_saturated`` logged
@@ -32,6 +32,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from tnf import __version__, metrics
 from tnf.data.dataset import mirror_batch, unmirror_channels
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.base import Generator
@@ -331,8 +332,6 @@ class GeneratorSystem(L.LightningModule):
         self._grid_batch = None
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
-        from tnf.eval import metrics
-
         fake = self.generating.generate(batch).float()
         real = batch["tactile"].float()
         self._val["l1"].append((fake - real).abs().flatten(1).mean(1))
@@ -368,8 +367,6 @@ class GeneratorSystem(L.LightningModule):
 
     # -- checkpoints ------------------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        from tnf import __version__
-
         checkpoint["tnf"] = {
             "format": CHECKPOINT_FORMAT,
             "kind": "generator",

@@ -36,6 +36,9 @@ MIN_EXTENT = 1e-4
 REFUSE_SIZE = (1e-3, 10.0)
 WARN_SIZE = (5e-3, 1.5)
 
+TOUCH_SPLITS = ("train", "val", "novel_view")
+"""The split labels a touch may carry (a captured object's ``touches.json``, the touch stage's manifest)."""
+
 
 class ObjectSource:
     """Base class of object sources. Subclasses implement ``names`` and ``_load``.

@@ -43,8 +43,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from tnf.artifacts import read_json, write_json
+from tnf.cameras import load_transforms
 from tnf.errors import TnfError
-from tnf.objects import ObjectSource
+from tnf.objects import TOUCH_SPLITS, ObjectSource
 from tnf.registry import OBJECTS, config_to_dict
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -122,7 +124,7 @@ class Captured(ObjectSource):
 # -- camera views ------------------------------------------------------------------------------------------
 @dataclass
 class _Views:
-    """Frames of one transforms file (``tnf.capture.load_transforms``), with their indices in it."""
+    """Frames of one transforms file (``tnf.cameras.load_transforms``), with their indices in it."""
 
     images: np.ndarray  # [N, H, W, 4] uint8 RGBA
     c2w: np.ndarray  # [N, 4, 4] camera-to-world, metres
@@ -134,8 +136,6 @@ class _Views:
 
     @classmethod
     def load(cls, path: Path) -> _Views:
-        from tnf.capture import load_transforms
-
         images, c2w, intr, w, h, depth = load_transforms(path)
         return cls(images, np.asarray(c2w, np.float64), intr, w, h, depth, np.arange(len(images)))
 
@@ -196,8 +196,6 @@ def _transforms(views: _Views, split: str, shift: np.ndarray) -> dict[str, Any]:
 
 def _write_views(folder: Path, split: str, views: _Views, shift: np.ndarray) -> None:
     from PIL import Image
-
-    from tnf.artifacts import write_json
 
     meta = _transforms(views, split, shift)
     (folder / "images").mkdir(exist_ok=True)
@@ -281,9 +279,6 @@ class RealTouch:
 
 def read_touches(path: Path) -> list[RealTouch]:
     """The entries of a ``touches.json``, validated: one-line TnfErrors name the file and the entry."""
-    from tnf.artifacts import read_json
-    from tnf.data.splits import TOUCH_SPLITS
-
     data = read_json(path, "touches file")
     if not isinstance(data, list) or not data:
         raise TnfError(f"{path}: expected a non-empty list of touches ({{'image', 'c2w', 'split'}}), got {data!r:.60}")
@@ -369,8 +364,6 @@ def import_touches(store: ArtifactStore, sensor: Any, source: ObjectSource, name
     imported capture (``tnf capture``). Skipped when already imported from the same files and settings.
     """
     from PIL import Image
-
-    from tnf.data.splits import TOUCH_SPLITS
 
     if not isinstance(source, Captured):
         raise TnfError(f"object source {source.name!r} gives tactile frames but is not a 'captured' source")

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from tnf.errors import TnfError
+from tnf.sensors.base import Sensor, load_background
 
 FORMAT = "tnf.presses/1"
 INDEX = "presses.json"
@@ -255,3 +257,76 @@ def import_taxim(sensor: str, out: str | Path) -> PressSet:
     }
     (out / INDEX).write_text(json.dumps(meta, indent=2) + "\n")
     return load_presses(out)
+
+
+@dataclass
+class SensorPresses:
+    """Presses at the sensor's image size."""
+
+    background: np.ndarray
+    """``[H, W, 3]`` uint8."""
+    frames: np.ndarray
+    """``[N, H, W, 3]`` uint8."""
+    centers: np.ndarray
+    """``[N, 2]`` float, contact centres ``(column, row)`` in sensor pixels (pixel centres at whole numbers)."""
+    radii: np.ndarray
+    """``[N]`` float, contact radii in sensor pixels."""
+    depths: np.ndarray
+    """``[N]`` float, metres past first contact."""
+    indices: list[int]
+    """Which presses of the folder these are."""
+
+
+def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) -> SensorPresses:
+    """The presses ``indices`` resized to ``sensor``'s image size, after checking that the geometry matches."""
+    n = len(presses)
+    bad = [i for i in indices if not 0 <= i < n]
+    if bad:
+        raise TnfError(f"press {bad[0]} does not exist: {presses.folder} has presses 0-{n - 1}")
+    sx, sy = sensor.width / presses.width, sensor.height / presses.height
+    if abs(sx / sy - 1) > 0.01:
+        raise TnfError(
+            f"sensor {sensor.name!r} images are {sensor.width}x{sensor.height}, the presses' {presses.width}x"
+            f"{presses.height}: the aspect ratios differ (calibrate the sensor that recorded them, e.g. "
+            f"sensor=gelsight_mini for Taxim's GelSight Mini)"
+        )
+    want = presses.mm_per_pixel / sx  # mm per sensor pixel
+    have = 1e3 * float(np.mean(sensor.pixel_size()))
+    if abs(have / want - 1) > 0.02:
+        raise TnfError(
+            f"sensor {sensor.name!r} sees {have:.4f} mm per pixel, the presses {want:.4f} mm at its size "
+            f"({presses.mm_per_pixel} mm at {presses.width}x{presses.height}): set sensor.fov or "
+            f"sensor.camera_distance to match"
+        )
+    bg = load_background(presses.background_path, sensor.width, sensor.height)
+    frames = np.stack([load_background(presses.presses[i].image, sensor.width, sensor.height) for i in indices])
+    centers = np.array([[(c + 0.5) * sx - 0.5 for c in presses.presses[i].center] for i in indices], dtype=float)
+    radii = np.array([presses.contact_radius_px(i) * sx for i in indices], dtype=float)
+    depths = np.array([presses.presses[i].depth_mm * 1e-3 for i in indices], dtype=float)
+    return SensorPresses(bg, frames, centers.reshape(-1, 2), radii, depths, list(indices))
+
+
+def sphere_gaps(sensor: Sensor, centers: np.ndarray, radius_m: float) -> np.ndarray:
+    """Gaps ``[N, H, W]`` float32 (metres, along the sensor's axis) from the undeformed gel to a sphere of
+    ``radius_m`` whose lowest point faces each centre ``(column, row)`` in pixels; inf where it is not above."""
+    fx, fy, cx, cy = sensor.intrinsics()
+    d = sensor.cfg.camera_distance
+    x, y = sensor.gel_grid()
+    h0 = sensor.gel_surface()
+    out = []
+    for col, row in np.asarray(centers, dtype=float).reshape(-1, 2):
+        x0 = (col + 0.5 - cx) / fx * d
+        y0 = -(row + 0.5 - cy) / fy * d
+        r2 = (x - x0) ** 2 + (y - y0) ** 2
+        inside = r2 < radius_m**2
+        under = np.sqrt(np.where(inside, radius_m**2 - r2, 0.0))
+        out.append(np.where(inside, -under - h0, np.inf))  # only differences matter
+    return np.stack(out).astype(np.float32)
+
+
+def disk_masks(shape: tuple[int, int], centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """``[N, H, W]`` bool: pixels whose centre lies within ``radii`` pixels of ``centers`` ``(column, row)``."""
+    rows, cols = np.mgrid[: shape[0], : shape[1]]
+    c = np.asarray(centers, dtype=float).reshape(-1, 2)
+    r = np.asarray(radii, dtype=float).reshape(-1)
+    return (cols[None] - c[:, 0, None, None]) ** 2 + (rows[None] - c[:, 1, None, None]) ** 2 <= r[:, None, None] ** 2

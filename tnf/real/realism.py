@@ -2,7 +2,7 @@
 
 The contact region of a press is the disk of ``region_scale`` times its contact radius around its centre: the
 background alone scores high on the whole frame, so the region is the figure that counts. SSIM is tnf's metric
-(:func:`tnf.eval.metrics.ssim_map`: 11 px Gaussian window, sigma 1.5, 8-bit range) at the sensor's own size,
+(:func:`tnf.metrics.ssim_map`: 11 px Gaussian window, sigma 1.5, 8-bit range) at the sensor's own size,
 its per-pixel map averaged over the frame or the region; MSE is on the 0-255 scale.
 """
 
@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from tnf.real.calibrate import SensorPresses, disk_masks, sphere_gaps
+from tnf.real.presses import SensorPresses, disk_masks, sphere_gaps
+from tnf.registry import SIMULATORS
 from tnf.sensors.base import Sensor
 
 METRICS = ("ssim_frame", "mse_frame", "ssim_region", "mse_region")
@@ -28,7 +29,7 @@ def score(pred: np.ndarray, real: np.ndarray, region: np.ndarray) -> dict[str, l
     """
     import torch
 
-    from tnf.eval.metrics import ssim_map
+    from tnf.metrics import ssim_map
 
     p = torch.from_numpy(np.ascontiguousarray(pred)).permute(0, 3, 1, 2)
     t = torch.from_numpy(np.ascontiguousarray(real)).permute(0, 3, 1, 2)
@@ -55,8 +56,6 @@ def render(
     """Simulated frames ``[N, H, W, 3]`` uint8 of the presses (without pixel noise: noise is independent of the
     real frame's and would only add to the error), and the simulator's seconds per frame."""
     import time
-
-    from tnf.registry import SIMULATORS
 
     quiet = type(sensor)(dataclasses.replace(sensor.cfg, noise_std=0.0))
     if sensor.calibration is not None:

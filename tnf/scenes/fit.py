@@ -15,121 +15,26 @@ import os
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
 
+from tnf.artifacts import write_json
+from tnf.cameras import Views, camera_rays, read_views
 from tnf.errors import TnfError
+from tnf.metrics import ssim
+from tnf.registry import SCENES, split_spec
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
-from tnf.scenes.render import FieldScene, camera_rays
+from tnf.scenes import save_scene
+from tnf.scenes.render import FieldScene, composite
+from tnf.scenes.system import AtomicCheckpointIO, FitSettings, SceneFitSystem, lightning_device
 
 if TYPE_CHECKING:
     import lightning
 
 log = logging.getLogger(__name__)
-
-# Defaults per scene kind where one value does not suit both (fit settings of null pick these).
-KIND_DEFAULTS: dict[str, dict[str, Any]] = {
-    "hashgrid": {"steps": 3000, "batch_rays": 4096, "lr": 1e-2},
-    "nerf": {"steps": 30000, "batch_rays": 2048, "lr": 5e-4},
-}
-
-
-@dataclass
-class FitSettings:
-    """How to fit one scene (the ``fit`` config section)."""
-
-    steps: int | None = None
-    """Training steps (ray batches); null: the scene kind's default (hashgrid 3000, nerf 30000)."""
-    batch_rays: int | None = None
-    """Rays per training batch; null: the scene kind's default (hashgrid 4096, nerf 2048)."""
-    lr: float | None = None
-    """Adam learning rate at the start; null: the scene kind's default (hashgrid 1e-2, nerf 5e-4)."""
-    lr_final_factor: float = 0.05
-    """Learning rate at the last step as a fraction of lr (exponential decay)."""
-    random_background: bool = True
-    """Composite each training ray's RGBA target over a random colour (teaches empty space to be empty)."""
-    checkpoint_every: int = 1000
-    """Steps between resumable checkpoints (0: none)."""
-    eval_views: int | None = None
-    """Held-out views to evaluate (null: all of transforms_test.json)."""
-    preview_views: int = 4
-    """Held-out views shown in preview.png."""
-    chunk: int | None = None
-    """Rays per rendering chunk during evaluation (bounds memory); null: the scene kind's default."""
-    log_every: int = 100
-    """Steps between loss records in the training log."""
-    carve: bool = True
-    """Start the occupancy grid from the visual hull of the training views' alpha masks (skips empty space)."""
-    distortion_weight: float = 0.1
-    """Weight of the distortion loss (Mip-NeRF 360) that gathers each ray's weights on one surface; scenes
-    that report it (hashgrid) only. The colour loss alone leaves the density profile behind an opaque
-    surface free, and a spread-out profile biases the expected depth away from the camera. On an H100 at
-    128 px, 0.1 took the median depth error of the box from 2.1 % to 0.91 % and of the mug from 3.2 % to
-    0.94 % of their size, for 1.8 and 0.1 dB of PSNR (results/scenes/distortion_weight.md)."""
-    distortion_start: float = 0.3
-    """Fraction of the steps fitted by colour alone before the distortion loss starts: it gathers each ray's
-    weights on the surface the colour has formed by then, rather than on a guess of the first steps. On
-    sim_digit's 27 objects (H100, 1500 steps) starting at 0.3 rather than 0 took the lowest held-out PSNR from
-    27.6 to 30.7 dB and the objects over 1 % median depth error from 6 to 2 (results/scenes/distortion_start.md)."""
-
-    def validate(self) -> None:
-        for k in ("steps", "batch_rays"):
-            v = getattr(self, k)
-            if v is not None and v < 1:
-                raise ValueError(f"{k} must be >= 1, got {v}")
-        if self.lr is not None and self.lr <= 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.log_every < 1:
-            raise ValueError(f"log_every must be >= 1, got {self.log_every}")
-        if self.checkpoint_every < 0:
-            raise ValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
-        if self.distortion_weight < 0:
-            raise ValueError(f"distortion_weight must be >= 0, got {self.distortion_weight}")
-        if not 0 <= self.distortion_start < 1:
-            raise ValueError(f"distortion_start must be in [0, 1), got {self.distortion_start}")
-        if not 0 < self.lr_final_factor <= 1:
-            raise ValueError(f"lr_final_factor must be in (0, 1], got {self.lr_final_factor}")
-
-    def resolved(self, kind: str) -> FitSettings:
-        """A copy with null fields replaced by the scene kind's defaults."""
-        d = KIND_DEFAULTS.get(kind, KIND_DEFAULTS["hashgrid"])
-        out = FitSettings(**self.__dict__)
-        for k, v in d.items():
-            if getattr(out, k) is None:
-                setattr(out, k, v)
-        return out
-
-
-@dataclass
-class Views:
-    """The frames of one transforms file. All tensors on the CPU."""
-
-    rgba: torch.Tensor  # [N, H, W, 4] float in [0, 1]
-    c2w: torch.Tensor  # [N, 4, 4] camera-to-world, OpenGL, metres
-    intrinsics: torch.Tensor  # [N, 4] (fx, fy, cx, cy) pixels
-    depth: torch.Tensor | None  # [N, H, W] z-depth metres, 0 where no object; None when the dataset has none
-    width: int
-    height: int
-
-
-def read_views(path: str | os.PathLike[str], limit: int | None = None) -> Views:
-    """The first ``limit`` (default all) frames of a ``transforms.json``-style file (``load_transforms``)."""
-    from tnf.capture import load_transforms
-
-    images, c2w, intr, w, h, depth = load_transforms(path)
-    n = min(limit, len(images)) if limit else len(images)
-    return Views(
-        rgba=torch.from_numpy(images[:n]).float() / 255.0,
-        c2w=torch.from_numpy(np.asarray(c2w[:n])).float(),
-        intrinsics=torch.tensor([intr] * n, dtype=torch.float32),
-        depth=torch.from_numpy(depth[:n]) if depth is not None else None,
-        width=int(w),
-        height=int(h),
-    )
 
 
 def bound_from_cameras(views: Views) -> float:
@@ -163,16 +68,8 @@ def object_size(views: Views) -> float | None:
     return float((p.amax(0) - p.amin(0)).max())
 
 
-def composite(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """RGB [..., 3] of RGBA [..., 4] over ``background`` ([3] or [..., 3])."""
-    a = rgba[..., 3:4]
-    return rgba[..., :3] * a + background * (1.0 - a)
-
-
 def build_scene(spec: dict[str, Any], views: Views) -> FieldScene:
     """Build a scene from ``{"name": kind, **config}``; a null ``bound`` comes from the cameras."""
-    from tnf.registry import SCENES, split_spec
-
     name, params = split_spec(spec, "scene")
     if params.get("bound") is None:
         params["bound"] = bound_from_cameras(views)
@@ -204,8 +101,6 @@ def fit_scene(
     ``device`` in eval mode. A NaN or infinite loss raises ``tnf.errors.NonFiniteLoss`` naming the step.
     """
     from lightning.pytorch.utilities.exceptions import SIGTERMException
-
-    from tnf.scenes.system import SceneFitSystem
 
     s = settings.resolved(kind)
     system = SceneFitSystem(scene, views, s, seed=seed, resume_path=resume_path, on_step=on_step)
@@ -247,8 +142,6 @@ def _trainer(settings: FitSettings, device: str) -> lightning.Trainer:
     progress bar (callers draw their own through ``on_step``), model summary, validation or checkpoint
     callback (``SceneFitSystem`` writes its resume checkpoint itself, atomically)."""
     import lightning as L
-
-    from tnf.scenes.system import AtomicCheckpointIO, lightning_device
 
     assert settings.steps is not None
     accelerator, devices = lightning_device(device)
@@ -297,8 +190,6 @@ def evaluate_scene(scene: FieldScene, views: Views, chunk: int | None, size: flo
     where the ground truth sees the object (rendered depth 0 there counts as a full miss).
     Returns the metrics and the renders (``rgb`` [N, H, W, 3], ``depth`` [N, H, W], ``gt`` [N, H, W, 3]).
     """
-    from tnf.eval.metrics import ssim
-
     scene.eval()
     dev = scene.background.device
     rgb, depth = [], []
@@ -369,10 +260,6 @@ def fit_object(
     size for the relative depth error (default: the extent of the ground-truth depth points).
     """
     from PIL import Image
-
-    from tnf.artifacts import write_json
-    from tnf.registry import split_spec
-    from tnf.scenes import save_scene
 
     capture_dir, out_dir = Path(capture_dir), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -15,6 +15,7 @@ from typing import TypedDict
 
 import torch
 
+from tnf.cameras import camera_rays
 from tnf.scenes.base import RGBD, Scene
 
 # Accumulated opacity below which a pixel counts as empty (depth 0).
@@ -32,37 +33,10 @@ class RayOutput(TypedDict, total=False):
     distortion: torch.Tensor  # [R] distortion loss of the weights along each ray (hashgrid, with grad)
 
 
-def camera_rays(
-    c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Rays through the pixel centres of B pinhole cameras.
-
-    Args:
-        c2w: [B, 4, 4] camera-to-world (OpenGL: looks along -z, +y up), metres.
-        intrinsics: [B, 4] or [4], ``(fx, fy, cx, cy)`` in pixels.
-    Returns:
-        origins [B, H, W, 3] (metres), unit directions [B, H, W, 3], and z_scale [B, H, W]: the cosine
-        between each ray and the optical axis, so that ``z_depth = distance * z_scale``.
-    """
-    c2w = c2w.reshape(-1, 4, 4).float()
-    B = c2w.shape[0]
-    intr = intrinsics.to(c2w).reshape(-1, 4).expand(B, 4)
-    dev = c2w.device
-    v, u = torch.meshgrid(
-        torch.arange(height, device=dev, dtype=torch.float32) + 0.5,
-        torch.arange(width, device=dev, dtype=torch.float32) + 0.5,
-        indexing="ij",
-    )
-    fx, fy, cx, cy = (intr[:, i].view(B, 1, 1) for i in range(4))
-    x = (u - cx) / fx
-    y = -(v - cy) / fy  # image rows go down, camera +y goes up
-    d_cam = torch.stack([x, y, -torch.ones_like(x)], dim=-1)  # [B, H, W, 3]
-    norm = d_cam.norm(dim=-1, keepdim=True)
-    d_cam = d_cam / norm
-    dirs = torch.einsum("bij,bhwj->bhwi", c2w[:, :3, :3], d_cam)
-    origins = c2w[:, None, None, :3, 3].expand_as(dirs)
-    z_scale = 1.0 / norm[..., 0]  # cos of the angle to the optical axis
-    return origins.contiguous(), dirs.contiguous(), z_scale
+def composite(rgba: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """RGB [..., 3] of RGBA [..., 4] over ``background`` ([3] or [..., 3])."""
+    a = rgba[..., 3:4]
+    return rgba[..., :3] * a + background * (1.0 - a)
 
 
 def volume_render(

@@ -14,21 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def look_at(eye: np.ndarray, target: np.ndarray | None = None, up: np.ndarray | None = None) -> np.ndarray:
-    """Camera-to-world 4x4 (OpenGL: looks along -z, +y up) of a camera at ``eye`` looking at ``target``."""
-    target = np.zeros(3) if target is None else target
-    up = np.array([0.0, 0.0, 1.0]) if up is None else up
-    z = eye - target
-    z = z / np.linalg.norm(z)
-    if abs(float(np.dot(z, up))) > 0.999:  # looking along the up vector: pick another up
-        up = np.array([0.0, 1.0, 0.0])
-    x = np.cross(up, z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, eye
-    return m
+from tnf.cameras import look_at
 
 
 def sphere_poses(n: int, distance: float, offset: float = 0.0) -> np.ndarray:

@@ -12,26 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from tnf.cameras import look_at
 from tnf.errors import TnfError
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: Sequence[float] = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world ``[4, 4]`` of a camera at ``eye`` looking at ``target`` (OpenGL: -z forward, +y up).
-
-    ``up`` fixes the roll; when the view is (nearly) parallel to it, the world y or x axis is used instead.
-    """
-    eye = np.asarray(eye, dtype=np.float64)
-    fwd = np.asarray(target, dtype=np.float64) - eye
-    fwd /= np.linalg.norm(fwd)
-    for cand in (np.asarray(up, dtype=np.float64), np.array([0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0])):
-        right = np.cross(fwd, cand)
-        if np.linalg.norm(right) > 1e-3:
-            break
-    right /= np.linalg.norm(right)
-    true_up = np.cross(right, fwd)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, -fwd, eye
-    return m
 
 
 def roll_about_view(c2w: np.ndarray, angle: float) -> np.ndarray:
@@ -75,7 +57,7 @@ def start_poses(
     c = np.asarray(center, dtype=np.float64)
     poses = []
     for d in directions:
-        m = look_at(c + radius * d, c, up)
+        m = look_at(c + radius * d, c, up, fallback="parallel")
         if random_roll:
             m = roll_about_view(m, rng.uniform(0, 2 * np.pi))
         poses.append(m)

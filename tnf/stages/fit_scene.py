@@ -44,7 +44,8 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     from tnf.objects import shard, shard_of
     from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
     from tnf.runtime import job_device, progress, resolve_device, seed_everything
-    from tnf.scenes.fit import FitSettings, fit_object
+    from tnf.scenes.fit import fit_object
+    from tnf.scenes.system import FitSettings
 
     settings = from_dict(FitSettings, cfg.fit, where="fit")
     kind, params = split_spec(cfg.scene, "scene")

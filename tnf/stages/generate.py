@@ -62,9 +62,8 @@ def run(cfg: Any) -> dict[str, Any]:
     from tnf.artifacts import ArtifactStore, read_json
     from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
     from tnf.data.render import Framing, render_rgbd_crops
-    from tnf.data.splits import TOUCH_SPLITS
     from tnf.generators import load_generator
-    from tnf.objects import select
+    from tnf.objects import TOUCH_SPLITS, select
     from tnf.registry import SENSORS
     from tnf.runtime import progress, resolve_device
     from tnf.scenes import load_scene

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
+
+from tnf.testing.config import compose
 
 __all__ = ["GeneratorContract", "SceneContract", "SensorContract", "compose", "random_batch", "undocumented_fields"]
 
@@ -17,19 +18,3 @@ def __getattr__(name: str) -> Any:
 
         return getattr(contracts, name)
     raise AttributeError(f"module 'tnf.testing' has no attribute {name!r}")
-
-
-def compose(stage: str, overrides: Sequence[str] = ()) -> Any:
-    """Compose the real Hydra config of ``stage`` (e.g. ``"touch"``) with ``overrides``, as ``tnf`` does.
-
-    Plugin config packages registered under ``tnf.conf`` are on the search path, as on the command line.
-    """
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from tnf.env import conf_dir
-
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=conf_dir(), version_base=None):
-        return hydra_compose(config_name="stage/" + stage.replace("-", "_"), overrides=list(overrides))

@@ -25,8 +25,10 @@ from typing import Any, ClassVar
 import numpy as np
 import pytest
 
+from tnf.cameras import look_at
 from tnf.errors import TnfError
 from tnf.registry import GENERATORS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict
+from tnf.testing.config import compose
 
 
 def undocumented_fields(config_class: type) -> list[str]:
@@ -134,8 +136,6 @@ class SensorContract(_ComponentContract):
         assert sensor.describe() == {"name": self.name, "config": config_to_dict(sensor.cfg)}
 
     def test_yaml_composes_and_builds(self):
-        from tnf.testing import compose
-
         cfg = compose("touch", [f"sensor={self.name}"])
         built = SENSORS.build(cfg.sensor)
         assert built.name == self.name
@@ -280,7 +280,7 @@ class GeneratorContract(_ComponentContract):
         from tnf.generators import Generator
 
         assert isinstance(generator, Generator)
-        from tnf.generators.tn_cgan import CHANNELS
+        from tnf.generators.nets import CHANNELS
 
         # Batch keys tnf serves, or conditions derived from them (depth_slope, depth_and_slope).
         assert generator.inputs and set(generator.inputs) <= set(CHANNELS)
@@ -375,10 +375,10 @@ class SceneContract(_ComponentContract):
         """``c2w [B, 4, 4]`` looking at the origin from around it, and intrinsics ``[4]`` (45 degree vertical fov)."""
         import torch
 
-        from tnf.sim.touch import look_at
-
         eyes = [(self.distance, 0.0, 0.05), (0.0, -self.distance, 0.1), (0.0, 0.0, self.distance)][:batch]
-        c2w = torch.tensor(np.stack([look_at(np.array(e), np.zeros(3)) for e in eyes]), dtype=torch.float32)
+        c2w = torch.tensor(
+            np.stack([look_at(np.array(e), np.zeros(3), fallback="parallel") for e in eyes]), dtype=torch.float32
+        )
         f = 0.5 * self.height / np.tan(np.radians(22.5))
         return c2w, torch.tensor([f, f, self.width / 2, self.height / 2], dtype=torch.float32)
 
