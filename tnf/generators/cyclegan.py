@@ -16,10 +16,8 @@ import torch.nn.functional as F
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import ImagePool, PatchDiscriminator, ResnetGenerator, init_weights
 from tnf.generators.tn_cgan import gan_loss
-from tnf.registry import GENERATORS
 
 
-@GENERATORS.register("cyclegan")
 class CycleGAN(Generator):
     """CycleGAN baseline: unpaired RGB <-> tactile, ResNet generators, PatchGAN, LSGAN, cycle + identity."""
 

@@ -18,7 +18,6 @@ from torch import nn
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import NoiseDropout, init_weights, norm_layer
 from tnf.generators.tn_cgan import CHANNELS, MultiEncoderUNet, conditions, gan_loss, needed_keys
-from tnf.registry import GENERATORS
 
 
 class LeeDiscriminator(nn.Module):
@@ -46,7 +45,6 @@ class LeeDiscriminator(nn.Module):
         return self.fc(self.features(x).flatten(1))
 
 
-@GENERATORS.register("lee")
 class Lee(Generator):
     """Lee et al. 2019 baseline: RGB-only U-Net cGAN with 5x5 convolutions, FC discriminator, RMSProp."""
 

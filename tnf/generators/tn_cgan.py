@@ -40,7 +40,6 @@ from tnf.eval import metrics
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.field import SurfaceField
 from tnf.generators.nets import NoiseDropout, PatchDiscriminator, init_weights, norm_layer
-from tnf.registry import GENERATORS
 
 CHANNELS = {"rgb": 3, "depth": 1, "background": 3, "depth_slope": 2, "depth_and_slope": 3, "prior": 3, "surface": 0}
 """Channels of each condition a generator may take. ``depth_slope`` and ``depth_and_slope`` (the depth image
@@ -457,7 +456,6 @@ def d_output(logits: torch.Tensor, mode: str) -> torch.Tensor:
     return (torch.sigmoid(x) if mode == "vanilla" else x).mean()
 
 
-@GENERATORS.register("tn_cgan")
 class TNcGAN(Generator):
     """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, cGAN + L1 + SSIM loss."""
 

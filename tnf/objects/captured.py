@@ -45,7 +45,7 @@ import numpy as np
 
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
-from tnf.registry import OBJECTS, config_to_dict
+from tnf.registry import config_to_dict
 
 if TYPE_CHECKING:  # pragma: no cover
     from tnf.artifacts import ArtifactStore
@@ -56,7 +56,6 @@ TOUCH_KEYS = ("image", "c2w", "split")
 """Keys of one entry of ``touches.json`` (``split`` is optional)."""
 
 
-@OBJECTS.register("captured")
 class Captured(ObjectSource):
     """Your own objects: camera images with poses (transforms.json) and real tactile frames; no meshes."""
 

@@ -44,7 +44,6 @@ import numpy as np
 import warp as wp
 
 from tnf.errors import TnfError
-from tnf.registry import SIMULATORS
 from tnf.runtime import check_memory, init_warp
 from tnf.sensors.base import Sensor
 
@@ -626,7 +625,6 @@ class TouchBatch:
     contact_c2w: np.ndarray
 
 
-@SIMULATORS.register("warp_gel")
 class WarpGel:
     """Elastic gel pressed with a constant force, ray cast and shaded in NVIDIA Warp (CPU or CUDA)."""
 
