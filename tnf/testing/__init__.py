@@ -5,10 +5,27 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["GeneratorContract", "SceneContract", "SensorContract", "compose", "random_batch", "undocumented_fields"]
+__all__ = [
+    "GeneratorContract",
+    "ObjectSourceContract",
+    "SceneContract",
+    "SensorContract",
+    "SimulatorContract",
+    "compose",
+    "random_batch",
+    "undocumented_fields",
+]
 
 # The contract suites import pytest: load them only when asked for.
-_CONTRACTS = {"GeneratorContract", "SceneContract", "SensorContract", "random_batch", "undocumented_fields"}
+_CONTRACTS = {
+    "GeneratorContract",
+    "ObjectSourceContract",
+    "SceneContract",
+    "SensorContract",
+    "SimulatorContract",
+    "random_batch",
+    "undocumented_fields",
+}
 
 
 def __getattr__(name: str) -> Any:
