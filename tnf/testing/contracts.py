@@ -10,8 +10,8 @@ Subclass a suite in a test module and name the component; pytest collects the in
 
 Each suite has class attributes a subclass may set (``params``: config overrides, e.g. to make a generator
 tiny) and fixtures it may override (``sensor``, ``simulator``, ``generator``, ``scene``, ``source``) when a
-component needs more than its registry name to be built. The tests use real components: real warp presses, real training steps, real
-renders, at tiny sizes so that a suite runs in seconds on a CPU.
+component needs more than its registry name to be built. The tests use real components: real warp presses,
+real training steps, real renders, at tiny sizes so that a suite runs in seconds on a CPU.
 """
 
 from __future__ import annotations
