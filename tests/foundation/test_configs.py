@@ -20,6 +20,15 @@ def test_every_stage_composes(stage):
     assert cfg.seed == 0 and cfg.data_root
 
 
+def test_one_primary_config_and_the_pipeline_runs_the_quickstart():
+    from tnf.env import PRIMARY_CONFIG
+
+    assert sorted(p.name for p in CONF.glob("*.yaml")) == ["base.yaml", f"{PRIMARY_CONFIG}.yaml"]
+    assert compose("pipeline") == compose("touch", ["experiment=quickstart"]) != compose("touch")
+    assert compose("pipeline", ["experiment=sim_digit"]) == compose("train", ["experiment=sim_digit"])
+    assert compose("pipeline", ["~experiment"]) == compose("touch")
+
+
 @pytest.mark.parametrize("group, option", OPTIONS, ids=[f"{g}={o}" for g, o in OPTIONS])
 def test_every_group_option_composes(group, option):
     cfg = compose("pipeline", [f"{group}={option}"])

@@ -45,8 +45,8 @@ def compose(stage: str, overrides: Sequence[str] = ()) -> Any:
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from tnf.env import conf_dir
+    from tnf.env import PRIMARY_CONFIG, conf_dir, stage_overrides
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=conf_dir(), version_base=None):
-        return hydra_compose(config_name="stage/" + stage.replace("-", "_"), overrides=list(overrides))
+        return hydra_compose(config_name=PRIMARY_CONFIG, overrides=stage_overrides(stage, overrides))
