@@ -20,6 +20,7 @@ import ast
 import dataclasses
 import inspect
 import json
+import math
 import textwrap
 from typing import Any, ClassVar
 
@@ -47,6 +48,32 @@ def undocumented_fields(config_class: type) -> list[str]:
                 if not (doc and isinstance(nxt.value.value, str)):  # type: ignore[union-attr]
                     missing.append(f"{klass.__qualname__}.{stmt.target.id}")
     return missing
+
+
+def config_drift(config_class: type, node: Any) -> list[str]:
+    """Keys of a component's YAML option (``node``, without ``name``) whose value differs from the default of its
+    ``Config`` dataclass, as ``"key: yaml X, dataclass Y"``; a key the YAML leaves out takes the dataclass default.
+
+    Floats agree within a relative 1e-4, or 1e-12 near zero (YAML files print computed values, such as light
+    positions, to about six digits).
+    """
+    from omegaconf import OmegaConf
+
+    yaml = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
+    yaml = {k: v for k, v in yaml.items() if k != "name"}
+    defaults = config_to_dict(config_class())
+    return [f"{k}: yaml {v!r}, dataclass {defaults[k]!r}" for k, v in yaml.items() if not _same(v, defaults.get(k))]
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, float) or isinstance(b, float):
+        both = isinstance(a, (int, float)) and isinstance(b, (int, float))
+        return both and not isinstance(a, bool) and not isinstance(b, bool) and math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-12)
+    return type(a) is type(b) and a == b
 
 
 class _ComponentContract:
@@ -85,6 +112,21 @@ class _ComponentContract:
     def test_unknown_key_is_an_error_naming_it(self):
         with pytest.raises(TnfError, match="no_such_key"):
             self.registry.config(self.name, {**self.params, "no_such_key": 1})
+
+    def test_yaml_repeats_the_config_defaults(self):
+        """The option named like the component (``conf/<kind>/<name>.yaml``) sets nothing but the dataclass
+        defaults, so that ``<kind>=<name>`` on the command line and ``build("<name>")`` in code agree."""
+        from hydra.errors import MissingConfigException
+
+        from tnf.testing import compose
+
+        group = self.registry.kind  # the config group has the registry's kind as its name
+        try:
+            node = compose("touch", [f"{group}={self.name}"])[group]
+        except MissingConfigException:
+            pytest.skip(f"no conf/{group}/{self.name}.yaml: {self.name} is built in code only")
+        drift = config_drift(self.registry.entry(self.name).config_class, node)
+        assert not drift, f"conf/{group}/{self.name}.yaml differs from the Config dataclass defaults: {drift}"
 
 
 def _close(a: Any, b: Any) -> bool:
