@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 from tnf.errors import TnfError
-from tnf.registry import GENERATORS, OBJECTS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict
+from tnf.registry import GENERATORS, OBJECTS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict, split_spec
 
 
 def undocumented_fields(config_class: type) -> list[str]:
@@ -51,18 +51,15 @@ def undocumented_fields(config_class: type) -> list[str]:
 
 
 def config_drift(config_class: type, node: Any) -> list[str]:
-    """Keys of a component's YAML option (``node``, without ``name``) whose value differs from the default of its
+    """Keys of a component's YAML option (``node``, with its ``name``) whose value differs from the default of its
     ``Config`` dataclass, as ``"key: yaml X, dataclass Y"``; a key the YAML leaves out takes the dataclass default.
 
     Floats agree within a relative 1e-4, or 1e-12 near zero (YAML files print computed values, such as light
     positions, to about six digits).
     """
-    from omegaconf import OmegaConf
-
-    yaml = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
-    yaml = {k: v for k, v in yaml.items() if k != "name"}
+    _, yaml = split_spec(node)
     defaults = config_to_dict(config_class())
-    return [f"{k}: yaml {v!r}, dataclass {defaults[k]!r}" for k, v in yaml.items() if not _same(v, defaults.get(k))]
+    return [f"{k}: yaml {v!r}, dataclass {defaults.get(k)!r}" for k, v in yaml.items() if not _same(v, defaults.get(k))]
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -72,7 +69,12 @@ def _same(a: Any, b: Any) -> bool:
         return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, float) or isinstance(b, float):
         both = isinstance(a, (int, float)) and isinstance(b, (int, float))
-        return both and not isinstance(a, bool) and not isinstance(b, bool) and math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-12)
+        return (
+            both
+            and not isinstance(a, bool)
+            and not isinstance(b, bool)
+            and math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-12)
+        )
     return type(a) is type(b) and a == b
 
 
