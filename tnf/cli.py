@@ -2,8 +2,8 @@
 
 Each stage is a Hydra app; all compose the one primary config ``conf/tnf.yaml`` (``tnf pipeline`` adds
 ``experiment=quickstart`` unless told otherwise: ``tnf.env.STAGE_DEFAULTS``), so ``--help``, ``--cfg job``,
-``-m`` sweeps and ``key=value`` overrides work for every stage. The stage's code
-is ``tnf.stages.<stage>.run(cfg)``.
+``-m`` sweeps and ``key=value`` overrides work for every stage. The stage's code is
+``tnf.stages.<stage>.run(cfg)``.
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def _hydra_args(stage: str, args: Sequence[str]) -> list[str]:
     (Hydra's parser takes a single run of overrides: not after ``-m`` when overrides follow it)."""
     from tnf.env import stage_choices
 
-    overrides = [a for a in args if "=" in a or a.startswith("~")]
+    overrides = [a for a in args if not a.startswith("-") and ("=" in a or a.startswith("~"))]
     own = [f"hydra.job.name={stage.replace('-', '_')}", *stage_choices(stage, overrides)]
     at = args.index(overrides[0]) if overrides else 0
     return [*args[:at], *own, *args[at:]]
