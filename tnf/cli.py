@@ -1,8 +1,9 @@
 """The ``tnf`` command: ``tnf STAGE [hydra overrides...]``.
 
-Each stage is a Hydra app whose primary config is ``conf/stage/<stage>.yaml`` (dashes become underscores), so
-``--help``, ``--cfg job``, ``-m`` sweeps and ``key=value`` overrides work for every stage. The stage's code
-is ``tnf.stages.<stage>.run(cfg)``.
+Each stage is a Hydra app; all compose the one primary config ``conf/tnf.yaml`` (``tnf pipeline`` adds
+``experiment=quickstart`` unless told otherwise: ``tnf.env.STAGE_DEFAULTS``), so ``--help``, ``--cfg job``,
+``-m`` sweeps and ``key=value`` overrides work for every stage. The stage's code is
+``tnf.stages.<stage>.run(cfg)``.
 """
 
 from __future__ import annotations
@@ -80,16 +81,16 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
     """Run stage ``stage`` as a Hydra app with ``overrides`` (as on the command line)."""
     import hydra
 
-    from tnf.env import conf_dir
+    from tnf.env import PRIMARY_CONFIG, conf_dir
 
     if os.environ.get("HYDRA_FULL_ERROR") != "1":
         check_overrides(stage, overrides)
     check_data_root(overrides)
     module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
     task = _guard(module.run)
-    app = hydra.main(version_base=None, config_path=conf_dir(), config_name="stage/" + stage.replace("-", "_"))(task)
+    app = hydra.main(version_base=None, config_path=conf_dir(), config_name=PRIMARY_CONFIG)(task)
     old = sys.argv
-    sys.argv = [f"tnf {stage}", *overrides]
+    sys.argv = [f"tnf {stage}", *_hydra_args(stage, overrides)]
     try:
         app()
     except SystemExit as e:
@@ -97,6 +98,18 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
     finally:
         sys.argv = old
     return 0
+
+
+def _hydra_args(stage: str, args: Sequence[str]) -> list[str]:
+    """The command line Hydra gets: ``args`` with the stage's job name (it names the run folder
+    ``logs/stage/<name>/`` and the log file) and its ``STAGE_DEFAULTS``, placed next to the user's overrides
+    (Hydra's parser takes a single run of overrides: not after ``-m`` when overrides follow it)."""
+    from tnf.env import stage_choices
+
+    overrides = [a for a in args if not a.startswith("-") and ("=" in a or a.startswith("~"))]
+    own = [f"hydra.job.name={stage.replace('-', '_')}", *stage_choices(stage, overrides)]
+    at = args.index(overrides[0]) if overrides else 0
+    return [*args[:at], *own, *args[at:]]
 
 
 # Flags with which Hydra only prints something (help, config, info): no run folder, so nothing to check.
@@ -222,15 +235,16 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     from hydra.errors import HydraException, MissingConfigException
     from omegaconf.errors import OmegaConfBaseException
 
-    from tnf.env import conf_dir
+    from tnf.env import PRIMARY_CONFIG, conf_dir, stage_overrides
     from tnf.settings import check_settings, check_sizes
 
-    name = "stage/" + stage.replace("-", "_")
+    name = PRIMARY_CONFIG
     plain = [o for o in overrides if o not in multirun]
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=conf_dir(), version_base=None):
             for combination in _combinations(plain) if len(plain) < len(overrides) else [plain]:
+                combination = stage_overrides(stage, combination)
                 try:
                     cfg = compose(config_name=name, overrides=combination)
                 except MissingConfigException as e:
@@ -238,7 +252,8 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
                 except (HydraException, OmegaConfBaseException) as e:
                     cause = e.__cause__
                     if isinstance(cause, OmegaConfBaseException) and "Could not override" in str(e):
-                        raise TnfError(_unknown_key(str(e), compose(config_name=name))) from None
+                        plain_cfg = compose(config_name=name, overrides=stage_overrides(stage, []))
+                        raise TnfError(_unknown_key(str(e), plain_cfg)) from None
                     lines = [ln for ln in str(e).splitlines() if ln.strip() and "search path" not in ln.lower()]
                     raise TnfError(" ".join(lines[:2])) from None
                 check_settings(cfg)  # before Hydra makes its run folder

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 
 
 def headless_rendering() -> None:
@@ -25,3 +26,22 @@ def conf_dir() -> str:
     if os.path.isdir(packaged):
         return packaged
     return os.path.join(os.path.dirname(here), "conf")
+
+
+PRIMARY_CONFIG = "tnf"
+"""The primary config that every stage composes (``conf/tnf.yaml``)."""
+
+STAGE_DEFAULTS: dict[str, dict[str, str]] = {"pipeline": {"experiment": "quickstart"}}
+"""Config group choices a stage makes unless the command line makes them (``tnf pipeline`` runs the quick start)."""
+
+
+def stage_choices(stage: str, overrides: Sequence[str]) -> list[str]:
+    """The stage's own group choices (``STAGE_DEFAULTS``) for the groups ``overrides`` leave alone."""
+    chosen = {o.lstrip("+~").split("=")[0] for o in overrides if not o.startswith("-")}
+    own = STAGE_DEFAULTS.get(stage.replace("-", "_"), {})
+    return [f"{group}={option}" for group, option in own.items() if group not in chosen]
+
+
+def stage_overrides(stage: str, overrides: Sequence[str]) -> list[str]:
+    """``overrides`` after the stage's own group choices: what composing the stage's config takes."""
+    return [*stage_choices(stage, overrides), *overrides]

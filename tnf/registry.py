@@ -1,40 +1,35 @@
-"""Registries: one per kind of component, filled by in-tree decorators and by plugins' entry points.
+"""Registries: one per kind of component, filled from entry points, tnf's own components included.
 
-An in-tree component registers with a decorator and declares a nested ``Config`` dataclass::
+Every component, in-tree or from a plugin, is a class with a nested ``Config`` dataclass, registered
+through an entry point in its kind's group. tnf lists its own in its ``pyproject.toml``, exactly as a
+third-party package does::
 
-    @SENSORS.register("digit")
-    class Digit(Sensor):
-        @dataclass
-        class Config:
-            width: int = 240
-            ...
+    [project.entry-points."tnf.sensors"]
+    digit = "tnf.sensors.digit:Digit"
 
-        def __init__(self, cfg: Config): ...
+The entry-point name is the registry name. Entry points live in the installed package metadata, so tnf
+must be installed (``pip install -e .`` in a checkout), and reinstalled after its entry points change.
 
-A third-party package registers the same kind of class through an entry point in the kind's group, e.g.
-``[project.entry-points."tnf.sensors"] gelsight = "tnf_gelsight.sensor:GelSight"``.
-
-Discovery is lazy: the in-tree modules and the entry points of a kind are imported at the first lookup
-in that kind's registry, never at ``import tnf``. A plugin whose import fails raises its own error.
+Discovery is lazy: the entry points of a kind are imported at the first lookup in that kind's registry,
+never at ``import tnf``. A plugin whose import fails raises its own error.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import importlib.metadata as md
 import math
 import threading
 import types
 import typing
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Mapping
 from typing import Any, TypeVar
 
 from tnf.errors import TnfError
 
 T = TypeVar("T")
 
-IN_TREE = "tnf"
+IN_TREE = "tnf"  # the distribution name of tnf itself
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,7 +38,7 @@ class Entry:
 
     name: str
     obj: Any
-    origin: str  # "tnf" for in-tree components, else the distribution name of the plugin
+    origin: str  # the distribution the entry point comes from ("tnf" for in-tree components)
 
     @property
     def config_class(self) -> type | None:
@@ -55,30 +50,26 @@ class Registry:
 
     Args:
         kind: what the components are ("sensor", "scene", ...), used in messages.
-        group: the entry-point group plugins register through ("tnf.sensors", ...).
-        modules: in-tree modules that register components of this kind when imported.
+        group: the entry-point group that registers components of this kind ("tnf.sensors", ...).
+        in_tree: tnf itself registers components of this kind; discovery fails with a one-line error when
+            tnf's package metadata lists none (tnf not installed, or installed from an older checkout).
     """
 
-    def __init__(self, kind: str, group: str, modules: Iterable[str] = ()):
+    def __init__(self, kind: str, group: str, in_tree: bool = False):
         self.kind = kind
         self.group = group
-        self._modules = tuple(modules)
+        self.in_tree = in_tree
         self._entries: dict[str, Entry] = {}
+        self._from_entry_points: set[str] = set()
         self._discovered = False
         self._lock = threading.RLock()
 
     # -- registration -------------------------------------------------------------------------------
-    def register(self, name: str) -> Callable[[T], T]:
-        """Decorator that registers an in-tree component under ``name``."""
-
-        def deco(obj: T) -> T:
-            self.add(name, obj, origin=IN_TREE)
-            return obj
-
-        return deco
-
     def add(self, name: str, obj: Any, origin: str) -> None:
-        """Register ``obj`` under ``name``; a second, different object under the same name is an error."""
+        """Register ``obj`` under ``name`` (entry points do this; tests add stand-ins directly).
+
+        A second, different object under the same name is an error naming both.
+        """
         if not isinstance(name, str) or not name:
             raise TnfError(f"{self.kind} registry: a component name must be a non-empty string, got {name!r}")
         with self._lock:
@@ -97,22 +88,25 @@ class Registry:
         with self._lock:
             if self._discovered:
                 return
-            # Mark first: in-tree modules call register() while we import them.
+            # tnf's own entry points first, so that a clash names the in-tree component first.
+            eps = sorted(md.entry_points(group=self.group), key=lambda ep: _dist_name(ep) != IN_TREE)
+            if self.in_tree and not any(_dist_name(ep) == IN_TREE for ep in eps):
+                raise TnfError(_no_metadata(self.kind, self.group))
+            # Mark first: a component's module may look up this registry while we import it.
             self._discovered = True
             try:
-                for module in self._modules:
-                    importlib.import_module(module)
-                for ep in md.entry_points(group=self.group):
-                    dist = ep.dist.name if ep.dist is not None else "unknown distribution"
-                    self.add(ep.name, ep.load(), origin=dist)
+                for ep in eps:
+                    self.add(ep.name, ep.load(), origin=_dist_name(ep))
+                    self._from_entry_points.add(ep.name)
             except BaseException:
                 self._discovered = False
                 raise
 
     def refresh(self) -> None:
-        """Forget plugin entries and discover again (after installing a plugin in a running process)."""
+        """Forget what entry points registered and discover again (after installing a plugin in a running process)."""
         with self._lock:
-            self._entries = {k: e for k, e in self._entries.items() if e.origin == IN_TREE}
+            self._entries = {k: e for k, e in self._entries.items() if k not in self._from_entry_points}
+            self._from_entry_points.clear()
             self._discovered = False
 
     # -- lookup -------------------------------------------------------------------------------------
@@ -186,6 +180,24 @@ def _plain(x: Any) -> Any:
     if isinstance(x, (list, tuple)):
         return [_plain(v) for v in x]
     return x
+
+
+def _dist_name(ep: md.EntryPoint) -> str:
+    return ep.dist.name if ep.dist is not None else "unknown distribution"
+
+
+def _no_metadata(kind: str, group: str) -> str:
+    try:
+        md.distribution(IN_TREE)
+    except md.PackageNotFoundError:
+        return (
+            f"no {kind} found: tnf's package metadata is missing (a source tree that was never installed?); "
+            "run `pip install -e .` in the checkout"
+        )
+    return (
+        f"no {kind} found: tnf's installed metadata lists no {group!r} entry points (installed from an older "
+        "checkout?); run `pip install -e .` in the checkout again"
+    )
 
 
 def _where(obj: Any, origin: str) -> str:
@@ -289,17 +301,11 @@ def _name(tp: Any) -> str:
 
 
 # -- the registries ---------------------------------------------------------------------------------
-# Each lists the in-tree modules that register into it; plugins add entry points to the group.
-OBJECTS = Registry(
-    "objects",
-    "tnf.objects",
-    ["tnf.objects.builtin", "tnf.objects.mesh_dir", "tnf.objects.pybullet", "tnf.objects.captured"],
-)
-SCENES = Registry("scene", "tnf.scenes", ["tnf.scenes.nerf", "tnf.scenes.hashgrid", "tnf.scenes.mesh"])
-SENSORS = Registry("sensor", "tnf.sensors", ["tnf.sensors.digit", "tnf.sensors.omnitact", "tnf.sensors.gelsight_mini"])
-SIMULATORS = Registry("simulator", "tnf.simulators", ["tnf.sim.warp_gel"])
-GENERATORS = Registry(
-    "generator", "tnf.generators", ["tnf.generators.tn_cgan", "tnf.generators.lee", "tnf.generators.cyclegan"]
-)
+# tnf's own components are entry points in pyproject.toml, like a plugin's.
+OBJECTS = Registry("objects", "tnf.objects", in_tree=True)
+SCENES = Registry("scene", "tnf.scenes", in_tree=True)
+SENSORS = Registry("sensor", "tnf.sensors", in_tree=True)
+SIMULATORS = Registry("simulator", "tnf.simulators", in_tree=True)
+GENERATORS = Registry("generator", "tnf.generators", in_tree=True)
 
 REGISTRIES: dict[str, Registry] = {r.kind: r for r in (OBJECTS, SCENES, SENSORS, SIMULATORS, GENERATORS)}

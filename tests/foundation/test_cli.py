@@ -50,6 +50,26 @@ def test_stage_gets_composed_config_with_overrides(echo_stage, data_root):
     assert cfg.data_root == str(data_root)
 
 
+def test_every_stage_logs_to_its_own_folder(echo_stage, data_root):
+    assert main(["objects"]) == 0
+    assert main(["objects", "-m", "seed=1,2"]) == 0
+    assert sorted(p.name for p in (data_root / "logs" / "stage").iterdir()) == ["objects", "objects-multirun"]
+    assert list((data_root / "logs" / "stage" / "objects").glob("*/objects.log"))
+
+
+def test_hydra_gets_the_job_name_and_stage_defaults_beside_the_overrides():
+    from tnf.cli import _hydra_args
+
+    assert _hydra_args("pipeline", ["-m", "seed=1,2"]) == [
+        "-m",
+        "hydra.job.name=pipeline",
+        "experiment=quickstart",
+        "seed=1,2",
+    ]
+    assert _hydra_args("pipeline", ["experiment=sim_digit"]) == ["hydra.job.name=pipeline", "experiment=sim_digit"]
+    assert _hydra_args("fit-scene", ["--cfg=job", "--info"]) == ["hydra.job.name=fit_scene", "--cfg=job", "--info"]
+
+
 def test_stage_user_error_exits_nonzero_with_one_line(echo_stage, data_root, capsys):
     assert main(["objects", "seed=13"]) == 1
     err = capsys.readouterr().err

@@ -20,6 +20,15 @@ def test_every_stage_composes(stage):
     assert cfg.seed == 0 and cfg.data_root
 
 
+def test_one_primary_config_and_the_pipeline_runs_the_quickstart():
+    from tnf.env import PRIMARY_CONFIG
+
+    assert sorted(p.name for p in CONF.glob("*.yaml")) == ["base.yaml", f"{PRIMARY_CONFIG}.yaml"]
+    assert compose("pipeline") == compose("touch", ["experiment=quickstart"]) != compose("touch")
+    assert compose("pipeline", ["experiment=sim_digit"]) == compose("train", ["experiment=sim_digit"])
+    assert compose("pipeline", ["~experiment"]) == compose("touch")
+
+
 @pytest.mark.parametrize("group, option", OPTIONS, ids=[f"{g}={o}" for g, o in OPTIONS])
 def test_every_group_option_composes(group, option):
     cfg = compose("pipeline", [f"{group}={option}"])
@@ -97,3 +106,41 @@ def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
         names[variant] = finetune_run_name(cfg)
     assert names["tn_plus"] == names["tn"].replace("-5pt-", "-5pt+45-")
     assert "-scratch-5pt-" in names["fs"] and len(set(names.values())) == 3
+
+
+def test_every_component_yaml_repeats_its_config_defaults():
+    """Defaults are written twice (the YAML option and the Config dataclass): they must not drift apart."""
+    from tnf.registry import REGISTRIES
+    from tnf.testing.contracts import config_drift
+
+    checked = 0
+    for kind, registry in REGISTRIES.items():
+        for entry in registry.entries():
+            if entry.origin != "tnf" or not (CONF / kind / f"{entry.name}.yaml").is_file():
+                continue
+            drift = config_drift(entry.config_class, compose("touch", [f"{kind}={entry.name}"])[kind])
+            assert not drift, f"conf/{kind}/{entry.name}.yaml: {drift}"
+            checked += 1
+    assert checked >= 13  # every in-tree component but the mesh scene, which is built in code
+
+
+def test_config_drift_names_the_key():
+    from tnf.registry import SENSORS
+    from tnf.testing.contracts import config_drift
+
+    node = compose("touch", ["sensor=digit", "sensor.noise_std=2.5", "sensor.width=241"]).sensor
+    assert config_drift(SENSORS.get("digit").Config, node) == [
+        "width: yaml 241, dataclass 240",
+        "noise_std: yaml 2.5, dataclass 2.0",
+    ]
+    tweaked = compose("touch", ["sensor=digit", "sensor.lights.0.position.0=0.0113"]).sensor
+    assert [d.split(":")[0] for d in config_drift(SENSORS.get("digit").Config, tweaked)] == ["lights"]
+
+
+def test_run_wide_setting_defaults_match_base_yaml():
+    from omegaconf import OmegaConf
+
+    from tnf.settings import TOP_LEVEL
+
+    base = OmegaConf.load(CONF / "base.yaml")
+    assert {k: base[k] for k in TOP_LEVEL} == TOP_LEVEL

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from tnf.artifacts import ArtifactStore, config_hash, read_json
-from tnf.env import conf_dir
+from tnf.env import PRIMARY_CONFIG, conf_dir, stage_overrides
 
 TINY = ["debug=tiny", "progress=false"]
 
@@ -105,7 +105,7 @@ def slurm_launcher(stage, overrides):
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=conf_dir(), version_base=None):
-        cfg = compose(config_name=f"stage/{stage}", overrides=overrides, return_hydra_config=True)
+        cfg = compose(config_name=PRIMARY_CONFIG, overrides=stage_overrides(stage, overrides), return_hydra_config=True)
     return cfg, instantiate(cfg.hydra.launcher)
 
 

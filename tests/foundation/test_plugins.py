@@ -64,12 +64,12 @@ def test_plugin_duplicate_of_in_tree_name_names_both(monkeypatch):
     monkeypatch.setattr(md, "entry_points", fake_entry_points({"tnf.sensors": {"digit": f"{__name__}:FakeSensor"}}))
     reg = Registry("sensor", "tnf.sensors")
 
-    @reg.register("digit")
     class Digit:
         @dataclass
         class Config:
             pass
 
+    reg.add("digit", Digit, origin="tnf")
     with pytest.raises(TnfError, match=r"duplicate sensor 'digit'.*Digit \(from tnf\).*FakeSensor \(from tnf-fake\)"):
         reg.names()
 
@@ -118,3 +118,72 @@ def test_cli_list_shows_plugin_origin(tmp_path):
     assert rows and "tnf-tiny-plugin" in rows[0], out.stdout
     for name in ("digit", "omnitact", "hashgrid", "nerf", "tn_cgan", "warp_gel", "builtin"):
         assert f" {name} " in out.stdout
+
+
+def test_in_tree_components_are_tnf_entry_points():
+    """pyproject.toml's tnf.* entry points are what the install lists and what the registries hold."""
+    tomllib = pytest.importorskip("tomllib")
+    from pathlib import Path
+
+    from tnf.registry import REGISTRIES
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
+    declared = {
+        (group, name, value)
+        for group, eps in pyproject["project"]["entry-points"].items()
+        if group.startswith("tnf.")
+        for name, value in eps.items()
+    }
+    installed = {
+        (ep.group, ep.name, ep.value) for ep in md.distribution("tnf").entry_points if ep.group != "console_scripts"
+    }
+    assert installed == declared, "tnf's installed entry points differ from pyproject.toml: run `pip install -e .`"
+    registered = {(r.group, e.name) for r in REGISTRIES.values() for e in r.entries() if e.origin == "tnf"}
+    assert registered == {(group, name) for group, name, _ in declared}
+    assert {group for group, _, _ in declared} == {r.group for r in REGISTRIES.values()}
+
+
+def test_source_tree_without_metadata_is_a_one_line_error():
+    """Without site-packages (so without tnf's metadata), a lookup says to install tnf."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    code = "import tnf.registry as r; r.SENSORS.names()"
+    out = subprocess.run(
+        [sys.executable, "-S", "-c", code], capture_output=True, text=True, env={"PYTHONPATH": str(root)}, cwd=root
+    )
+    assert out.returncode == 1
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("tnf.errors.TnfError: no sensor found: tnf's package metadata is missing"), out.stderr
+    assert last.endswith("run `pip install -e .` in the checkout")
+
+
+def test_cli_reports_missing_metadata_in_one_line(monkeypatch, capsys):
+    from tnf import listing
+    from tnf.cli import main
+
+    def missing(name):
+        raise md.PackageNotFoundError(name)
+
+    monkeypatch.setattr(md, "entry_points", lambda group=None, **_: md.EntryPoints([]))
+    monkeypatch.setattr(md, "distribution", missing)
+    monkeypatch.setattr(listing, "REGISTRIES", {"objects": Registry("objects", "tnf.objects", in_tree=True)})
+    assert main(["list"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "tnf's package metadata is missing" in err and "pip install -e ." in err, err
+
+
+def test_stale_install_names_the_group(monkeypatch):
+    monkeypatch.setattr(md, "entry_points", lambda group=None, **_: md.EntryPoints([]))
+    reg = Registry("simulator", "tnf.simulators", in_tree=True)
+    with pytest.raises(TnfError, match=r"no simulator found: tnf's installed metadata lists no 'tnf.simulators'"):
+        reg.names()
+
+
+def test_refresh_keeps_what_was_added_directly(tmp_path, monkeypatch):
+    reg = Registry("sensor", "tnf.sensors")
+    reg.add("stand_in", FakeSensor, origin="tests")
+    assert "tiny" not in reg
+    monkeypatch.syspath_prepend(str(install_tiny_plugin(tmp_path / "site")))
+    reg.refresh()
+    assert "tiny" in reg and "stand_in" in reg and "digit" in reg

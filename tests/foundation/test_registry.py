@@ -10,7 +10,6 @@ from tnf.registry import REGISTRIES, Registry, config_to_dict, from_dict
 def make_registry() -> Registry:
     reg = Registry("widget", "tnf.test_widgets")
 
-    @reg.register("plain")
     class Plain:
         """A plain widget."""
 
@@ -31,6 +30,7 @@ def make_registry() -> Registry:
             self.cfg = cfg
             self.extra = extra
 
+    reg.add("plain", Plain, origin="tnf")
     return reg
 
 

@@ -15,10 +15,8 @@ import torch.nn.functional as F
 
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import ImagePool, PatchDiscriminator, ResnetGenerator, gan_loss, init_weights
-from tnf.registry import GENERATORS
 
 
-@GENERATORS.register("cyclegan")
 class CycleGAN(Generator):
     """CycleGAN baseline: unpaired RGB <-> tactile, ResNet generators, PatchGAN, LSGAN, cycle + identity."""
 

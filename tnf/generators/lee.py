@@ -26,7 +26,6 @@ from tnf.generators.nets import (
     needed_keys,
     norm_layer,
 )
-from tnf.registry import GENERATORS
 
 
 class LeeDiscriminator(nn.Module):
@@ -54,7 +53,6 @@ class LeeDiscriminator(nn.Module):
         return self.fc(self.features(x).flatten(1))
 
 
-@GENERATORS.register("lee")
 class Lee(Generator):
     """Lee et al. 2019 baseline: RGB-only U-Net cGAN with 5x5 convolutions, FC discriminator, RMSProp."""
 

@@ -50,10 +50,8 @@ from tnf.generators.nets import (
     init_weights,
     needed_keys,
 )
-from tnf.registry import GENERATORS
 
 
-@GENERATORS.register("tn_cgan")
 class TNcGAN(Generator):
     """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, cGAN + L1 + SSIM loss."""
 

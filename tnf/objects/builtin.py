@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 
 from tnf.objects import ObjectSource
-from tnf.registry import OBJECTS
 
 Array = np.ndarray
 TAU = 2 * np.pi
@@ -880,7 +879,6 @@ def describe(name: str) -> str:
     return doc[0] if doc else name
 
 
-@OBJECTS.register("builtin")
 class Builtin(ObjectSource):
     """Procedural household objects (bottles, cans, mugs, tools, fruit...) with fingertip-scale detail."""
 

@@ -47,7 +47,7 @@ from tnf.artifacts import read_json, write_json
 from tnf.cameras import load_transforms
 from tnf.errors import TnfError
 from tnf.objects import TOUCH_SPLITS, ObjectSource
-from tnf.registry import OBJECTS, config_to_dict
+from tnf.registry import config_to_dict
 
 if TYPE_CHECKING:  # pragma: no cover
     from tnf.artifacts import ArtifactStore
@@ -58,7 +58,6 @@ TOUCH_KEYS = ("image", "c2w", "split")
 """Keys of one entry of ``touches.json`` (``split`` is optional)."""
 
 
-@OBJECTS.register("captured")
 class Captured(ObjectSource):
     """Your own objects: camera images with poses (transforms.json) and real tactile frames; no meshes."""
 

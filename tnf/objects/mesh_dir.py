@@ -18,7 +18,6 @@ import numpy as np
 
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
-from tnf.registry import OBJECTS
 
 if TYPE_CHECKING:
     from trimesh.resolvers import Resolver
@@ -138,7 +137,6 @@ def find_meshes(root: Path) -> dict[str, Path]:
     return found
 
 
-@OBJECTS.register("mesh_dir")
 class MeshDir(ObjectSource):
     """Meshes from a folder (OBJ+MTL+textures, PLY, STL, GLB/GLTF), YCB layout included."""
 

@@ -18,7 +18,6 @@ import numpy as np
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
 from tnf.objects.mesh_dir import load_mesh_file
-from tnf.registry import OBJECTS
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +106,6 @@ def load_urdf_visual(urdf: Path):
     return parts[0] if len(parts) == 1 else trimesh.util.concatenate(parts)
 
 
-@OBJECTS.register("pybullet")
 class PyBulletData(ObjectSource):
     """Objects of pybullet_data: random_urdfs blobs and textured assets (pip install tnf[assets])."""
 

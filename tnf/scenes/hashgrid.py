@@ -17,7 +17,6 @@ from typing import Any
 import torch
 from torch import nn
 
-from tnf.registry import SCENES
 from tnf.scenes.render import (
     EMPTY_OPACITY,
     FieldScene,
@@ -195,7 +194,6 @@ def mlp(inp: int, hidden: int, out: int, layers: int) -> nn.Sequential:
     return nn.Sequential(*mods)
 
 
-@SCENES.register("hashgrid")
 class HashGridScene(FieldScene):
     """Instant-NGP style hash-grid radiance field with an occupancy grid (pure PyTorch, CPU or CUDA)."""
 

@@ -12,7 +12,6 @@ from tnf.registry import SCENES
 from tnf.scenes.base import RGBD, Scene
 
 
-@SCENES.register("mesh")
 class MeshScene(Scene):
     """The object's ground-truth mesh rendered with pyrender (exact RGB-D, no fitting)."""
 

@@ -15,7 +15,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tnf.registry import SCENES
 from tnf.scenes.render import FieldScene, RayOutput, ray_box, volume_render
 
 
@@ -77,7 +76,6 @@ def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n: int, deterministic
     return e0 + frac * (e1 - e0)
 
 
-@SCENES.register("nerf")
 class NerfScene(FieldScene):
     """Original NeRF: positional encoding, 8x256 MLP with skip, coarse + fine hierarchical sampling."""
 

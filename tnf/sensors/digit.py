@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from tnf.registry import SENSORS
 from tnf.sensors.base import Light, Sensor, SensorConfig
 
 
@@ -22,7 +21,6 @@ def _digit_lights() -> list[Light]:
     ]
 
 
-@SENSORS.register("digit")
 class Digit(Sensor):
     """DIGIT: 240x320 portrait camera behind a 20x30 mm convex gel, red/green/blue LEDs around its edge."""
 

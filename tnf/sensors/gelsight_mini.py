@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from tnf.registry import SENSORS
 from tnf.sensors.base import Light, Sensor, SensorConfig
 
 CAMERA_DISTANCE = 0.015
@@ -35,7 +34,6 @@ def _edge_lights() -> list[Light]:
     ]
 
 
-@SENSORS.register("gelsight_mini")
 class GelSightMini(Sensor):
     """GelSight Mini: 320x240 landscape, flat 19 x 14.2 mm gel, edge LEDs; calibrate it from real presses."""
 

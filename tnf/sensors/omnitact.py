@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tnf.registry import SENSORS
 from tnf.sensors.base import Light, Sensor, SensorConfig
 
 
@@ -19,7 +18,6 @@ def _omnitact_lights() -> list[Light]:
     return out
 
 
-@SENSORS.register("omnitact")
 class OmniTact(Sensor):
     """OmniTact: tip camera (70 deg fov) inside a domed gel, amber/cyan/magenta lights."""
 

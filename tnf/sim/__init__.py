@@ -1,1 +1,1 @@
-"""Tactile simulation: the warp gel simulator and touch sampling."""
+"""Tactile simulation: the simulator interface (``base``), the warp gel simulator and touch sampling."""

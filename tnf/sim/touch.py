@@ -98,7 +98,7 @@ def collect(
 
     Raises a TnfError when fewer than ``n`` touches hit after ``max_attempts * n`` tries.
     """
-    from tnf.sim.warp_gel import TouchBatch
+    from tnf.sim.base import TouchBatch
 
     kept: list[TouchBatch] = []
     starts: list[np.ndarray] = []

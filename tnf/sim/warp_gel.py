@@ -44,9 +44,9 @@ import numpy as np
 import warp as wp
 
 from tnf.errors import TnfError
-from tnf.registry import SIMULATORS
 from tnf.runtime import check_memory, init_warp
 from tnf.sensors.base import Sensor
+from tnf.sim.base import Simulator, TouchBatch
 
 MISS = 1.0e9  # ray distance stored for pixels that see no object (and pixels outside the gel)
 SENSOR_BYTES_PER_PIXEL = 400
@@ -599,35 +599,7 @@ def _normal_quantiles(n: int) -> np.ndarray:
     return (q / np.sqrt(np.mean(q**2))).astype(np.float32)
 
 
-@dataclass
-class TouchBatch:
-    """Results of B touches of one object; arrays are NumPy on the host.
-
-    Attributes:
-        images: ``[B, H, W, 3]`` uint8 tactile images.
-        indentation: ``[B, H, W]`` float32, metres the gel surface moved toward the camera.
-        contact: ``[B, H, W]`` bool, pixels where the gel touches the object.
-        force: ``[B]`` float32 normal force reached, newtons (the target unless the press hit ``max_penetration``).
-        penetration: ``[B]`` float32 metres the sensor advanced past first contact.
-        hit: ``[B]`` bool, whether the gel touched the object at all (no hit: image = background + noise).
-        advance: ``[B]`` float32 metres from the start pose to first contact (inf without a hit).
-        contact_point: ``[B, 3]`` world position of the first contact (NaN without a hit).
-        contact_c2w: ``[B, 4, 4]`` sensor pose (camera-to-world) while pressing.
-    """
-
-    images: np.ndarray
-    indentation: np.ndarray
-    contact: np.ndarray
-    force: np.ndarray
-    penetration: np.ndarray
-    hit: np.ndarray
-    advance: np.ndarray
-    contact_point: np.ndarray
-    contact_c2w: np.ndarray
-
-
-@SIMULATORS.register("warp_gel")
-class WarpGel:
+class WarpGel(Simulator):
     """Elastic gel pressed with a constant force, ray cast and shaded in NVIDIA Warp (CPU or CUDA)."""
 
     @dataclass

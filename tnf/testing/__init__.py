@@ -6,10 +6,27 @@ from typing import Any
 
 from tnf.testing.config import compose
 
-__all__ = ["GeneratorContract", "SceneContract", "SensorContract", "compose", "random_batch", "undocumented_fields"]
+__all__ = [
+    "GeneratorContract",
+    "ObjectSourceContract",
+    "SceneContract",
+    "SensorContract",
+    "SimulatorContract",
+    "compose",
+    "random_batch",
+    "undocumented_fields",
+]
 
 # The contract suites import pytest: load them only when asked for.
-_CONTRACTS = {"GeneratorContract", "SceneContract", "SensorContract", "random_batch", "undocumented_fields"}
+_CONTRACTS = {
+    "GeneratorContract",
+    "ObjectSourceContract",
+    "SceneContract",
+    "SensorContract",
+    "SimulatorContract",
+    "random_batch",
+    "undocumented_fields",
+}
 
 
 def __getattr__(name: str) -> Any:

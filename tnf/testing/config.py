@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from tnf.env import conf_dir
+from tnf.env import PRIMARY_CONFIG, conf_dir, stage_overrides
 
 
 def compose(stage: str, overrides: Sequence[str] = ()) -> Any:
@@ -19,4 +19,4 @@ def compose(stage: str, overrides: Sequence[str] = ()) -> Any:
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=conf_dir(), version_base=None):
-        return hydra_compose(config_name="stage/" + stage.replace("-", "_"), overrides=list(overrides))
+        return hydra_compose(config_name=PRIMARY_CONFIG, overrides=stage_overrides(stage, overrides))

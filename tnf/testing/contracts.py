@@ -1,4 +1,5 @@
-"""Contract test suites: what every sensor, generator and scene (in-tree or from a plugin) must satisfy.
+"""Contract test suites: what every sensor, simulator, generator, scene and object source (in-tree or from a
+plugin) must satisfy.
 
 Subclass a suite in a test module and name the component; pytest collects the inherited tests::
 
@@ -8,9 +9,9 @@ Subclass a suite in a test module and name the component; pytest collects the in
         name = "gelsight"
 
 Each suite has class attributes a subclass may set (``params``: config overrides, e.g. to make a generator
-tiny) and fixtures it may override (``sensor``, ``generator``, ``scene``) when a component needs more than
-its registry name to be built. The tests use real components: real warp presses, real training steps, real
-renders, at tiny sizes so that a suite runs in seconds on a CPU.
+tiny) and fixtures it may override (``sensor``, ``simulator``, ``generator``, ``scene``, ``source``) when a
+component needs more than its registry name to be built. The tests use real components: real warp presses,
+real training steps, real renders, at tiny sizes so that a suite runs in seconds on a CPU.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import ast
 import dataclasses
 import inspect
 import json
+import math
 import textwrap
 from typing import Any, ClassVar
 
@@ -27,7 +29,7 @@ import pytest
 
 from tnf.cameras import look_at
 from tnf.errors import TnfError
-from tnf.registry import GENERATORS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict
+from tnf.registry import GENERATORS, OBJECTS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict, split_spec
 from tnf.testing.config import compose
 
 
@@ -48,6 +50,34 @@ def undocumented_fields(config_class: type) -> list[str]:
                 if not (doc and isinstance(nxt.value.value, str)):  # type: ignore[union-attr]
                     missing.append(f"{klass.__qualname__}.{stmt.target.id}")
     return missing
+
+
+def config_drift(config_class: type, node: Any) -> list[str]:
+    """Keys of a component's YAML option (``node``, with its ``name``) whose value differs from the default of its
+    ``Config`` dataclass, as ``"key: yaml X, dataclass Y"``; a key the YAML leaves out takes the dataclass default.
+
+    Floats agree within a relative 1e-4, or 1e-12 near zero (YAML files print computed values, such as light
+    positions, to about six digits).
+    """
+    _, yaml = split_spec(node)
+    defaults = config_to_dict(config_class())
+    return [f"{k}: yaml {v!r}, dataclass {defaults.get(k)!r}" for k, v in yaml.items() if not _same(v, defaults.get(k))]
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, float) or isinstance(b, float):
+        both = isinstance(a, (int, float)) and isinstance(b, (int, float))
+        return (
+            both
+            and not isinstance(a, bool)
+            and not isinstance(b, bool)
+            and math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-12)
+        )
+    return type(a) is type(b) and a == b
 
 
 class _ComponentContract:
@@ -86,6 +116,21 @@ class _ComponentContract:
     def test_unknown_key_is_an_error_naming_it(self):
         with pytest.raises(TnfError, match="no_such_key"):
             self.registry.config(self.name, {**self.params, "no_such_key": 1})
+
+    def test_yaml_repeats_the_config_defaults(self):
+        """The option named like the component (``conf/<kind>/<name>.yaml``) sets nothing but the dataclass
+        defaults, so that ``<kind>=<name>`` on the command line and ``build("<name>")`` in code agree."""
+        from hydra.errors import MissingConfigException
+
+        from tnf.testing import compose
+
+        group = self.registry.kind  # the config group has the registry's kind as its name
+        try:
+            node = compose("touch", [f"{group}={self.name}"])[group]
+        except MissingConfigException:
+            pytest.skip(f"no conf/{group}/{self.name}.yaml: {self.name} is built in code only")
+        drift = config_drift(self.registry.entry(self.name).config_class, node)
+        assert not drift, f"conf/{group}/{self.name}.yaml differs from the Config dataclass defaults: {drift}"
 
 
 def _close(a: Any, b: Any) -> bool:
@@ -420,3 +465,190 @@ class SceneContract(_ComponentContract):
             b = loaded.render_rgbd(c2w, k, self.width, self.height)
         for key in ("rgb", "depth", "opacity"):
             assert torch.allclose(a[key], b[key], atol=1e-5), key
+
+
+# -- simulators -------------------------------------------------------------------------------------
+def sphere_gaps(sensor: Any, radius: float, centre_xy: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """``[H, W]`` gaps (metres, along the sensor's -z) from the undeformed gel to a sphere of ``radius`` metres
+    whose top touches the gel's lowest point; inf where the pixel's ray misses the sphere."""
+    pts = sensor.gel_points().astype(np.float64)
+    r2 = (pts[..., 0] - centre_xy[0]) ** 2 + (pts[..., 1] - centre_xy[1]) ** 2
+    cz = pts[..., 2].min() - radius  # the sphere's top at the gel's lowest point
+    top = cz + np.sqrt(np.maximum(radius**2 - r2, 0.0))
+    gaps = np.where(r2 < radius**2, pts[..., 2] - top, np.inf)
+    return (gaps - np.nanmin(gaps[np.isfinite(gaps)])).astype(np.float32)
+
+
+class SimulatorContract(_ComponentContract):
+    """A tactile simulator (``tnf.sim.base.Simulator`` subclass) presses a sensor and returns a ``TouchBatch``.
+
+    Checks: registration and documented Config; config round trip; the YAML (``conf/simulator/<name>.yaml``,
+    or a plugin's) composes and builds; the background is the sensor's ``[H, W, 3]`` uint8; three presses on a
+    sphere (centred, off-centre, beside it) give every ``TouchBatch`` field with its shape and dtype, contact
+    for the first two and none for the third (no contact point, no advance); the same seed gives the same
+    images; a larger force goes deeper over a larger area; ``press_heights`` to a penetration indents that deep,
+    and to a force reaches it.
+    """
+
+    registry = SIMULATORS
+    sensor_spec: ClassVar[dict[str, Any]] = {"name": "digit", "width": 60, "height": 80}
+    """The sensor the simulator is built for (small, to keep the suite fast)."""
+    sphere_radius: ClassVar[float] = 0.01
+    """Radius of the pressed sphere, metres."""
+
+    @pytest.fixture(scope="class")
+    @classmethod
+    def simulator(cls) -> Any:
+        """The simulator under test on the CPU (built once per test class)."""
+        sensor = SENSORS.build(cls.sensor_spec)
+        return SIMULATORS.build(cls.spec(), sensor=sensor, device="cpu")
+
+    @classmethod
+    def forces(cls, sensor: Any) -> tuple[float, float]:
+        """A light and a firm press, newtons: a tenth and a third of the way into the sensor's force range."""
+        lo, hi = sensor.cfg.force_range
+        return float(lo + 0.1 * (hi - lo)), float(lo + 0.33 * (hi - lo))
+
+    @classmethod
+    def poses(cls, sensor: Any) -> np.ndarray:
+        """``[3, 4, 4]`` start poses above the sphere looking down: centred, off-centre by r/3, and beside it."""
+        r = cls.sphere_radius
+        poses = np.repeat(np.eye(4)[None], 3, 0)
+        poses[:, 2, 3] = r + sensor.cfg.camera_distance + 0.01
+        poses[1, 0, 3] = r / 3
+        poses[2, 0, 3] = 10 * r
+        return poses
+
+    @pytest.fixture(scope="class")
+    @classmethod
+    def pressed(cls, simulator) -> Any:
+        """The ``TouchBatch`` of the three presses at the light force."""
+        import trimesh
+
+        sphere = trimesh.creation.icosphere(subdivisions=3, radius=cls.sphere_radius)
+        return simulator.press(sphere, cls.poses(simulator.sensor), cls.forces(simulator.sensor)[0], seed=0)
+
+    def test_is_a_simulator(self, simulator):
+        from tnf.sim.base import Simulator
+
+        assert isinstance(simulator, Simulator)
+        s = simulator.sensor
+        assert simulator.background.shape == (s.height, s.width, 3) and simulator.background.dtype == np.uint8
+
+    def test_yaml_composes_and_builds(self):
+        from tnf.testing import compose
+
+        cfg = compose("touch", [f"simulator={self.name}"])
+        assert cfg.simulator.name == self.name
+        built = SIMULATORS.build(cfg.simulator, sensor=SENSORS.build(self.sensor_spec), device="cpu")
+        assert type(built) is SIMULATORS.get(self.name)
+
+    def test_touch_batch_fields(self, simulator, pressed):
+        h, w = simulator.sensor.height, simulator.sensor.width
+        expected = {
+            "images": ((3, h, w, 3), np.uint8),
+            "indentation": ((3, h, w), np.float32),
+            "contact": ((3, h, w), np.bool_),
+            "force": ((3,), np.float32),
+            "penetration": ((3,), np.float32),
+            "hit": ((3,), np.bool_),
+            "advance": ((3,), np.float32),
+            "contact_point": ((3, 3), None),
+            "contact_c2w": ((3, 4, 4), None),
+        }
+        for field, (shape, dtype) in expected.items():
+            value = getattr(pressed, field)
+            assert isinstance(value, np.ndarray) and value.shape == shape, f"{field}: {getattr(value, 'shape', None)}"
+            if dtype is not None:
+                assert value.dtype == dtype, f"{field}: {value.dtype}, expected {np.dtype(dtype)}"
+
+    def test_press_on_sphere_makes_contact_and_a_miss_does_not(self, simulator, pressed):
+        force = self.forces(simulator.sensor)[0]
+        assert pressed.hit.tolist() == [True, True, False]
+        for i in (0, 1):
+            assert pressed.contact[i].any() and pressed.indentation[i].max() > 0
+            assert 0 < pressed.force[i] <= force * 1.05
+            assert 0 < pressed.penetration[i] <= simulator.sensor.cfg.max_penetration * 1.001
+            assert np.isfinite(pressed.advance[i]) and np.isfinite(pressed.contact_point[i]).all()
+        assert not pressed.contact[2].any() and not np.isfinite(pressed.advance[2])
+        assert np.isnan(pressed.contact_point[2]).all()
+
+    def test_same_seed_same_images(self, simulator, pressed):
+        import trimesh
+
+        sphere = trimesh.creation.icosphere(subdivisions=3, radius=self.sphere_radius)
+        again = simulator.press(sphere, self.poses(simulator.sensor), self.forces(simulator.sensor)[0], seed=0)
+        assert np.array_equal(again.images, pressed.images)
+        assert np.array_equal(again.contact, pressed.contact)
+
+    def test_more_force_goes_deeper_over_a_larger_area(self, simulator, pressed):
+        import trimesh
+
+        sphere = trimesh.creation.icosphere(subdivisions=3, radius=self.sphere_radius)
+        firm = simulator.press(sphere, self.poses(simulator.sensor)[:1], self.forces(simulator.sensor)[1], seed=0)
+        assert firm.penetration[0] > pressed.penetration[0]
+        assert firm.contact[0].sum() > pressed.contact[0].sum()
+        assert firm.force[0] > pressed.force[0]
+
+    def test_press_heights_to_a_penetration_and_to_a_force(self, simulator):
+        s = simulator.sensor
+        gaps = sphere_gaps(s, self.sphere_radius)[None]
+        depth = 0.3 * s.cfg.max_penetration
+        deep = simulator.press_heights(gaps, penetration=depth)
+        assert deep.hit.tolist() == [True] and deep.contact[0].any()
+        assert np.isclose(deep.indentation[0].max(), depth, rtol=0.05), (deep.indentation[0].max(), depth)
+        assert deep.force[0] > 0
+        force = self.forces(s)[0]
+        pressed = simulator.press_heights(gaps, force=force)
+        assert np.isclose(pressed.force[0], force, rtol=0.05), (pressed.force[0], force)
+        with pytest.raises(TnfError):
+            simulator.press_heights(gaps[:, :-1], force=force)  # not the sensor's pixel grid
+
+
+# -- object sources ---------------------------------------------------------------------------------
+class ObjectSourceContract(_ComponentContract):
+    """An object source (``tnf.objects.ObjectSource`` subclass) lists objects and loads them by name.
+
+    Checks: registration and documented Config; config round trip; the source is named as registered and
+    lists sorted, unique, non-empty names; each of the first ``max_objects`` objects is either a mesh (metres,
+    centred at the origin, a plausible tabletop size, the same on a second load) or, for a source of camera
+    images, an existing ``transforms.json``; an unknown name is an error naming it. Override the ``source``
+    fixture for a source that needs files (build them with code).
+    """
+
+    registry = OBJECTS
+    max_objects: ClassVar[int] = 2
+    """How many of the source's objects the load test loads."""
+
+    @pytest.fixture(scope="class")
+    @classmethod
+    def source(cls) -> Any:
+        """The object source under test (built once per test class)."""
+        return OBJECTS.build(cls.spec())
+
+    def test_is_an_object_source_named_as_registered(self, source):
+        from tnf.objects import ObjectSource
+
+        assert isinstance(source, ObjectSource)
+        assert source.name == self.name, "set the class attribute `name` to the registry name"
+        names = source.names()
+        assert names and names == sorted(set(names)) and all(isinstance(n, str) and n for n in names)
+
+    def test_objects_load_as_the_contract_says(self, source):
+        from tnf.objects import REFUSE_SIZE
+
+        for name in source.names()[: self.max_objects]:
+            views = source.views(name)
+            if views is not None:
+                assert views.is_file(), f"{name}: views() gives {views}, which is not a file"
+                continue
+            mesh = source.load(name)
+            v = np.asarray(mesh.vertices)
+            assert len(mesh.faces) > 0 and np.isfinite(v).all(), name
+            assert np.allclose((v.max(0) + v.min(0)) / 2, 0, atol=1e-6), f"{name} is not centred"
+            assert REFUSE_SIZE[0] <= float((v.max(0) - v.min(0)).max()) <= REFUSE_SIZE[1], name
+            assert np.array_equal(np.asarray(source.load(name).vertices), v), f"{name} loads differently twice"
+
+    def test_unknown_name_is_an_error_naming_it(self, source):
+        with pytest.raises(TnfError, match="no_such_object"):
+            source.load("no_such_object")
