@@ -122,8 +122,6 @@ class _ComponentContract:
         defaults, so that ``<kind>=<name>`` on the command line and ``build("<name>")`` in code agree."""
         from hydra.errors import MissingConfigException
 
-        from tnf.testing import compose
-
         group = self.registry.kind  # the config group has the registry's kind as its name
         try:
             node = compose("touch", [f"{group}={self.name}"])[group]
@@ -536,8 +534,6 @@ class SimulatorContract(_ComponentContract):
         assert simulator.background.shape == (s.height, s.width, 3) and simulator.background.dtype == np.uint8
 
     def test_yaml_composes_and_builds(self):
-        from tnf.testing import compose
-
         cfg = compose("touch", [f"simulator={self.name}"])
         assert cfg.simulator.name == self.name
         built = SIMULATORS.build(cfg.simulator, sensor=SENSORS.build(self.sensor_spec), device="cpu")
