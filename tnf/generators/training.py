@@ -459,7 +459,8 @@ def dataset_names(cfg: Any) -> list[str]:
     listed = cfg.data.datasets
     if listed is None:  # the dataset `tnf pair` builds with this config
         listed = [None]
-    names = [str(x) if x not in (None, "None", "null", "") else dataset_name(cfg) for x in listed]
+    default = dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name))
+    names = [str(x) if x not in (None, "None", "null", "") else default for x in listed]
     if not names:
         raise TnfError("data.datasets is empty: name the paired dataset(s) under pairs/ to train on")
     return names
