@@ -22,10 +22,7 @@ def run(cfg: Any) -> dict[str, Any]:
         datamodule_from_cfg,
         dataset_label,
         dataset_names,
-        fit,
         process_rank,
-        run_section,
-        trainer_args,
     )
     from tnf.runtime import seed_everything
 
@@ -37,13 +34,7 @@ def run(cfg: Any) -> dict[str, Any]:
     run_name = str(t.run_name or f"{spec['name']}_{dataset_label(datasets[0] if datasets else 'data')}")
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
-    config = {
-        "generator": spec,
-        "data": run_section(cfg.data, ()),
-        "train": run_section(t, ("resume", "force", "run_name", "checkpoint_every_s", "compile")),
-        "precision": str(cfg.trainer.precision),
-        "seed": int(cfg.seed),
-    }
+    config = run_config(cfg, "train", ("compile",), generator=spec)
     if not t.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
         return {"run_dir": str(run_dir), "skipped": True}
@@ -60,23 +51,52 @@ def run(cfg: Any) -> dict[str, Any]:
         compile_nets=bool(t.compile),
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
-    summary = fit(
+    info = {"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names}
+    summary = fit_section(cfg, t, system, dm, run_dir, config, info)
+    _print_summary(console, run_name, summary)
+    return {"run_dir": str(run_dir), **summary}
+
+
+def run_config(cfg: Any, section: str, unhashed: tuple[str, ...] = (), **extra: Any) -> dict[str, Any]:
+    """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
+    run is skipped): ``extra`` (the generator spec, a fine-tuning source), the data and run settings, precision
+    and seed. ``unhashed`` names more of the section's keys that do not change the model."""
+    from tnf.generators.training import run_section
+
+    skip = ("resume", "force", "run_name", "checkpoint_every_s", *unhashed)
+    return {
+        **extra,
+        "data": run_section(cfg.data, ()),
+        section: run_section(cfg[section], skip),
+        "precision": str(cfg.trainer.precision),
+        "seed": int(cfg.seed),
+    }
+
+
+def fit_section(
+    cfg: Any, section: Any, system: Any, dm: Any, run_dir: Any, config: dict[str, Any], info: dict[str, Any]
+) -> dict[str, Any]:
+    """Train ``system`` on ``dm`` into ``run_dir`` with the run settings of ``section`` (``cfg.train`` or
+    ``cfg.finetune``) and the ``trainer`` and ``logger`` groups; returns the run's summary."""
+    from omegaconf import OmegaConf
+
+    from tnf.generators.training import fit, trainer_args
+
+    return fit(
         system,
         dm,
         run_dir,
         config=config,
         trainer_cfg=trainer_args(cfg),
         logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
-        resume=bool(t.resume) and not bool(t.force),
+        resume=bool(section.resume) and not bool(section.force),
         progress=bool(cfg.progress),
-        limit_train_batches=t.limit_train_batches,
-        limit_val_batches=t.limit_val_batches,
-        log_every_n_steps=int(t.log_every_n_steps),
-        checkpoint_every_s=float(t.checkpoint_every_s),
-        info={"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names},
+        limit_train_batches=section.limit_train_batches,
+        limit_val_batches=section.limit_val_batches,
+        log_every_n_steps=int(section.log_every_n_steps),
+        checkpoint_every_s=float(section.checkpoint_every_s),
+        info=info,
     )
-    _print_summary(console, run_name, summary)
-    return {"run_dir": str(run_dir), **summary}
 
 
 def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None:
