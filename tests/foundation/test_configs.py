@@ -97,3 +97,14 @@ def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
         names[variant] = finetune_run_name(cfg)
     assert names["tn_plus"] == names["tn"].replace("-5pt-", "-5pt+45-")
     assert "-scratch-5pt-" in names["fs"] and len(set(names.values())) == 3
+
+
+def test_the_transfer_variants_start_from_the_digit_model_the_pipeline_names():
+    """T-N and T-N+ name their source model by hand: it must be the run `tnf pipeline experiment=sim_digit`
+    trains with the same seed."""
+    from tnf.stages.pipeline import model_run_name
+
+    digit = model_run_name(compose("pipeline", ["experiment=sim_digit", "seed=2"]))
+    for variant in ("tn", "tn_plus"):
+        cfg = compose("pipeline", ["experiment=sim_omnitact_transfer", f"transfer={variant}", "seed=2"])
+        assert cfg.finetune.checkpoint == digit == "tn_cgan-digit-hashgrid-seed2"

@@ -475,11 +475,6 @@ def trainer_args(cfg: Any) -> dict[str, Any]:
     return {str(k): v for k, v in args.items()}
 
 
-def dataset_label(name: Any) -> str:
-    """A short label of a dataset name or path, for run names."""
-    return Path(str(name)).name
-
-
 def run_section(section: Any, keys: tuple[str, ...] = ("resume", "force")) -> dict[str, Any]:
     """A stage section as plain data without the keys that do not change the result."""
     from omegaconf import OmegaConf

@@ -37,10 +37,10 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     from tnf.artifacts import ArtifactStore
+    from tnf.generators.names import finetune_run_name
     from tnf.generators.system import GeneratorSystem, generator_spec
     from tnf.generators.training import (
         datamodule_from_cfg,
-        dataset_label,
         dataset_names,
     )
     from tnf.runtime import seed_everything
@@ -50,7 +50,6 @@ def run(cfg: Any) -> dict[str, Any]:
     f = cfg.finetune
     store = ArtifactStore(cfg.data_root)
     datasets = dataset_names(cfg)
-    data_label = dataset_label(datasets[0] if datasets else "data")
     hp: dict[str, Any] = {
         "epochs": int(f.epochs),
         "decay_epochs": int(f.decay_epochs),
@@ -64,13 +63,13 @@ def run(cfg: Any) -> dict[str, Any]:
         ckpt = resolve_checkpoint(str(f.checkpoint), cfg.data_root)
         system = GeneratorSystem.from_checkpoint(ckpt, "cpu", generator_overrides=overrides, **hp)
         source = {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": _file_hash(ckpt)}
-        default_name = f"{ckpt.parent.name}_ft_{data_label}"
+        default_name = finetune_run_name(ckpt.parent.name, "", datasets)
     else:
         spec = generator_spec(
             {**cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)), **overrides}
         )
         system = GeneratorSystem(spec, **hp)
-        default_name = f"scratch_{spec['name']}_{data_label}"
+        default_name = finetune_run_name(None, spec["name"], datasets)
     spec = dict(system.hparams["generator"])
     frozen = system.generator.freeze([str(x) for x in f.freeze]) if f.freeze else []
     run_name = str(f.run_name or default_name)

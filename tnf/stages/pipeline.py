@@ -113,18 +113,20 @@ def _clock(seconds: float) -> str:
 
 
 def model_run_name(cfg: Any) -> str:
-    """``<generator>-<dataset>-seed<k>``: one trained model per generator, dataset and seed."""
-    return f"{cfg.generator.name}-{_dataset(cfg)}-seed{cfg.seed}"
+    """The model run of this config (``tnf.generators.names.model_run_name``)."""
+    from tnf.generators.names import model_run_name as name
+
+    return name(str(cfg.generator.name), _dataset(cfg), cfg.seed)
 
 
 def finetune_run_name(cfg: Any) -> str:
-    """``<generator>-<dataset>-<from-RUN|scratch>-<n>pt[+<m>]-seed<k>`` for a sensor-transfer model: ``n`` touches
-    per object (``all``), ``m`` more in all (``data.extra_touches``)."""
-    ckpt = cfg.finetune.checkpoint
-    origin = f"from-{str(ckpt).split('/')[0]}" if ckpt else "scratch"
-    per_object = cfg.data.per_object if cfg.data.per_object is not None else "all"
-    extra = f"+{cfg.data.extra_touches}" if cfg.data.get("extra_touches") else ""
-    return f"{cfg.generator.name}-{_dataset(cfg)}-{origin}-{per_object}pt{extra}-seed{cfg.seed}"
+    """The sensor-transfer model run of this config (``tnf.generators.names.transfer_run_name``)."""
+    from tnf.generators.names import transfer_run_name
+
+    d = cfg.data
+    return transfer_run_name(
+        str(cfg.generator.name), _dataset(cfg), cfg.finetune.checkpoint, d.per_object, d.get("extra_touches"), cfg.seed
+    )
 
 
 def _dataset(cfg: Any) -> str:

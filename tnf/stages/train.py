@@ -17,10 +17,10 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     from tnf.artifacts import ArtifactStore
+    from tnf.generators.names import train_run_name
     from tnf.generators.system import GeneratorSystem, generator_spec
     from tnf.generators.training import (
         datamodule_from_cfg,
-        dataset_label,
         dataset_names,
         process_rank,
     )
@@ -31,7 +31,7 @@ def run(cfg: Any) -> dict[str, Any]:
     t = cfg.train
     spec = generator_spec(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
     datasets = dataset_names(cfg)
-    run_name = str(t.run_name or f"{spec['name']}_{dataset_label(datasets[0] if datasets else 'data')}")
+    run_name = str(t.run_name or train_run_name(spec["name"], datasets))
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
     config = run_config(cfg, "train", ("compile",), generator=spec)
