@@ -39,12 +39,8 @@ def run(cfg: Any) -> dict[str, Any]:
     from tnf.artifacts import ArtifactStore
     from tnf.generators.names import finetune_run_name
     from tnf.generators.system import GeneratorSystem, generator_spec
-    from tnf.generators.training import (
-        datamodule_from_cfg,
-        dataset_names,
-    )
     from tnf.runtime import seed_everything
-    from tnf.stages.train import fit_section, run_config
+    from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config
 
     console = Console(highlight=False)
     f = cfg.finetune

@@ -19,11 +19,7 @@ def run(cfg: Any) -> dict[str, Any]:
     from tnf.artifacts import ArtifactStore
     from tnf.generators.names import train_run_name
     from tnf.generators.system import GeneratorSystem, generator_spec
-    from tnf.generators.training import (
-        datamodule_from_cfg,
-        dataset_names,
-        process_rank,
-    )
+    from tnf.generators.training import process_rank
     from tnf.runtime import seed_everything
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
@@ -61,8 +57,6 @@ def run_config(cfg: Any, section: str, unhashed: tuple[str, ...] = (), **extra: 
     """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
     run is skipped): ``extra`` (the generator spec, a fine-tuning source), the data and run settings, precision
     and seed. ``unhashed`` names more of the section's keys that do not change the model."""
-    from tnf.generators.training import run_section
-
     skip = ("resume", "force", "run_name", "checkpoint_every_s", *unhashed)
     return {
         **extra,
@@ -80,7 +74,7 @@ def fit_section(
     ``cfg.finetune``) and the ``trainer`` and ``logger`` groups; returns the run's summary."""
     from omegaconf import OmegaConf
 
-    from tnf.generators.training import fit, trainer_args
+    from tnf.generators.training import fit
 
     return fit(
         system,
@@ -97,6 +91,45 @@ def fit_section(
         checkpoint_every_s=float(section.checkpoint_every_s),
         info=info,
     )
+
+
+def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
+    """``tnf.data.PairDataModule`` from the ``data`` section (``datasets`` overrides ``data.datasets``; an
+    unset dataset name becomes the one ``tnf pair`` gives this config)."""
+    from tnf.data import datamodule_from_config
+
+    names = dataset_names(cfg) if datasets is None else [str(x) for x in datasets]
+    return datamodule_from_config(run_section(cfg.data, ()), int(cfg.seed), cfg.data_root, names)
+
+
+def dataset_names(cfg: Any) -> list[str]:
+    """``data.datasets``, with an unset name (``pair.name: null``) replaced by the name ``tnf pair`` gives the
+    dataset of this config."""
+    from tnf.data.store import dataset_name
+    from tnf.errors import TnfError
+
+    listed = cfg.data.datasets
+    if listed is None:  # the dataset `tnf pair` builds with this config
+        listed = [None]
+    default = dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name))
+    names = [str(x) if x not in (None, "None", "null", "") else default for x in listed]
+    if not names:
+        raise TnfError("data.datasets is empty: name the paired dataset(s) under pairs/ to train on")
+    return names
+
+
+def trainer_args(cfg: Any) -> dict[str, Any]:
+    """Lightning Trainer arguments from the ``trainer`` group (accelerator, devices, precision, ...)."""
+    return {str(k): v for k, v in run_section(cfg.trainer, ()).items()}
+
+
+def run_section(section: Any, keys: tuple[str, ...] = ("resume", "force")) -> dict[str, Any]:
+    """A config section as plain data without the keys that do not change the result."""
+    from omegaconf import OmegaConf
+
+    data = cast(dict[str, Any], OmegaConf.to_container(section, resolve=True))
+    assert isinstance(data, dict)
+    return {k: v for k, v in data.items() if k not in keys}
 
 
 def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None:
