@@ -38,7 +38,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     from tnf.artifacts import ArtifactStore
     from tnf.generators.names import finetune_run_name
-    from tnf.generators.system import GeneratorSystem, generator_spec
+    from tnf.generators.system import GeneratorSystem
     from tnf.runtime import seed_everything
     from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config
 
@@ -61,11 +61,9 @@ def run(cfg: Any) -> dict[str, Any]:
         source = {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": _file_hash(ckpt)}
         default_name = finetune_run_name(ckpt.parent.name, "", datasets)
     else:
-        spec = generator_spec(
-            {**cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)), **overrides}
-        )
-        system = GeneratorSystem(spec, **hp)
-        default_name = finetune_run_name(None, spec["name"], datasets)
+        generator = cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True))
+        system = GeneratorSystem({**generator, **overrides}, **hp)
+        default_name = finetune_run_name(None, system.hparams["generator"]["name"], datasets)
     spec = dict(system.hparams["generator"])
     frozen = system.generator.freeze([str(x) for x in f.freeze]) if f.freeze else []
     run_name = str(f.run_name or default_name)
