@@ -482,7 +482,7 @@ def test_pinned_batches_with_a_shared_background(tmp_path):
 @pytest.mark.parametrize("convert", [True, False])
 def test_every_data_setting_reaches_the_training_datamodule(convert, tmp_path):
     """``tnf train``'s PairDataModule takes each key of the data section (convert_on_device was once dropped)."""
-    from tnf.generators.training import datamodule_from_cfg
+    from tnf.stages.train import datamodule_from_cfg
     from tnf.testing import compose
 
     make_dataset(tmp_path / "pairs" / "some_pairs")

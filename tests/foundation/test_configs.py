@@ -144,3 +144,14 @@ def test_run_wide_setting_defaults_match_base_yaml():
 
     base = OmegaConf.load(CONF / "base.yaml")
     assert {k: base[k] for k in TOP_LEVEL} == TOP_LEVEL
+
+
+def test_the_transfer_variants_start_from_the_digit_model_the_pipeline_names():
+    """T-N and T-N+ name their source model by hand: it must be the run `tnf pipeline experiment=sim_digit`
+    trains with the same seed."""
+    from tnf.stages.pipeline import model_run_name
+
+    digit = model_run_name(compose("pipeline", ["experiment=sim_digit", "seed=2"]))
+    for variant in ("tn", "tn_plus"):
+        cfg = compose("pipeline", ["experiment=sim_omnitact_transfer", f"transfer={variant}", "seed=2"])
+        assert cfg.finetune.checkpoint == digit == "tn_cgan-digit-hashgrid-seed2"

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any
 
 import lightning as L
 import torch
@@ -25,9 +25,6 @@ from tnf.data.dataset import (
 )
 from tnf.data.store import open_pairs
 from tnf.errors import TnfError
-
-if TYPE_CHECKING:
-    from omegaconf import DictConfig
 
 TEST_SPLITS = ("novel_view", "novel_object")
 
@@ -198,17 +195,16 @@ class PairDataModule(L.LightningDataModule):
         return self._loader((split,), train=False)
 
 
-def datamodule_from_config(cfg: DictConfig, datasets: Sequence[str] | None = None) -> PairDataModule:
-    """A ``PairDataModule`` from a composed tnf config: every key of its ``data`` section, ``seed`` and
-    ``data_root``; ``datasets`` replaces ``data.datasets``."""
-    from omegaconf import OmegaConf
-
-    d = cast(dict[str, Any], OmegaConf.to_container(cfg.data, resolve=True))
-    assert isinstance(d, dict)
+def datamodule_from_config(
+    data: Mapping[str, Any], seed: int, data_root: Any, datasets: Sequence[str] | None = None
+) -> PairDataModule:
+    """A ``PairDataModule`` from the ``data`` section (plain data: every key of it), the seed and the data
+    root; ``datasets`` replaces ``data["datasets"]``."""
+    d = dict(data)
     names = d.pop("datasets")
     return PairDataModule(
         list(datasets) if datasets is not None else names,
-        seed=int(cfg.seed),
-        data_root=cfg.data_root,
+        seed=seed,
+        data_root=data_root,
         **d,
     )

@@ -1,6 +1,6 @@
 """Mean and standard error over seeds, and collecting per-run results (one evaluated model each) into tables.
 
-A run's results JSON (written by ``tnf evaluate`` for one model, see ``tnf.stages.evaluate``)::
+A run's results JSON (written by ``tnf evaluate`` for one model, see ``tnf.eval.run``)::
 
     {"schema": 1, "table": "main" | "transfer", "method": "T-N", "seed": 0, "model": "...",
      "image": {test_set: {method_or_"BG": {"ssim": float, "mse": float, "n": int,

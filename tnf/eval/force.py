@@ -170,16 +170,24 @@ def fmt(x: float | None, digits: int = 4) -> str:
 
 
 def by_force(
-    cfg: Any,
+    settings: Mapping[str, Any],
+    seed: int,
     pairs: Any,
     object_names: Sequence[str] | None,
     generate: Callable[[dict[str, torch.Tensor]], torch.Tensor],
     device: str,
     bar: Any,
+    *,
+    data_root: str,
+    objects: Mapping[str, Any],
+    simulator: Mapping[str, Any],
 ) -> tuple[dict[str, Any], bytes]:
     """Evaluation by force of a force-conditioned model on the test splits of dataset ``pairs`` (a folder):
     ``({"plan", "sweep", "area_threshold", <split>: score_split(...), "figure": {...}}, figure PNG bytes)``.
-    ``generate`` makes the model's images of a batch (its ``force`` key, newtons, sets the press)."""
+    ``generate`` makes the model's images of a batch (its ``force`` key, newtons, sets the press).
+
+    ``settings`` is the ``evaluate`` section; ``objects`` and ``simulator`` are the config nodes of those groups
+    (the figure's touch is pressed again on the object's mesh, under ``data_root``)."""
     import functools
     import io
 
@@ -188,34 +196,30 @@ def by_force(
     from tnf.artifacts import MANIFEST, ArtifactStore, read_json
     from tnf.data import PairDataset, collate_pairs
     from tnf.data.preprocess import SIZE, resize_uint8
-    from tnf.objects import select
-    from tnf.registry import SENSORS, SIMULATORS
+    from tnf.registry import OBJECTS, SENSORS, SIMULATORS, split_spec
     from tnf.runtime import warp_device
     from tnf.sim.forces import check_force_value
 
-    ecfg = cfg.evaluate
-    bf = ecfg.by_force
+    bf = settings["by_force"]
     manifest = read_json(pairs / MANIFEST, "dataset manifest")
     plan = dataset_plan(manifest, pairs)
-    sweep = [check_force_value(f, "evaluate.by_force.sweep") for f in (bf.sweep or plan.sweep(6))]
+    sweep = [check_force_value(f, "evaluate.by_force.sweep") for f in (bf["sweep"] or plan.sweep(6))]
     if len(sweep) < 2 or any(b <= a for a, b in zip(sweep, sweep[1:], strict=False)):
         raise TnfError(f"evaluate.by_force.sweep must hold at least two forces in ascending order, got {sweep}")
-    threshold = float(bf.area_threshold)
+    threshold = float(bf["area_threshold"])
     out: dict[str, Any] = {"plan": plan.describe(), "sweep": sweep, "area_threshold": threshold}
-    splits = list(ecfg.splits)
+    splits = list(settings["splits"])
     for split in splits:
-        ds = PairDataset(
-            pairs, splits=[split], per_object=ecfg.per_object, seed=int(cfg.seed), object_names=object_names
-        )
-        loader = DataLoader(ds, batch_size=int(ecfg.batch_size), shuffle=False, collate_fn=collate_pairs)
+        ds = PairDataset(pairs, splits=[split], per_object=settings["per_object"], seed=seed, object_names=object_names)
+        loader = DataLoader(ds, batch_size=int(settings["batch_size"]), shuffle=False, collate_fn=collate_pairs)
         task = bar.add_task(f"by force {split}", total=len(loader))
         out[split] = score_split(
             loader, generate, plan, sweep, threshold, on_batch=functools.partial(bar.advance, task)
         )
 
     # The figure: the figure split's first touch that shows a contact, pressed again at each force of the sweep.
-    split = str(bf.figure_split) if bf.figure_split in splits else splits[0]
-    ds = PairDataset(pairs, splits=[split], per_object=ecfg.per_object, seed=int(cfg.seed), object_names=object_names)
+    split = str(bf["figure_split"]) if bf["figure_split"] in splits else splits[0]
+    ds = PairDataset(pairs, splits=[split], per_object=settings["per_object"], seed=seed, object_names=object_names)
     batch = ds.__getitems__(list(range(min(len(ds), 64))))
     areas = contact_area(batch["tactile"], batch["background"], threshold)
     row = int(torch.argmax((areas > 0).float()))  # the first with a contact (0 when none has one)
@@ -224,14 +228,15 @@ def by_force(
     touch_index = int(ds.arrays.touch_index[rows[0]])
     sensor_name = str(manifest["sensor"]["name"])
     sensor = SENSORS.get(sensor_name)(SENSORS.config(sensor_name, manifest["sensor"]["config"]))
-    source, _ = select(cfg)
-    store = ArtifactStore(cfg.data_root)
+    source = OBJECTS.build(objects)
+    source.name = split_spec(objects, "objects")[0]
+    store = ArtifactStore(data_root)
     touch = _touch(store, sensor_name, source.name, obj, touch_index)
-    sim = SIMULATORS.build(cfg.simulator, sensor=sensor, device=warp_device(device))
+    sim = SIMULATORS.build(simulator, sensor=sensor, device=warp_device(device))
     simulated = resimulate(sensor, sim, source.load(obj), np.asarray(touch["start_c2w"]), sweep, SIZE)
     # The simulator's own growth with force on the figure split's first poses: what the generator's is measured
     # against (a pose the simulator does not grow on cannot be asked of the generator).
-    n_ref = min(int(bf.simulator_poses), len(ds))
+    n_ref = min(int(bf["simulator_poses"]), len(ds))
     if n_ref > 0:
         ref = ds.__getitems__(list(range(n_ref)))
         starts: dict[str, list[tuple[int, np.ndarray]]] = {}

@@ -69,10 +69,16 @@ class _LightningOptimisation:
         self.system.manual_backward(loss)
 
 
+def generator_config(spec: Mapping[str, Any] | str) -> tuple[str, Any]:
+    """A generator's name and its ``{name, **params}`` validated into the generator's Config."""
+    name, params = split_spec(spec, "generator")
+    return name, GENERATORS.config(name, params)
+
+
 def generator_spec(spec: Mapping[str, Any] | str) -> dict[str, Any]:
     """A generator's ``{name, **params}`` with every field filled in (validated), as plain JSON data."""
-    name, params = split_spec(spec, "generator")
-    return {"name": name, **config_to_dict(GENERATORS.config(name, params))}
+    name, config = generator_config(spec)
+    return {"name": name, **config_to_dict(config)}
 
 
 def compile_networks(generator: torch.nn.Module) -> None:
@@ -113,7 +119,8 @@ class GeneratorSystem(L.LightningModule):
         compile_nets: bool = False,
     ):
         super().__init__()
-        spec = generator_spec(generator)
+        name, config = generator_config(generator)  # the generator is built from this Config, not checked again
+        spec = {"name": name, **config_to_dict(config)}
         self.compile_nets = compile_nets  # a speed setting, not a hyperparameter: checkpoints do not record it
         if decay_epochs < 0 or decay_epochs > epochs:
             raise TnfError(f"decay_epochs must be in [0, epochs={epochs}], got {decay_epochs}")
@@ -130,7 +137,7 @@ class GeneratorSystem(L.LightningModule):
         )
         self.grid_dir = grid_dir
         self.automatic_optimization = False
-        self.generator: Generator = GENERATORS.build(spec)
+        self.generator: Generator = GENERATORS.get(name)(config)
         # The average is a copy that no optimiser or gradient touches; its update count is checkpointed with it.
         self.generator_ema: Generator | None = None
         if ema_decay is not None:

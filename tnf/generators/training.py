@@ -15,7 +15,7 @@ import time
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
@@ -442,49 +442,3 @@ def _last_good(run_dir: Path) -> str:
     """Where training can resume from, for error messages."""
     last = run_dir / "last.ckpt"
     return f"the last good checkpoint is {last}" if last.is_file() else "no checkpoint was saved yet"
-
-
-def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
-    """``tnf.data.PairDataModule`` from the ``data`` section (``datasets`` overrides ``data.datasets``; an
-    unset dataset name becomes the one ``tnf pair`` gives this config)."""
-    from tnf.data import datamodule_from_config
-
-    names = dataset_names(cfg) if datasets is None else [str(x) for x in datasets]
-    return datamodule_from_config(cfg, names)
-
-
-def dataset_names(cfg: Any) -> list[str]:
-    """``data.datasets``, with an unset name (``pair.name: null``) replaced by the name ``tnf pair`` gives the
-    dataset of this config."""
-    from tnf.data.store import dataset_name
-
-    listed = cfg.data.datasets
-    if listed is None:  # the dataset `tnf pair` builds with this config
-        listed = [None]
-    names = [str(x) if x not in (None, "None", "null", "") else dataset_name(cfg) for x in listed]
-    if not names:
-        raise TnfError("data.datasets is empty: name the paired dataset(s) under pairs/ to train on")
-    return names
-
-
-def trainer_args(cfg: Any) -> dict[str, Any]:
-    """Lightning Trainer arguments from the ``trainer`` group (accelerator, devices, precision, ...)."""
-    from omegaconf import OmegaConf
-
-    args = OmegaConf.to_container(cfg.trainer, resolve=True)
-    assert isinstance(args, dict)
-    return {str(k): v for k, v in args.items()}
-
-
-def dataset_label(name: Any) -> str:
-    """A short label of a dataset name or path, for run names."""
-    return Path(str(name)).name
-
-
-def run_section(section: Any, keys: tuple[str, ...] = ("resume", "force")) -> dict[str, Any]:
-    """A stage section as plain data without the keys that do not change the result."""
-    from omegaconf import OmegaConf
-
-    data = cast(dict[str, Any], OmegaConf.to_container(section, resolve=True))
-    assert isinstance(data, dict)
-    return {k: v for k, v in data.items() if k not in keys}

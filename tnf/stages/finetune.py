@@ -37,22 +37,15 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     from tnf.artifacts import ArtifactStore
-    from tnf.generators.system import GeneratorSystem, generator_spec
-    from tnf.generators.training import (
-        datamodule_from_cfg,
-        dataset_label,
-        dataset_names,
-        fit,
-        run_section,
-        trainer_args,
-    )
+    from tnf.generators.names import finetune_run_name
+    from tnf.generators.system import GeneratorSystem
     from tnf.runtime import seed_everything
+    from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config
 
     console = Console(highlight=False)
     f = cfg.finetune
     store = ArtifactStore(cfg.data_root)
     datasets = dataset_names(cfg)
-    data_label = dataset_label(datasets[0] if datasets else "data")
     hp: dict[str, Any] = {
         "epochs": int(f.epochs),
         "decay_epochs": int(f.decay_epochs),
@@ -66,25 +59,16 @@ def run(cfg: Any) -> dict[str, Any]:
         ckpt = resolve_checkpoint(str(f.checkpoint), cfg.data_root)
         system = GeneratorSystem.from_checkpoint(ckpt, "cpu", generator_overrides=overrides, **hp)
         source = {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": _file_hash(ckpt)}
-        default_name = f"{ckpt.parent.name}_ft_{data_label}"
+        default_name = finetune_run_name(ckpt.parent.name, "", datasets)
     else:
-        spec = generator_spec(
-            {**cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)), **overrides}
-        )
-        system = GeneratorSystem(spec, **hp)
-        default_name = f"scratch_{spec['name']}_{data_label}"
+        generator = cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True))
+        system = GeneratorSystem({**generator, **overrides}, **hp)
+        default_name = finetune_run_name(None, system.hparams["generator"]["name"], datasets)
     spec = dict(system.hparams["generator"])
     frozen = system.generator.freeze([str(x) for x in f.freeze]) if f.freeze else []
     run_name = str(f.run_name or default_name)
     run_dir = store.path("models", run_name)
-    config = {
-        "generator": spec,
-        "source": source,
-        "data": run_section(cfg.data, ()),
-        "finetune": run_section(f, ("resume", "force", "run_name", "checkpoint_every_s", "checkpoint")),
-        "precision": str(cfg.trainer.precision),
-        "seed": int(cfg.seed),
-    }
+    config = run_config(cfg, "finetune", ("checkpoint",), generator=spec, source=source)
     if not f.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true)")
         return {"run_dir": str(run_dir), "skipped": True}
@@ -105,27 +89,14 @@ def run(cfg: Any) -> dict[str, Any]:
         f"fine-tuning [bold]{spec['name']}[/] {what} on {', '.join(datasets)} -> {run_dir}"
         + (f" ({len(frozen)} parameter tensors frozen)" if frozen else "")
     )
-    summary = fit(
-        system,
-        dm,
-        run_dir,
-        config=config,
-        trainer_cfg=trainer_args(cfg),
-        logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
-        resume=bool(f.resume) and not bool(f.force),
-        progress=bool(cfg.progress),
-        limit_train_batches=f.limit_train_batches,
-        limit_val_batches=f.limit_val_batches,
-        log_every_n_steps=int(f.log_every_n_steps),
-        checkpoint_every_s=float(f.checkpoint_every_s),
-        info={
-            "generator": spec["name"],
-            "datasets": datasets,
-            "source": source,
-            "frozen": frozen,
-            "object_names": dm.object_names,
-        },
-    )
+    info = {
+        "generator": spec["name"],
+        "datasets": datasets,
+        "source": source,
+        "frozen": frozen,
+        "object_names": dm.object_names,
+    }
+    summary = fit_section(cfg, f, system, dm, run_dir, config, info)
     last = summary.get("last", {})
     console.print(
         f"[bold]{run_name}[/]: {summary['epochs']} epochs on {summary.get('train_pairs') or '?'} pairs; "

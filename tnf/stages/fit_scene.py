@@ -37,9 +37,6 @@ def selected_objects(cfg: Any, store: Any, source: str) -> list[str]:
 
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Fit every selected object; returns one summary row per object."""
-    from rich.console import Console
-    from rich.table import Table
-
     from tnf.artifacts import ArtifactStore
     from tnf.objects import shard, shard_of
     from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
@@ -104,7 +101,16 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             metrics.pop("train_log", None)
             rows.append({"object": name, "status": "fitted", "seconds": time.perf_counter() - t0, **metrics})
             log.info("fitted %s %s: %s", kind, name, {k: metrics.get(k) for k in ("psnr", "ssim", "steps")})
-    table = Table(title=f"fit-scene {kind} -> {store.path('scenes', kind, source)}", header_style="bold")
+    _print_table(rows, f"fit-scene {kind} -> {store.path('scenes', kind, source)}")
+    return rows
+
+
+def _print_table(rows: list[dict[str, Any]], title: str) -> None:
+    """One line per object: its status, image and depth errors on held-out views, and times."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title, header_style="bold")
     for col in ("object", "status", "PSNR dB", "SSIM", "depth err %", "train s", "total s"):
         table.add_column(col)
     for r in rows:
@@ -119,7 +125,6 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             f"{r['seconds']:.1f}" if "seconds" in r else "",
         )
     Console(highlight=False).print(table)
-    return rows
 
 
 def _object_size(manifest: dict[str, Any]) -> float | None:

@@ -31,12 +31,10 @@ def run(cfg: Any) -> dict[str, Any]:
         raise TnfError(f"pipeline.stages: unknown stage {unknown[0]!r}; stages: {', '.join(ORDER)}")
     stages = [s for s in ORDER if s in stages]  # always in pipeline order
 
-    from tnf.data.store import dataset_name
-
     if "train" in stages and "finetune" in stages:
         raise TnfError("pipeline.stages: give train (a new model) or finetune (sensor transfer), not both")
     with open_dict(cfg):
-        cfg.evaluate.dataset = cfg.evaluate.dataset or dataset_name(cfg)
+        cfg.evaluate.dataset = cfg.evaluate.dataset or _dataset(cfg)
         if "finetune" in stages:
             cfg.finetune.run_name = cfg.finetune.run_name or finetune_run_name(cfg)
             model = cfg.finetune.run_name
@@ -115,22 +113,27 @@ def _clock(seconds: float) -> str:
 
 
 def model_run_name(cfg: Any) -> str:
-    """``<generator>-<dataset>-seed<k>``: one trained model per generator, dataset and seed."""
-    from tnf.data.store import dataset_name
+    """The model run of this config (``tnf.generators.names.model_run_name``)."""
+    from tnf.generators.names import model_run_name as name
 
-    return f"{cfg.generator.name}-{dataset_name(cfg)}-seed{cfg.seed}"
+    return name(str(cfg.generator.name), _dataset(cfg), cfg.seed)
 
 
 def finetune_run_name(cfg: Any) -> str:
-    """``<generator>-<dataset>-<from-RUN|scratch>-<n>pt[+<m>]-seed<k>`` for a sensor-transfer model: ``n`` touches
-    per object (``all``), ``m`` more in all (``data.extra_touches``)."""
+    """The sensor-transfer model run of this config (``tnf.generators.names.transfer_run_name``)."""
+    from tnf.generators.names import transfer_run_name
+
+    d = cfg.data
+    return transfer_run_name(
+        str(cfg.generator.name), _dataset(cfg), cfg.finetune.checkpoint, d.per_object, d.get("extra_touches"), cfg.seed
+    )
+
+
+def _dataset(cfg: Any) -> str:
+    """The name ``tnf pair`` gives the dataset of this config."""
     from tnf.data.store import dataset_name
 
-    ckpt = cfg.finetune.checkpoint
-    origin = f"from-{str(ckpt).split('/')[0]}" if ckpt else "scratch"
-    per_object = cfg.data.per_object if cfg.data.per_object is not None else "all"
-    extra = f"+{cfg.data.extra_touches}" if cfg.data.get("extra_touches") else ""
-    return f"{cfg.generator.name}-{dataset_name(cfg)}-{origin}-{per_object}pt{extra}-seed{cfg.seed}"
+    return dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name))
 
 
 def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float], total: float, ev: Any) -> None:

@@ -17,16 +17,9 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     from tnf.artifacts import ArtifactStore
+    from tnf.generators.names import train_run_name
     from tnf.generators.system import GeneratorSystem, generator_spec
-    from tnf.generators.training import (
-        datamodule_from_cfg,
-        dataset_label,
-        dataset_names,
-        fit,
-        process_rank,
-        run_section,
-        trainer_args,
-    )
+    from tnf.generators.training import process_rank
     from tnf.runtime import seed_everything
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
@@ -34,16 +27,10 @@ def run(cfg: Any) -> dict[str, Any]:
     t = cfg.train
     spec = generator_spec(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
     datasets = dataset_names(cfg)
-    run_name = str(t.run_name or f"{spec['name']}_{dataset_label(datasets[0] if datasets else 'data')}")
+    run_name = str(t.run_name or train_run_name(spec["name"], datasets))
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
-    config = {
-        "generator": spec,
-        "data": run_section(cfg.data, ()),
-        "train": run_section(t, ("resume", "force", "run_name", "checkpoint_every_s", "compile")),
-        "precision": str(cfg.trainer.precision),
-        "seed": int(cfg.seed),
-    }
+    config = run_config(cfg, "train", ("compile",), generator=spec)
     if not t.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
         return {"run_dir": str(run_dir), "skipped": True}
@@ -60,23 +47,89 @@ def run(cfg: Any) -> dict[str, Any]:
         compile_nets=bool(t.compile),
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
-    summary = fit(
+    info = {"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names}
+    summary = fit_section(cfg, t, system, dm, run_dir, config, info)
+    _print_summary(console, run_name, summary)
+    return {"run_dir": str(run_dir), **summary}
+
+
+def run_config(cfg: Any, section: str, unhashed: tuple[str, ...] = (), **extra: Any) -> dict[str, Any]:
+    """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
+    run is skipped): ``extra`` (the generator spec, a fine-tuning source), the data and run settings, precision
+    and seed. ``unhashed`` names more of the section's keys that do not change the model."""
+    skip = ("resume", "force", "run_name", "checkpoint_every_s", *unhashed)
+    return {
+        **extra,
+        "data": run_section(cfg.data, ()),
+        section: run_section(cfg[section], skip),
+        "precision": str(cfg.trainer.precision),
+        "seed": int(cfg.seed),
+    }
+
+
+def fit_section(
+    cfg: Any, section: Any, system: Any, dm: Any, run_dir: Any, config: dict[str, Any], info: dict[str, Any]
+) -> dict[str, Any]:
+    """Train ``system`` on ``dm`` into ``run_dir`` with the run settings of ``section`` (``cfg.train`` or
+    ``cfg.finetune``) and the ``trainer`` and ``logger`` groups; returns the run's summary."""
+    from omegaconf import OmegaConf
+
+    from tnf.generators.training import fit
+
+    return fit(
         system,
         dm,
         run_dir,
         config=config,
         trainer_cfg=trainer_args(cfg),
         logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
-        resume=bool(t.resume) and not bool(t.force),
+        resume=bool(section.resume) and not bool(section.force),
         progress=bool(cfg.progress),
-        limit_train_batches=t.limit_train_batches,
-        limit_val_batches=t.limit_val_batches,
-        log_every_n_steps=int(t.log_every_n_steps),
-        checkpoint_every_s=float(t.checkpoint_every_s),
-        info={"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names},
+        limit_train_batches=section.limit_train_batches,
+        limit_val_batches=section.limit_val_batches,
+        log_every_n_steps=int(section.log_every_n_steps),
+        checkpoint_every_s=float(section.checkpoint_every_s),
+        info=info,
     )
-    _print_summary(console, run_name, summary)
-    return {"run_dir": str(run_dir), **summary}
+
+
+def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
+    """``tnf.data.PairDataModule`` from the ``data`` section (``datasets`` overrides ``data.datasets``; an
+    unset dataset name becomes the one ``tnf pair`` gives this config)."""
+    from tnf.data import datamodule_from_config
+
+    names = dataset_names(cfg) if datasets is None else [str(x) for x in datasets]
+    return datamodule_from_config(run_section(cfg.data, ()), int(cfg.seed), cfg.data_root, names)
+
+
+def dataset_names(cfg: Any) -> list[str]:
+    """``data.datasets``, with an unset name (``pair.name: null``) replaced by the name ``tnf pair`` gives the
+    dataset of this config."""
+    from tnf.data.store import dataset_name
+    from tnf.errors import TnfError
+
+    listed = cfg.data.datasets
+    if listed is None:  # the dataset `tnf pair` builds with this config
+        listed = [None]
+    default = dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name))
+    names = [str(x) if x not in (None, "None", "null", "") else default for x in listed]
+    if not names:
+        raise TnfError("data.datasets is empty: name the paired dataset(s) under pairs/ to train on")
+    return names
+
+
+def trainer_args(cfg: Any) -> dict[str, Any]:
+    """Lightning Trainer arguments from the ``trainer`` group (accelerator, devices, precision, ...)."""
+    return {str(k): v for k, v in run_section(cfg.trainer, ()).items()}
+
+
+def run_section(section: Any, keys: tuple[str, ...] = ("resume", "force")) -> dict[str, Any]:
+    """A config section as plain data without the keys that do not change the result."""
+    from omegaconf import OmegaConf
+
+    data = cast(dict[str, Any], OmegaConf.to_container(section, resolve=True))
+    assert isinstance(data, dict)
+    return {k: v for k, v in data.items() if k not in keys}
 
 
 def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None:

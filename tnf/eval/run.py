@@ -1,0 +1,335 @@
+"""Score one trained generator (``tnf evaluate``): image metrics on the test splits and the classification task.
+
+``evaluate_model`` returns the run's results (the ``results.json`` of ``tnf.eval.aggregate``) with its figures;
+``collect_sweep`` gathers the results of a Hydra multirun folder into a report's ``runs/``.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import re
+import shutil
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tnf.errors import TnfError
+
+
+@dataclass
+class EvalJob:
+    """What ``tnf evaluate`` scores: plain values, built from the run's config by the stage.
+
+    ``settings`` is the ``evaluate`` section; ``method`` the row label; ``generator`` the generator group's
+    name (None without one); ``datasets`` the ``data.datasets`` list (the default test dataset); ``objects`` and
+    ``simulator`` those groups' config nodes as plain dicts; ``object_names`` the run's selected objects.
+    """
+
+    settings: dict[str, Any]
+    method: str
+    seed: int
+    device: str
+    progress: bool
+    data_root: str
+    generator: str | None
+    datasets: list[str] | None
+    mirror_average: bool
+    touch_force: float
+    sensor: str
+    objects: dict[str, Any]
+    object_names: list[str] | None
+    simulator: dict[str, Any]
+
+
+def run_id(r: Mapping[str, Any]) -> str:
+    """Folder name of a run's results: ``<table>_<method>_seed<k>`` with unsafe characters replaced."""
+    raw = f"{r.get('table', 'main')}_{r['method']}_seed{r['seed']}"
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", raw)
+
+
+def check_not_another_models(results_file: Path, model: str, method: str, seed: Any, force: bool) -> None:
+    """A report holds one run per table, row label and seed: refuse to replace another model's results there
+    (two models evaluated with the same label and seed, as a sweep over a generator setting would, would
+    otherwise leave only the last one's numbers, silently). ``evaluate.force`` replaces them."""
+    from tnf.eval.aggregate import load_results
+
+    if force or not results_file.is_file():
+        return
+    other = load_results([results_file])[0].get("model")
+    if other is not None and other != model:
+        raise TnfError(
+            f"report {results_file.parents[2].name!r} already holds {method} seed {seed} from model {other!r}; "
+            f"evaluating {model!r} there would replace it. Give it its own row (evaluate.method=LABEL; in a sweep "
+            "over a generator setting, a label naming that setting), its own report (evaluate.name=...), or "
+            "replace it (evaluate.force=true)"
+        )
+
+
+def collect_sweep(sweep_dir: str, runs_dir: Path, force: bool) -> int:
+    """Copy the results of a Hydra multirun folder into a report's ``runs/``; returns how many were found."""
+    from tnf.artifacts import write_json
+    from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
+
+    files = find_results(Path(sweep_dir).expanduser())
+    if not files:
+        raise TnfError(f"no {RESULTS_FILE} below evaluate.sweep_dir={sweep_dir}; did the sweep's jobs finish?")
+    collected = load_results(files)
+    seen: dict[str, tuple[Any, str]] = {}
+    for r in collected:  # the same model found twice (a sweep run again) is one run; two models are not
+        rid, where = run_id(r), str(Path(r["_path"]).parent)
+        if rid in seen and seen[rid][0] != r.get("model"):
+            raise TnfError(
+                f"two models below {sweep_dir} share the row {r['method']} seed {r['seed']} "
+                f"({seen[rid][1]} and {where}): give the sweep's jobs distinct row labels (evaluate.method=LABEL)"
+            )
+        seen[rid] = (r.get("model"), where)
+        # nor does a collected run replace another model's row already in the report (checked for every run
+        # before any is written, so a refused collection leaves the report as it was)
+        if r.get("model") is not None:
+            check_not_another_models(runs_dir / rid / RESULTS_FILE, str(r["model"]), r["method"], r["seed"], force)
+    for r in collected:
+        src = Path(r.pop("_path"))
+        dst = runs_dir / run_id(r)
+        dst.mkdir(parents=True, exist_ok=True)
+        if r.get("examples") and (src.parent / r["examples"]).is_file():
+            shutil.copyfile(src.parent / r["examples"], dst / r["examples"])
+        write_json(dst / RESULTS_FILE, r)
+    return len(files)
+
+
+def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | None, dict[str, bytes]]:
+    """Image metrics and the classification task for ``evaluate.model``: the results dict, the example
+    figure as PNG bytes (None without image metrics) and further figures by file name (a force-conditioned
+    model's force sweep), which the caller writes beside the results."""
+    from tnf.eval.aggregate import SCHEMA
+    from tnf.runtime import environment, progress, resolve_device, seed_everything
+
+    ecfg = job.settings
+    device = resolve_device(job.device)
+    t0 = time.perf_counter()
+    examples_png = None
+    figures: dict[str, bytes] = {}
+    results: dict[str, Any] = {
+        "schema": SCHEMA,
+        "table": str(ecfg["table"]),
+        "method": job.method,
+        "generator": job.generator,
+        "model": str(ecfg["model"]),
+        "seed": job.seed,
+        "image": {},
+        "accuracy": {},
+        "warnings": [],
+        "environment": environment(device),
+    }
+    with progress(job.progress) as bar:
+        if list(ecfg["splits"]):
+            seed_everything(job.seed)
+            image, examples, force = image_metrics(job, store, device, bar)
+            results["image"] = image
+            if force is not None:  # a model conditioned on the force: its evaluation by force (tnf.eval.force)
+                results["force"], figures["force_sweep.png"] = force
+                results["force_figure"] = "force_sweep.png"
+            if examples is not None:
+                from tnf.eval.figures import example_grid
+
+                buf = io.BytesIO()
+                example_grid(examples["tensors"], float(ecfg["diff_threshold"]), examples["labels"]).save(buf, "PNG")
+                examples_png = buf.getvalue()
+                results["examples"] = "examples.png"
+                results["examples_split"] = examples["split"]
+        if ecfg["classify"]["enabled"]:
+            seed_everything(job.seed)
+            acc, info, warnings = classification(job, store, device, bar)
+            results["accuracy"] = acc
+            results["classify"] = info
+            results["warnings"] += warnings
+    results["evaluate_s"] = time.perf_counter() - t0
+    return results, examples_png, figures
+
+
+def image_metrics(
+    job: EvalJob, store: Any, device: str, bar: Any
+) -> tuple[dict[str, Any], dict[str, Any] | None, tuple[dict[str, Any], bytes] | None]:
+    """SSIM/MSE per test split for the model and BG, the example touches (from novel_object if scored), and for
+    a model conditioned on the force its evaluation by force (``tnf.eval.force.by_force``; None otherwise)."""
+    from torch.utils.data import DataLoader
+
+    from tnf.artifacts import MANIFEST, read_json
+    from tnf.data import PairDataset, collate_pairs, training_order
+    from tnf.data.datamodule import resolve_dataset
+    from tnf.eval.scoring import BG, score_batches
+
+    ecfg = job.settings
+    dataset = ecfg["dataset"] or (job.datasets[0] if job.datasets else None)
+    if not dataset:
+        raise TnfError("evaluate.dataset is not set: name the paired dataset (under pairs/) with the test splits")
+    pairs = resolve_dataset(str(dataset), job.data_root)
+    ckpt = store.path("models", str(ecfg["model"]), str(ecfg["checkpoint"]))
+    if not ckpt.is_file():
+        raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check evaluate.model/checkpoint")
+    generate, uses_force, fixed_force = _model_images(job, ckpt, pairs, device, bar)
+    out: dict[str, Any] = {}
+    bg_all = None
+    examples = None
+    splits = list(ecfg["splits"])
+    example_split = "novel_object" if "novel_object" in splits else splits[-1]
+    # Object ids as in training (a surface field, tnf.generators.field, knows objects by their training ids);
+    # the dataset's other objects come after them.
+    object_names = training_order(
+        (store.manifest("models", str(ecfg["model"])) or {}).get("object_names"),
+        read_json(pairs / MANIFEST, "dataset manifest").get("objects") or [],
+    )
+    for split in splits:
+        ds = PairDataset(pairs, splits=[split], per_object=ecfg["per_object"], seed=job.seed, object_names=object_names)
+        names = _object_names(ds)
+        if len(ds) == 0:
+            raise TnfError(f"split {split!r} of dataset {pairs} is empty; check evaluate.splits")
+        loader = DataLoader(
+            ds,
+            batch_size=int(ecfg["batch_size"]),
+            shuffle=False,
+            num_workers=int(ecfg["num_workers"]),
+            collate_fn=collate_pairs,
+        )
+        task = bar.add_task(f"score {split}", total=len(loader))
+        keep = int(ecfg["examples"]) if split == example_split else 0
+        accs, kept = score_batches(
+            loader, generate, names, keep_examples=keep, on_batch=functools.partial(bar.advance, task)
+        )
+        out[split] = {"G": accs["G"].summary(), BG: accs[BG].summary()}
+        bg_all = accs[BG] if bg_all is None else bg_all.merge(accs[BG])
+        if keep and kept:
+            labels = [names[i] if names else str(i) for i in kept["object_id"].tolist()]
+            examples = {"tensors": kept, "labels": labels, "split": split}
+    results: dict[str, Any] = {}
+    for split, rows in out.items():
+        results[split] = {job.method: rows["G"], BG: rows[BG]}
+    if bg_all is not None:
+        results["all"] = {BG: bg_all.summary()}
+    force = None
+    if uses_force and fixed_force is None:
+        from tnf.eval.force import by_force
+
+        force = by_force(
+            ecfg, job.seed, pairs, object_names, generate, device, bar,
+            data_root=job.data_root, objects=job.objects, simulator=job.simulator,
+        )  # fmt: skip
+    return results, examples, force
+
+
+def _model_images(job: EvalJob, ckpt: Path, pairs: Path, device: str, bar: Any) -> tuple[Any, bool, float | None]:
+    """The model's images of a batch (made as `tnf generate` makes them), whether it is conditioned on the force,
+    and the one force it is given when the dataset records none (else None)."""
+    import torch
+
+    from tnf.artifacts import MANIFEST, read_json
+    from tnf.data import sensor_mirror
+
+    try:
+        from tnf.generators import load_generator
+    except ImportError as e:
+        raise TnfError(f"image metrics need tnf.generators ({e}); set evaluate.splits=[] to skip them") from None
+
+    system = load_generator(ckpt, device)
+    # The model makes its test images as `tnf generate` makes its images (generate.mirror_average).
+    mirror = None
+    if job.mirror_average:
+        mirror = sensor_mirror(read_json(pairs / MANIFEST, "dataset manifest"), pairs, required=False)
+        if mirror is None:
+            bar.console.print(
+                f"evaluate: the sensor of dataset {pairs.name} has no mirror symmetry; test images are not "
+                "mirror-averaged (generate.mirror_average)"
+            )
+
+    uses_force = system.hparams["generator"].get("force", "none") != "none"
+    fixed_force = None
+    if uses_force and not read_json(pairs / MANIFEST, "dataset manifest").get("force"):
+        # Pairs made at one force (pair.force=false): every test touch is generated at touch.force.
+        fixed_force = job.touch_force
+        bar.console.print(
+            f"evaluate: dataset {pairs.name} records no forces; the model generates every touch at touch.force="
+            f"{fixed_force:g} N, and the evaluation by force is skipped"
+        )
+
+    def generate(batch: Any) -> torch.Tensor:
+        moved = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+        if fixed_force is not None:
+            moved["force"] = torch.full((len(moved["rgb"]),), fixed_force, device=device)
+        return system.generate(moved, mirror)
+
+    return generate, uses_force, fixed_force
+
+
+def _object_names(ds: Any) -> list[str] | None:
+    for attr in ("object_names", "objects"):
+        names = getattr(ds, attr, None)
+        if isinstance(names, (list, tuple)) and names and isinstance(names[0], str):
+            return list(names)
+    return None
+
+
+def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dict, dict, list[str]]:
+    """Train the classifier on Sim, Sim + G and G only; accuracy (percent) on held-out ground truth."""
+    import torch
+
+    from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
+
+    ecfg, method = job.settings, job.method
+    ccfg = ecfg["classify"]
+    clf = ClassifierConfig.from_dict(ecfg["classifier"])
+    sensor = str(ccfg["sensor"] or job.sensor)
+    source = str(job.objects["name"])
+    generated_run = str(ecfg["generated"] or ecfg["model"])
+    if ccfg["objects"]:
+        objects = [str(o) for o in ccfg["objects"]]
+    else:
+        objects = [p[2] for p in store.items("touch", depth=3) if p[0] == sensor and p[1] == source]
+    if job.object_names and not ccfg["objects"]:
+        objects = [o for o in objects if o in set(job.object_names)]
+    if len(objects) < 2:
+        raise TnfError(
+            f"classification needs touches of at least 2 objects under {store.path('touch', sensor, source)}, "
+            f"found {objects}; run `tnf touch` first or set evaluate.classify.enabled=false"
+        )
+    size = clf.image_size
+    seed = job.seed
+    sim, gen, test, warnings = [], [], [], []
+    load = bar.add_task("load touches", total=len(objects))
+    for label, obj in enumerate(objects):
+        folder = store.require("touch", sensor, source, obj, hint="run `tnf touch` first")
+
+        def labelled(x: torch.Tensor, label: int = label) -> LabelledImages:
+            return LabelledImages(x, torch.full((len(x),), label, dtype=torch.long))
+
+        sim.append(labelled(load_touch_images(folder, size, list(ccfg["sim_splits"]), ccfg["sim_per_object"], seed)))
+        test.append(labelled(load_touch_images(folder, size, list(ccfg["test_splits"]), ccfg["test_per_object"], seed)))
+        gfolder = store.path("generated", generated_run, source, obj)
+        if (gfolder / "manifest.json").is_file():
+            x = load_touch_images(gfolder, size, None, ccfg["generated_per_object"], seed)
+            gen.append(LabelledImages(x, torch.full((len(x),), label), torch.ones(len(x), dtype=torch.bool)))
+        else:
+            warnings.append(f"no generated touches for {obj} in {gfolder}")
+        bar.advance(load)
+    if not gen:
+        raise TnfError(
+            f"no generated touches of run {generated_run!r} under {store.path('generated', generated_run, source)}; "
+            "run `tnf generate` first, set evaluate.generated=RUN, or evaluate.classify.enabled=false"
+        )
+    sim_set, gen_set, test_set = (LabelledImages.concat(s) for s in (sim, gen, test))
+    rows = {"Sim": sim_set, f"Sim + {method}": LabelledImages.concat([sim_set, gen_set])}
+    if ccfg["generated_only"]:
+        rows[f"{method} only"] = gen_set
+    task = bar.add_task("classify", total=clf.steps * clf.restarts * len(rows))
+    acc = run_rows(rows, test_set, len(objects), clf, seed, device, on_step=lambda _: bar.advance(task))
+    info = {
+        "classes": objects,
+        "train_images": {row: len(s) for row, s in rows.items()},
+        "test_images": len(test_set),
+        "sensor": sensor,
+        "generated": generated_run,
+        "real_fraction": clf.real_fraction,
+    }
+    return acc, info, warnings

@@ -1,0 +1,188 @@
+"""Simulated touch items on disk (``tnf touch``): ``touch/<sensor>/<source>/<object>/``.
+
+An item holds ``images/00000.png``..., ``background.png`` and a manifest whose info lists every touch (split,
+start and contact poses, contact point, force, penetration).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import zlib
+from collections.abc import Iterator
+from concurrent.futures import wait
+from dataclasses import dataclass
+from typing import Any
+
+SPLITS = ("train", "val", "novel_view")
+
+
+@dataclass
+class TouchJob:
+    """What ``tnf touch`` simulates: plain values, built from the run's config by the stage.
+
+    ``settings`` is the ``touch`` section; ``simulator`` the simulator group's config node as a plain dict;
+    ``config`` what decides an item's content (its hash); ``plan`` the force plan (None: every touch presses
+    with ``settings["force"]``); ``names`` the objects still to simulate.
+    """
+
+    settings: dict[str, Any]
+    sensor: Any
+    simulator: dict[str, Any]
+    source: Any
+    names: list[str]
+    config: dict[str, Any]
+    plan: Any
+    seed: int
+    device: str
+    progress: bool
+
+
+def _png(image: Any, level: int = 6) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG", compress_level=level)
+    return buf.getvalue()
+
+
+def _write_png(path: Any, image: Any) -> None:
+    """Write one tactile image as a PNG. Level 1: noisy sensor images barely compress further, and level 6 costs
+    3.5x the time (35 ms per 240x320 Digit frame on one core, more than simulating it)."""
+    path.write_bytes(_png(image, level=1))
+
+
+@contextlib.contextmanager
+def _settled(writes: list[Any]) -> Iterator[None]:
+    """On an exception (a failed write, a full disk, Ctrl-C), cancel the image writes not started and wait for the
+    running ones, so that none writes into the item's temporary folder while it is being removed."""
+    try:
+        yield
+    except BaseException:
+        for w in writes:
+            w.cancel()
+        wait(writes)
+        raise
+
+
+def simulate_touches(job: TouchJob, store: Any, console: Any) -> None:
+    """Simulate and write the touch item of each of ``job.names`` into ``store``."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tnf.registry import SIMULATORS
+    from tnf.runtime import progress
+
+    tc = job.settings
+    sim = SIMULATORS.build(job.simulator, sensor=job.sensor, device=job.device)
+    counts = {"train": int(tc["n_touches"]), "val": int(tc["n_val"]), "novel_view": int(tc["n_novel_view"])}
+    # What an item takes on disk, at least: its background, and each touch about the size of the background at the
+    # touches' compression (a touch adds contact shading to it, so it compresses a little worse: ~1.3x measured).
+    background_png = _png(sim.background)
+    item_bytes = len(background_png) + sum(counts.values()) * len(_png(sim.background, level=1))
+    # PNG encoding releases the GIL: a pool writes images while the simulator runs the next split.
+    with progress(job.progress) as bar, ThreadPoolExecutor(max(1, min(16, os.cpu_count() or 1))) as pool:
+        task = bar.add_task("touch", total=len(job.names) * sum(counts.values()))
+        for name in job.names:
+            touches, discarded = _simulate_item(
+                job, store, sim, name, counts, background_png, item_bytes, pool, lambda: bar.advance(task)
+            )
+            n_disc = sum(discarded.values())
+            sensor, src = job.sensor, job.source.name
+            console.print(f"touch {sensor.name}/{src}/{name}: {len(touches)} touches, {n_disc} discarded")
+
+
+def _simulate_item(
+    job: TouchJob,
+    store: Any,
+    sim: Any,
+    name: str,
+    counts: dict[str, int],
+    background_png: bytes,
+    item_bytes: int,
+    pool: Any,
+    advance: Any,
+) -> tuple[list[dict[str, Any]], dict[str, int]]:
+    """One object's item: every split's touches, written as they come; returns the touches and the discarded
+    count of each split."""
+    import numpy as np
+
+    from tnf.artifacts import require_space
+
+    sensor, source, plan = job.sensor, job.source, job.plan
+    mesh = source.load(name)
+    seed = (job.seed * 1_000_003 + zlib.crc32(f"{source.name}/{name}".encode())) % 2**31
+    rng = np.random.default_rng(seed)
+    touches: list[dict[str, Any]] = []
+    discarded = {}
+    item = ("touch", sensor.name, source.name, name)
+    info: dict[str, Any] = {}
+    writes: list[Any] = []
+    n_images = sum(counts.values())
+    what = f"touch item {store.path(*item)} ({n_images} images of {sensor.width}x{sensor.height})"
+    require_space(store.path(*item), item_bytes, what)  # before simulating what could not be stored
+    with store.writing(*item, config=job.config, info=info) as tmp, _settled(writes):
+        (tmp / "images").mkdir()
+        (tmp / "background.png").write_bytes(background_png)
+        for split_no, split in enumerate(SPLITS):
+            if counts[split] == 0:
+                discarded[split] = 0
+                continue
+            got = _collect(job, sim, mesh, counts[split], rng, split, seed + split_no)
+            discarded[split] = got.discarded
+            r = got.results
+            for i in range(len(r.images)):
+                index = len(touches)
+                rel = f"images/{index:05d}.png"
+                writes.append(pool.submit(_write_png, tmp / rel, r.images[i]))
+                touches.append(
+                    {
+                        "index": index,
+                        "split": split,
+                        "image": rel,
+                        "start_c2w": got.start_c2w[i].tolist(),
+                        "contact_c2w": r.contact_c2w[i].tolist(),
+                        "contact_point": r.contact_point[i].astype(float).tolist(),
+                        "force": float(r.force[i]),
+                        "penetration": float(r.penetration[i]),
+                    }
+                )
+                if got.target_force is not None and plan is not None:
+                    target = float(got.target_force[i])
+                    touches[-1]["force_target"] = target
+                    touches[-1]["force_band"] = plan.band_of([target])[0]
+                advance()
+        for w in writes:
+            w.result()  # every image is on disk (or its error raised) before the item is finalised
+        info.update(
+            {
+                "sensor": sensor.describe(),
+                "object": name,
+                "source": source.name,
+                "touches": touches,
+                "counts": {**{s: counts[s] for s in SPLITS}, "discarded": discarded},
+                "width": sensor.width,
+                "height": sensor.height,
+                "intrinsics": list(sensor.intrinsics()),
+            }
+        )
+        if plan is not None:
+            info["force_range"] = plan.describe()
+    return touches, discarded
+
+
+def _collect(job: TouchJob, sim: Any, mesh: Any, count: int, rng: Any, split: str, seed: int) -> Any:
+    """``count`` touches of one split (``tnf.sim.touch.collect``) with the touch section's settings."""
+    from tnf.sim.forces import force_sampler
+    from tnf.sim.touch import collect
+
+    tc = job.settings
+    force = float(tc["force"]) if job.plan is None else force_sampler(job.plan, split, seed)
+    return collect(
+        sim, mesh, count, rng,
+        radius=float(tc["radius"]), force=force, batch_size=int(tc["batch_size"]),
+        axis=list(tc["novel_view_axis"]), cone_deg=float(tc["novel_view_cone"]),
+        inside=split == "novel_view", up=list(tc["up"]), random_roll=bool(tc["random_roll"]),
+        seed=seed, max_attempts=int(tc["max_attempts"]),
+    )  # fmt: skip
