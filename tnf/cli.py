@@ -14,9 +14,11 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from tnf.artifacts import data_root
+from tnf import __version__
+from tnf.artifacts import clean, data_root
 from tnf.env import PRIMARY_CONFIG, conf_dir, stage_choices, stage_overrides
 from tnf.errors import TnfError
+from tnf.listing import print_components
 from tnf.runtime import available_memory
 from tnf.settings import check_settings, check_sizes
 
@@ -55,8 +57,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         _print_help()
         return 0
     if argv[0] in ("--version", "version"):
-        from tnf import __version__
-
         print(f"tnf {__version__}")
         return 0
     stage, rest = argv[0], argv[1:]
@@ -64,13 +64,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if stage not in STAGES:
             raise TnfError(f"unknown stage {stage!r}; stages: {', '.join(STAGES)} (see tnf --help)")
         if stage == "list":
-            from tnf.listing import print_components
-
             print_components()
             return 0
         if stage == "clean":
-            from tnf.artifacts import clean
-
             print(clean(rest))
             return 0
         return run_stage(stage, rest)
@@ -88,6 +84,8 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
     if os.environ.get("HYDRA_FULL_ERROR") != "1":
         check_overrides(stage, overrides)
     check_data_root(overrides)
+    # Imported before Hydra composes: stage modules import torch-heavy code inside run(), so --help and --cfg
+    # stay light.
     module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
     task = _guard(module.run)
     app = hydra.main(version_base=None, config_path=conf_dir(), config_name=PRIMARY_CONFIG)(task)
