@@ -14,6 +14,7 @@ from typing import Any
 from tnf.capture import camera_distance, camera_poses
 from tnf.capture.render import MeshRenderer, capture_object
 from tnf.errors import TnfError
+from tnf.objects.captured import import_views
 from tnf.runtime import progress
 
 log = logging.getLogger(__name__)
@@ -68,8 +69,6 @@ def _capture_one(
     import numpy as np
 
     if source.views(name) is not None:  # the source's own camera images: imported, not rendered
-        from tnf.objects.captured import import_views
-
         return import_views(store, source, name)
     item = (source.name, name)
     if store.is_done("capture", *item, config=config):

@@ -16,13 +16,16 @@ from pathlib import Path
 from typing import Any
 
 from tnf.artifacts import ArtifactStore, read_json
+from tnf.data.forces import touch_forces
 from tnf.data.preprocess import SIZE, crop_origin, gel_size_m
+from tnf.data.prior import DepthPrior
 from tnf.data.render import Framing, TouchItem, render_pairs_for_touches
 from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
 from tnf.data.store import PairWriter, open_pairs, write_manifest
 from tnf.errors import TnfError
 from tnf.registry import SCENES, SENSORS, config_to_dict, split_spec
 from tnf.runtime import job_device, progress, resolve_device, warp_device
+from tnf.scenes import load_scene
 
 ASSEMBLE_CHUNK = 256  # pairs copied per step while assembling (bounds memory)
 SCENE_SOURCES = ("fitted", "mesh")
@@ -95,8 +98,6 @@ def make_pairs(job: PairJob) -> None:
     dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
     touch_force = None
     if p.get("force"):  # pair.force: each pair's touch force (force.npy), read from the touch manifests
-        from tnf.data.forces import touch_forces
-
         touch_force = touch_forces({o: inputs[o]["item"] for o in names})
         dataset_key["force"] = touch_force.record
     if store.is_done("pairs", job.name, config=dataset_key):
@@ -218,8 +219,6 @@ def _render_caches(
         console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p['scene_source']})")
     prior = None
     if p["prior"]:
-        from tnf.data.prior import DepthPrior
-
         assert job.simulator is not None
         prior = DepthPrior(sensor, job.simulator, framing, device=warp_device(device))
         console.print(f"pair: with the prior, {job.simulator['name']}'s image of each depth crop (pair.prior)")
@@ -393,8 +392,6 @@ def _check_sensor(item: Any, name: str, config: dict[str, Any], obj: str) -> Non
 
 def _load_scene(kind: str, scene_dir: Path, source: Any, obj: str, device: str) -> Any:
     if kind == "fitted":
-        from tnf.scenes import load_scene
-
         return load_scene(scene_dir, device)
 
     return SCENES.get("mesh").from_mesh(source.load(obj)).to(device)

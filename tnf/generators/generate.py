@@ -23,12 +23,13 @@ import numpy as np
 from tnf.artifacts import MANIFEST, ArtifactStore, read_json, write_json
 from tnf.data.pairing import capture_camera
 from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
+from tnf.data.prior import DepthPrior
 from tnf.data.render import Framing, TouchItem, render_rgbd_crops
 from tnf.data.splits import TOUCH_SPLITS
 from tnf.errors import TnfError
 from tnf.generators import load_generator
 from tnf.registry import SENSORS
-from tnf.runtime import progress, resolve_device
+from tnf.runtime import progress, resolve_device, warp_device
 from tnf.scenes import load_scene
 from tnf.sim.forces import requested_forces
 from tnf.sim.touch import sphere_directions, start_poses
@@ -209,9 +210,6 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
             prep["framing"], crop_px=crop, footprint_distance=prep["footprint_distance"]
         ).with_sensor(model.sensor)
         if model.needs_prior and model.prior is None:
-            from tnf.data.prior import DepthPrior
-            from tnf.runtime import warp_device
-
             model.prior = DepthPrior(model.sensor, job.simulator, framing, device=warp_device(model.device))
         seed = (job.seed * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
         own = _own_touches(store, model.sensor.name, src, obj) if model.wanted == "sim" else None

@@ -19,6 +19,7 @@ from typing import Any
 
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
+from tnf import __version__
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_bytes, write_json
 from tnf.errors import TnfError
 from tnf.generators.system import NonFiniteLoss
@@ -252,8 +253,6 @@ def fit(
         "checkpoints": {"last": "last.ckpt", "best": "best.ckpt"},
     }
     if trainer.is_global_zero:
-        from tnf import __version__
-
         manifest = {
             **summary,
             "stage": "models",

@@ -13,6 +13,7 @@ from typing import Any
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
 from tnf.objects import select, shard, shard_of
+from tnf.objects.captured import import_touches
 from tnf.registry import SENSORS, split_spec
 from tnf.runtime import job_device, resolve_device, warp_device
 from tnf.sim.forces import force_plan
@@ -52,8 +53,6 @@ def run(cfg: Any) -> None:
     source, names = select(cfg)
     names = shard(names, cfg)  # a job of a sweep over shards: its share
     if any(source.touches(n) is not None for n in names):  # the source's own tactile frames: imported, not simulated
-        from tnf.objects.captured import import_touches
-
         for n in names:
             console.print(import_touches(store, sensor, source, n, start_radius=float(tc.radius)))
         return
