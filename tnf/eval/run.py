@@ -155,6 +155,7 @@ def image_metrics(
     a model conditioned on the force its evaluation by force (``tnf.eval.force.by_force``; None otherwise)."""
     from torch.utils.data import DataLoader
 
+    # Lazy: torch-heavy; tnf evaluate imports this module before Hydra composes.
     from tnf.data import PairDataset, collate_pairs, training_order
     from tnf.data.datamodule import resolve_dataset
     from tnf.eval.scoring import BG, score_batches
