@@ -25,6 +25,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from tnf import __version__
 from tnf.errors import TnfError
 
 MANIFEST = "manifest.json"
@@ -357,7 +358,6 @@ def _replace_dir(src: Path, dst: Path) -> None:
 
 
 def _version() -> str:
-    from tnf import __version__
 
     return __version__
 

@@ -14,7 +14,13 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from tnf import __version__
+from tnf.artifacts import clean, data_root
+from tnf.env import PRIMARY_CONFIG, conf_dir, stage_choices, stage_overrides
 from tnf.errors import TnfError
+from tnf.listing import print_components
+from tnf.runtime import available_memory
+from tnf.settings import check_settings, check_sizes
 
 # name -> one line of help. Order is the pipeline's order; COMMANDS are not Hydra apps.
 STAGES: dict[str, str] = {
@@ -51,8 +57,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         _print_help()
         return 0
     if argv[0] in ("--version", "version"):
-        from tnf import __version__
-
         print(f"tnf {__version__}")
         return 0
     stage, rest = argv[0], argv[1:]
@@ -60,13 +64,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if stage not in STAGES:
             raise TnfError(f"unknown stage {stage!r}; stages: {', '.join(STAGES)} (see tnf --help)")
         if stage == "list":
-            from tnf.listing import print_components
-
             print_components()
             return 0
         if stage == "clean":
-            from tnf.artifacts import clean
-
             print(clean(rest))
             return 0
         return run_stage(stage, rest)
@@ -81,11 +81,11 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
     """Run stage ``stage`` as a Hydra app with ``overrides`` (as on the command line)."""
     import hydra
 
-    from tnf.env import PRIMARY_CONFIG, conf_dir
-
     if os.environ.get("HYDRA_FULL_ERROR") != "1":
         check_overrides(stage, overrides)
     check_data_root(overrides)
+    # Imported before Hydra composes: stage modules import torch-heavy code inside run(), so --help and --cfg
+    # stay light.
     module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
     task = _guard(module.run)
     app = hydra.main(version_base=None, config_path=conf_dir(), config_name=PRIMARY_CONFIG)(task)
@@ -104,7 +104,6 @@ def _hydra_args(stage: str, args: Sequence[str]) -> list[str]:
     """The command line Hydra gets: ``args`` with the stage's job name (it names the run folder
     ``logs/stage/<name>/`` and the log file) and its ``STAGE_DEFAULTS``, placed next to the user's overrides
     (Hydra's parser takes a single run of overrides: not after ``-m`` when overrides follow it)."""
-    from tnf.env import stage_choices
 
     overrides = [a for a in args if not a.startswith("-") and ("=" in a or a.startswith("~"))]
     own = [f"hydra.job.name={stage.replace('-', '_')}", *stage_choices(stage, overrides)]
@@ -131,7 +130,6 @@ def check_data_root(overrides: Sequence[str]) -> None:
     configured = _data_root_override(overrides)
     if configured is _UNCHECKED:
         return
-    from tnf.artifacts import data_root
 
     root = data_root(configured)  # type: ignore[arg-type]
     _check_folder(root, root)
@@ -235,9 +233,6 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     from hydra.errors import HydraException, MissingConfigException
     from omegaconf.errors import OmegaConfBaseException
 
-    from tnf.env import PRIMARY_CONFIG, conf_dir, stage_overrides
-    from tnf.settings import check_settings, check_sizes
-
     name = PRIMARY_CONFIG
     plain = [o for o in overrides if o not in multirun]
     GlobalHydra.instance().clear()
@@ -330,7 +325,6 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
     """Print a TnfError as one line and exit 1, instead of Hydra's traceback report."""
 
     def task(cfg: object) -> object:
-        from tnf.settings import check_settings, check_sizes
 
         try:
             try:
@@ -361,8 +355,6 @@ def _is_out_of_memory(e: BaseException) -> bool:
 def _out_of_memory(stage: str, e: BaseException) -> str:
     """One line for an allocation that failed where no estimate caught it first: what it asked, what there is."""
     import re
-
-    from tnf.runtime import available_memory
 
     m = re.search(r"allocate ([\d.]+) (bytes|[KMGT]i?B)", str(e))
     asked = ""

@@ -10,6 +10,7 @@ import warnings
 from collections.abc import Iterator
 from typing import Any
 
+import tnf
 from tnf.errors import TnfError
 
 
@@ -59,8 +60,6 @@ def environment(device: str) -> dict[str, Any]:
     from importlib import metadata
 
     import torch
-
-    import tnf
 
     def version(package: str) -> str | None:
         try:

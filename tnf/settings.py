@@ -15,7 +15,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from tnf.env import conf_dir
 from tnf.errors import TnfError
+from tnf.runtime import check_memory
 
 SECTIONS = (
     "capture",
@@ -41,8 +43,6 @@ HINTS = {"generate.force": " (it redoes finished images; the force of a generate
 def schema() -> dict[str, Any]:
     """``{section: defaults}`` from ``conf/<section>/default.yaml``, plus the run-wide settings."""
     from omegaconf import OmegaConf
-
-    from tnf.env import conf_dir
 
     out: dict[str, Any] = dict(TOP_LEVEL)
     for section in SECTIONS:
@@ -134,7 +134,6 @@ def size_demands(cfg: Any, stage: str) -> list[tuple[float, str, str]]:
 
 def check_sizes(cfg: Any, stage: str) -> None:
     """Refuse (one line) a size setting whose least memory is over what the machine has available."""
-    from tnf.runtime import check_memory
 
     for need, what, settings in size_demands(cfg, stage.replace("-", "_")):
         check_memory(need, what, settings)

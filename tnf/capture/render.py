@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from tnf.capture import intrinsics, write_frame, write_transforms
 from tnf.env import headless_rendering
 
 if TYPE_CHECKING:
@@ -217,7 +218,6 @@ def capture_object(
     idle); returns when every file is written. Returns the mean fraction of training-image pixels the object
     covers.
     """
-    from tnf.capture import intrinsics, write_frame, write_transforms
 
     (folder / "images").mkdir(parents=True, exist_ok=True)
     (folder / "depth").mkdir(parents=True, exist_ok=True)

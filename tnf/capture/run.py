@@ -11,7 +11,11 @@ import logging
 import time
 from typing import Any
 
+from tnf.capture import camera_distance, camera_poses
+from tnf.capture.render import MeshRenderer, capture_object
 from tnf.errors import TnfError
+from tnf.objects.captured import import_views
+from tnf.runtime import progress
 
 log = logging.getLogger(__name__)
 
@@ -29,8 +33,6 @@ def capture_objects(
     changes the images (the object source's and capture settings, the seed; its hash decides what is skipped).
     Returns one row per object: status, views, seconds and (captured ones) mean coverage."""
     from concurrent.futures import ThreadPoolExecutor
-
-    from tnf.runtime import progress
 
     rows: list[dict[str, Any]] = []
     invalid: list[str] = []  # why each skipped mesh was rejected
@@ -66,12 +68,7 @@ def _capture_one(
     """Capture (or import, or skip) one object; ``renderer`` holds the shared renderer once made."""
     import numpy as np
 
-    from tnf.capture import camera_distance, camera_poses
-    from tnf.capture.render import MeshRenderer, capture_object
-
     if source.views(name) is not None:  # the source's own camera images: imported, not rendered
-        from tnf.objects.captured import import_views
-
         return import_views(store, source, name)
     item = (source.name, name)
     if store.is_done("capture", *item, config=config):

@@ -15,6 +15,7 @@ from torch.utils.data import Dataset, default_collate, get_worker_info
 from tnf.data.splits import SPLITS, split_code
 from tnf.data.store import PairArrays, open_pairs
 from tnf.errors import TnfError
+from tnf.registry import SENSORS
 
 log = logging.getLogger(__name__)
 
@@ -401,7 +402,6 @@ def sensor_mirror(manifest: dict[str, Any], where: Any, required: bool = True) -
     """The mirror symmetry (``Sensor.mirror_channels``) of the sensor a dataset was made with, from the sensor
     record ``tnf pair`` writes into its manifest; a TnfError when there is no record, or no symmetry and
     ``required`` (else None)."""
-    from tnf.registry import SENSORS
 
     rec = manifest.get("sensor")
     if not isinstance(rec, dict) or not isinstance(rec.get("name"), str):

@@ -15,7 +15,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from tnf.artifacts import ArtifactStore, read_json
+from tnf.data.forces import touch_forces
+from tnf.data.preprocess import SIZE, crop_origin, gel_size_m
+from tnf.data.prior import DepthPrior
+from tnf.data.render import Framing, TouchItem, render_pairs_for_touches
+from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
+from tnf.data.store import PairWriter, open_pairs, write_manifest
 from tnf.errors import TnfError
+from tnf.registry import SCENES, SENSORS, config_to_dict, split_spec
+from tnf.runtime import job_device, progress, resolve_device, warp_device
+from tnf.scenes import load_scene
 
 ASSEMBLE_CHUNK = 256  # pairs copied per step while assembling (bounds memory)
 SCENE_SOURCES = ("fitted", "mesh")
@@ -72,11 +82,6 @@ def make_pairs(job: PairJob) -> None:
     ``pairs/<job.name>/`` unless the job is one shard of a sweep."""
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore
-    from tnf.data.splits import choose_novel_objects
-    from tnf.registry import SENSORS, config_to_dict, split_spec
-    from tnf.runtime import job_device, resolve_device
-
     p, store, names, src = job.settings, ArtifactStore(job.data_root), job.names, job.source.name
     sensor_name, sensor_params = split_spec(job.sensor, "sensor")
     sensor_cfg = SENSORS.config(sensor_name, sensor_params)
@@ -93,8 +98,6 @@ def make_pairs(job: PairJob) -> None:
     dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
     touch_force = None
     if p.get("force"):  # pair.force: each pair's touch force (force.npy), read from the touch manifests
-        from tnf.data.forces import touch_forces
-
         touch_force = touch_forces({o: inputs[o]["item"] for o in names})
         dataset_key["force"] = touch_force.record
     if store.is_done("pairs", job.name, config=dataset_key):
@@ -115,8 +118,6 @@ def make_pairs(job: PairJob) -> None:
 
 def _check_inputs(job: PairJob, store: Any, sensor_name: str, sensor_dict: dict[str, Any]) -> dict[str, Any]:
     """Each object's touches, capture camera and fitted scene, checked before hours of rendering."""
-    from tnf.artifacts import read_json
-    from tnf.data.render import TouchItem
 
     scene_name, src = str(job.scene["name"]), job.source.name
     inputs: dict[str, dict[str, Any]] = {}
@@ -149,9 +150,6 @@ def _framing(p: dict[str, Any], inputs: dict[str, Any], sensor: Any) -> Any:
     ``crop_px`` (None for crops sized per view)."""
     import numpy as np
 
-    from tnf.data.preprocess import crop_origin, gel_size_m
-    from tnf.data.render import Framing
-
     distance = p.get("footprint_distance")
     if distance is None:
         all_d = np.concatenate([i["item"].contact_distances() for i in inputs.values()])
@@ -177,7 +175,6 @@ def _framing(p: dict[str, Any], inputs: dict[str, Any], sensor: Any) -> Any:
 
 def _cache_keys(job: PairJob, inputs: dict[str, Any], framing: Any) -> dict[str, dict[str, Any]]:
     """What decides each object's render cache (its hash decides whether a finished cache is reused)."""
-    from tnf.data.preprocess import SIZE
 
     p = job.settings
     cache_keys: dict[str, dict[str, Any]] = {}
@@ -215,10 +212,6 @@ def _render_caches(
     """Step 1: render and preprocess the touches of the objects ``todo`` into their cache items."""
     import numpy as np
 
-    from tnf.data.render import render_pairs_for_touches
-    from tnf.data.splits import assign_splits
-    from tnf.runtime import progress, warp_device
-
     p, src = job.settings, job.source.name
     optional = tuple(k for k in ("prior", "points") if p[k])
     n_render = sum(len(inputs[o]["item"].touches) for o in todo)
@@ -226,8 +219,6 @@ def _render_caches(
         console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p['scene_source']})")
     prior = None
     if p["prior"]:
-        from tnf.data.prior import DepthPrior
-
         assert job.simulator is not None
         prior = DepthPrior(sensor, job.simulator, framing, device=warp_device(device))
         console.print(f"pair: with the prior, {job.simulator['name']}'s image of each depth crop (pair.prior)")
@@ -277,9 +268,6 @@ def _assemble(
 ) -> None:
     """Step 2: copy the caches into the dataset's arrays, chunk by chunk, with the split assignment."""
     import numpy as np
-
-    from tnf.data.splits import SPLITS, assign_splits
-    from tnf.data.store import PairWriter
 
     p, names, src = job.settings, job.names, job.source.name
     optional = tuple(k for k in ("prior", "points") if p[k])
@@ -346,8 +334,6 @@ def _write_dataset_manifest(
     sensor_dict: dict[str, Any],
     info: dict[str, Any],
 ) -> None:
-    from tnf.data.preprocess import SIZE
-    from tnf.data.store import write_manifest
 
     p, names = job.settings, job.names
     fitted = p["scene_source"] == "fitted"
@@ -406,10 +392,7 @@ def _check_sensor(item: Any, name: str, config: dict[str, Any], obj: str) -> Non
 
 def _load_scene(kind: str, scene_dir: Path, source: Any, obj: str, device: str) -> Any:
     if kind == "fitted":
-        from tnf.scenes import load_scene
-
         return load_scene(scene_dir, device)
-    from tnf.registry import SCENES
 
     return SCENES.get("mesh").from_mesh(source.load(obj)).to(device)
 
@@ -419,8 +402,6 @@ def _write_previews(folder: Path, names: list[str], k: int, seed: int) -> None:
     prior after the tactile image where the dataset holds it (``pair.prior``)."""
     import numpy as np
     from PIL import Image
-
-    from tnf.data.store import open_pairs
 
     if k <= 0:
         return

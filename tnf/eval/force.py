@@ -26,9 +26,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from tnf.artifacts import MANIFEST, ArtifactStore, read_json
+from tnf.data import PairDataset, collate_pairs
+from tnf.data.preprocess import SIZE, resize_uint8
+from tnf.data.render import TouchItem
 from tnf.errors import TnfError
 from tnf.metrics import mse, ssim
-from tnf.sim.forces import BANDS, ForcePlan
+from tnf.registry import OBJECTS, SENSORS, SIMULATORS, split_spec
+from tnf.runtime import warp_device
+from tnf.sim.forces import BANDS, ForcePlan, check_force_value
 
 
 def contact_area(images: torch.Tensor, background: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -133,7 +139,6 @@ def resimulate(
 ) -> np.ndarray:
     """The simulator's images of one start pose pressed at each of ``forces`` (newtons), as the datasets store
     them: uint8 [S, size, size, 3] (resized like ``tnf pair``'s tactile images)."""
-    from tnf.data.preprocess import resize_uint8
 
     poses = np.repeat(np.asarray(start_c2w, np.float64)[None], len(forces), 0)
     out = simulator.press(mesh, poses, np.asarray(forces, np.float32), seed=0)
@@ -192,13 +197,6 @@ def by_force(
     import io
 
     from torch.utils.data import DataLoader
-
-    from tnf.artifacts import MANIFEST, ArtifactStore, read_json
-    from tnf.data import PairDataset, collate_pairs
-    from tnf.data.preprocess import SIZE, resize_uint8
-    from tnf.registry import OBJECTS, SENSORS, SIMULATORS, split_spec
-    from tnf.runtime import warp_device
-    from tnf.sim.forces import check_force_value
 
     bf = settings["by_force"]
     manifest = read_json(pairs / MANIFEST, "dataset manifest")
@@ -286,7 +284,6 @@ def by_force(
 
 def _touch(store: Any, sensor: str, source: str, obj: str, index: int) -> dict[str, Any]:
     """Touch ``index`` of an object's touch item (its manifest entry: start pose, force...)."""
-    from tnf.data.render import TouchItem
 
     item = TouchItem.load(store.require("touch", sensor, source, obj, hint="run `tnf touch` first"))
     return next(t for t in item.touches if int(t["index"]) == index)

@@ -26,6 +26,8 @@ from typing import Any
 
 from tnf.artifacts import write_bytes
 from tnf.eval.aggregate import Stat, TableData, aggregate
+from tnf.eval.figures import bar_plot
+from tnf.eval.force_report import force_section
 from tnf.eval.paper import PAPER
 from tnf.eval.scoring import BG
 
@@ -455,7 +457,6 @@ def write_report(
     A run's ``examples`` entry (a PNG path relative to its results file) is shown as its method's example
     figure (the lowest seed's). Returns the aggregated tables.
     """
-    from tnf.eval.figures import bar_plot
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -530,7 +531,6 @@ def write_report(
         figures[table] = figs
     timings = [json.loads(p.read_text()) for p in sorted((folder / "timings").glob("*.json"))]
     md = render_markdown(name or folder.name, tables, figures, notes, timings, next_step)
-    from tnf.eval.force_report import force_section
 
     if section := force_section(results, folder):  # a force-conditioned model's evaluation by force
         md += "\n" + "\n".join(section)

@@ -16,7 +16,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from tnf.artifacts import MANIFEST, read_json, write_json
 from tnf.errors import TnfError
+from tnf.eval.aggregate import RESULTS_FILE, SCHEMA, find_results, load_results
+from tnf.runtime import environment, progress, resolve_device, seed_everything
 
 
 @dataclass
@@ -54,7 +57,6 @@ def check_not_another_models(results_file: Path, model: str, method: str, seed: 
     """A report holds one run per table, row label and seed: refuse to replace another model's results there
     (two models evaluated with the same label and seed, as a sweep over a generator setting would, would
     otherwise leave only the last one's numbers, silently). ``evaluate.force`` replaces them."""
-    from tnf.eval.aggregate import load_results
 
     if force or not results_file.is_file():
         return
@@ -70,8 +72,6 @@ def check_not_another_models(results_file: Path, model: str, method: str, seed: 
 
 def collect_sweep(sweep_dir: str, runs_dir: Path, force: bool) -> int:
     """Copy the results of a Hydra multirun folder into a report's ``runs/``; returns how many were found."""
-    from tnf.artifacts import write_json
-    from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
 
     files = find_results(Path(sweep_dir).expanduser())
     if not files:
@@ -104,8 +104,6 @@ def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | No
     """Image metrics and the classification task for ``evaluate.model``: the results dict, the example
     figure as PNG bytes (None without image metrics) and further figures by file name (a force-conditioned
     model's force sweep), which the caller writes beside the results."""
-    from tnf.eval.aggregate import SCHEMA
-    from tnf.runtime import environment, progress, resolve_device, seed_everything
 
     ecfg = job.settings
     device = resolve_device(job.device)
@@ -157,7 +155,7 @@ def image_metrics(
     a model conditioned on the force its evaluation by force (``tnf.eval.force.by_force``; None otherwise)."""
     from torch.utils.data import DataLoader
 
-    from tnf.artifacts import MANIFEST, read_json
+    # Lazy: torch-heavy; tnf evaluate imports this module before Hydra composes.
     from tnf.data import PairDataset, collate_pairs, training_order
     from tnf.data.datamodule import resolve_dataset
     from tnf.eval.scoring import BG, score_batches
@@ -225,7 +223,6 @@ def _model_images(job: EvalJob, ckpt: Path, pairs: Path, device: str, bar: Any) 
     and the one force it is given when the dataset records none (else None)."""
     import torch
 
-    from tnf.artifacts import MANIFEST, read_json
     from tnf.data import sensor_mirror
 
     try:

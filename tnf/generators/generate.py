@@ -20,7 +20,19 @@ from typing import Any
 
 import numpy as np
 
+from tnf.artifacts import MANIFEST, ArtifactStore, read_json, write_json
+from tnf.data.pairing import capture_camera
+from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
+from tnf.data.prior import DepthPrior
+from tnf.data.render import Framing, TouchItem, render_rgbd_crops
+from tnf.data.splits import TOUCH_SPLITS
 from tnf.errors import TnfError
+from tnf.generators import load_generator
+from tnf.registry import SENSORS
+from tnf.runtime import progress, resolve_device, warp_device
+from tnf.scenes import load_scene
+from tnf.sim.forces import requested_forces
+from tnf.sim.touch import sphere_directions, start_poses
 
 # generate settings that do not change the images (left out of an item's config hash)
 _UNHASHED = ("force", "batch_size", "render_chunk", "run_name")
@@ -89,7 +101,6 @@ def read_poses(path: str | os.PathLike[str]) -> np.ndarray:
 
 def sample_poses(n: int, radius: float, up: Any, random_roll: bool, seed: int) -> np.ndarray:
     """``n`` poses uniform on the sphere of ``radius`` metres, looking at the origin: [n, 4, 4] c2w."""
-    from tnf.sim.touch import sphere_directions, start_poses
 
     rng = np.random.default_rng(seed)
     dirs = sphere_directions(rng, n, (0.0, 0.0, 1.0), 0.0, inside=False)
@@ -101,9 +112,6 @@ def generate(job: GenerateJob) -> dict[str, Any]:
 
     Returns ``{"run_dir": <generated/run_name>, "written": {object: images written}}``."""
     from rich.console import Console
-
-    from tnf.artifacts import ArtifactStore
-    from tnf.runtime import progress
 
     console = Console(highlight=False)
     store = ArtifactStore(job.data_root)
@@ -125,12 +133,6 @@ def generate(job: GenerateJob) -> dict[str, Any]:
 
 def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
     """Check the settings, load the checkpoint and build the sensor."""
-    from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
-    from tnf.data.splits import TOUCH_SPLITS
-    from tnf.generators import load_generator
-    from tnf.registry import SENSORS
-    from tnf.runtime import resolve_device
-    from tnf.sim.forces import requested_forces
 
     g = job.settings
     if not g["model"]:
@@ -186,10 +188,6 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
     focal lengths, framing, poses, config, seed and (``touch_force=sim``) its simulated touches."""
     import zlib
 
-    from tnf.artifacts import read_json
-    from tnf.data.pairing import capture_camera
-    from tnf.data.render import Framing
-
     g, src = job.settings, job.source.name
     prep = _preprocessing(job, store)
     file_poses = read_poses(g["poses_file"]) if g["poses_file"] else None
@@ -212,9 +210,6 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
             prep["framing"], crop_px=crop, footprint_distance=prep["footprint_distance"]
         ).with_sensor(model.sensor)
         if model.needs_prior and model.prior is None:
-            from tnf.data.prior import DepthPrior
-            from tnf.runtime import warp_device
-
             model.prior = DepthPrior(model.sensor, job.simulator, framing, device=warp_device(model.device))
         seed = (job.seed * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
         own = _own_touches(store, model.sensor.name, src, obj) if model.wanted == "sim" else None
@@ -234,7 +229,6 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
 
 def _own_touches(store: Any, sensor: str, src: str, obj: str) -> list[dict[str, Any]]:
     """``generate.touch_force=sim``: the object's simulated touches, each with its recorded force."""
-    from tnf.data.render import TouchItem
 
     own = TouchItem.load(store.require("touch", sensor, src, obj, hint=f"run `tnf touch object={obj}` first")).touches
     unknown = [t["index"] for t in own if not isinstance(t.get("force"), (int, float))]
@@ -288,9 +282,6 @@ def _generate_object(job: GenerateJob, store: Any, model: _Model, item: tuple[An
 
     import torch
     from PIL import Image
-
-    from tnf.artifacts import write_json
-    from tnf.scenes import load_scene
 
     obj, scene_dir, focal, framing, poses, config, seed, own = item
     wanted = model.wanted
@@ -353,8 +344,6 @@ def _generate_batch(
     distance along its axis (metres; inf where the gel's footprint holds no surface) and each image's force."""
     import torch
 
-    from tnf.data.render import render_rgbd_crops
-
     device = model.device
     c2w = torch.as_tensor(poses[s : s + step], dtype=torch.float32, device=device)
     b = len(c2w)
@@ -416,7 +405,6 @@ def _touch_record(
 def _manifest(
     job: GenerateJob, model: _Model, obj: str, touches: list[dict[str, Any]], per_pose: int
 ) -> dict[str, Any]:
-    from tnf.data.preprocess import SIZE
 
     g = job.settings
     return {
@@ -457,7 +445,6 @@ def _at_forces(
 def _preprocessing(job: GenerateJob, store: Any) -> dict[str, Any]:
     """Crop and depth settings of the dataset the model was trained on (``generate.dataset`` overrides);
     falls back to the ``pair`` section when no dataset manifest is found."""
-    from tnf.artifacts import MANIFEST, read_json
 
     name = job.settings["dataset"]
     if name is None:

@@ -20,8 +20,10 @@ from typing import Any
 import lightning
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
-from tnf.artifacts import MANIFEST, config_hash, read_json, write_json
+from tnf import __version__
+from tnf.artifacts import MANIFEST, config_hash, read_json, write_bytes, write_json
 from tnf.errors import TnfError
+from tnf.generators.system import NonFiniteLoss
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
 
 RUN_FILE = "run.json"
@@ -160,8 +162,6 @@ def fit(
     from lightning.pytorch.callbacks import RichProgressBar
     from torch.multiprocessing import ProcessRaisedException
 
-    from tnf.generators.system import NonFiniteLoss
-
     run_dir = Path(run_dir)
     ckpt_path = prepare_run_dir(run_dir, config, resume)
     system.grid_dir = str(run_dir / "grids")
@@ -254,8 +254,6 @@ def fit(
         "checkpoints": {"last": "last.ckpt", "best": "best.ckpt"},
     }
     if trainer.is_global_zero:
-        from tnf import __version__
-
         manifest = {
             **summary,
             "stage": "models",
@@ -275,8 +273,6 @@ def merge_metrics_parts(run_dir: Path) -> None:
     a resume from ``last.ckpt`` appear once. Columns are the union, in order of first appearance."""
     import csv
     import io
-
-    from tnf.artifacts import write_bytes
 
     last = run_dir / "metrics.csv"
     numbered = {f: f.stem.removeprefix("metrics.part") for f in run_dir.glob("metrics.part*.csv")}

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from tnf.errors import TnfError
+from tnf.registry import OBJECTS, split_spec
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
@@ -216,7 +217,6 @@ def select(cfg: Any) -> tuple[ObjectSource, list[str]]:
     ``cfg.object`` (one name) wins over ``cfg.object_names`` (a list, or null for every object of the
     source). Unknown names raise a TnfError listing what is available.
     """
-    from tnf.registry import OBJECTS, split_spec
 
     source = OBJECTS.build(cfg.objects)
     source.name = split_spec(cfg.objects, "objects")[0]

@@ -29,7 +29,7 @@ def score(pred: np.ndarray, real: np.ndarray, region: np.ndarray) -> dict[str, l
     """
     import torch
 
-    from tnf.metrics import ssim_map
+    from tnf.metrics import ssim_map  # lazy: imports torch
 
     p = torch.from_numpy(np.ascontiguousarray(pred)).permute(0, 3, 1, 2)
     t = torch.from_numpy(np.ascontiguousarray(real)).permute(0, 3, 1, 2)

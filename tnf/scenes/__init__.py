@@ -11,7 +11,9 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from tnf.artifacts import write_bytes
 from tnf.errors import TnfError
+from tnf.registry import SCENES, config_to_dict
 
 if TYPE_CHECKING:
     from tnf.scenes.base import Scene
@@ -29,9 +31,6 @@ def save_scene(scene: Scene, path: str | os.PathLike[str], extra: dict[str, Any]
     import io
 
     import torch
-
-    from tnf.artifacts import write_bytes
-    from tnf.registry import SCENES, config_to_dict
 
     name = getattr(scene, "name", "") or _registered_name(scene)
     if name not in SCENES:
@@ -58,8 +57,6 @@ def load_scene(path: str | os.PathLike[str], device: str = "cpu") -> Scene:
     import pickle
 
     import torch
-
-    from tnf.registry import SCENES
 
     path = Path(path)
     file = path / CHECKPOINT if path.is_dir() else path
@@ -97,7 +94,6 @@ def checkpoint_extra(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def _registered_name(scene: Any) -> str:
-    from tnf.registry import SCENES
 
     for e in SCENES.entries():
         if type(scene) is e.obj:

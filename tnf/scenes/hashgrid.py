@@ -496,7 +496,7 @@ class HashGridScene(FieldScene):
         wanted = self.render_kernel if wanted is None else wanted
         if wanted is False:
             return False
-        from tnf.scenes import hash_kernel
+        from tnf.scenes import hash_kernel  # lazy: imports warp
 
         ok = hash_kernel.available(device)
         if wanted and not ok:

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from tnf.capture.render import MeshRenderer
 from tnf.registry import SCENES
 from tnf.scenes.base import RGBD, Scene
 
@@ -39,7 +40,6 @@ class MeshScene(Scene):
         self, c2w: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, chunk: int | None = None
     ) -> RGBD:
         """Render B views; see :meth:`Scene.render_rgbd`. ``chunk`` is ignored (whole images are rasterised)."""
-        from tnf.capture.render import MeshRenderer
 
         key = (int(width), int(height))
         if key not in self._renderers:

@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from tnf.errors import TnfError
+from tnf.registry import config_to_dict
 from tnf.sensors.calibration import Calibration, load_calibration
 
 
@@ -407,7 +408,6 @@ class Sensor:
 
     def describe(self) -> dict[str, Any]:
         """``{"name", "config"}`` as plain JSON data (what the touch manifest records)."""
-        from tnf.registry import config_to_dict
 
         out: dict[str, Any] = {"name": self.name, "config": config_to_dict(self.cfg)}
         if self.calibration is not None:

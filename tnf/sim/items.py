@@ -13,6 +13,12 @@ from concurrent.futures import wait
 from dataclasses import dataclass
 from typing import Any
 
+from tnf.artifacts import require_space
+from tnf.registry import SIMULATORS
+from tnf.runtime import progress
+from tnf.sim.forces import force_sampler
+from tnf.sim.touch import collect
+
 SPLITS = ("train", "val", "novel_view")
 
 
@@ -71,9 +77,6 @@ def simulate_touches(job: TouchJob, store: Any, console: Any) -> None:
     import os
     from concurrent.futures import ThreadPoolExecutor
 
-    from tnf.registry import SIMULATORS
-    from tnf.runtime import progress
-
     tc = job.settings
     sim = SIMULATORS.build(job.simulator, sensor=job.sensor, device=job.device)
     counts = {"train": int(tc["n_touches"]), "val": int(tc["n_val"]), "novel_view": int(tc["n_novel_view"])}
@@ -107,8 +110,6 @@ def _simulate_item(
     """One object's item: every split's touches, written as they come; returns the touches and the discarded
     count of each split."""
     import numpy as np
-
-    from tnf.artifacts import require_space
 
     sensor, source, plan = job.sensor, job.source, job.plan
     mesh = source.load(name)
@@ -174,8 +175,6 @@ def _simulate_item(
 
 def _collect(job: TouchJob, sim: Any, mesh: Any, count: int, rng: Any, split: str, seed: int) -> Any:
     """``count`` touches of one split (``tnf.sim.touch.collect``) with the touch section's settings."""
-    from tnf.sim.forces import force_sampler
-    from tnf.sim.touch import collect
 
     tc = job.settings
     force = float(tc["force"]) if job.plan is None else force_sampler(job.plan, split, seed)

@@ -14,6 +14,7 @@ import numpy as np
 
 from tnf.cameras import look_at
 from tnf.errors import TnfError
+from tnf.sim.base import TouchBatch
 
 
 def roll_about_view(c2w: np.ndarray, angle: float) -> np.ndarray:
@@ -98,7 +99,6 @@ def collect(
 
     Raises a TnfError when fewer than ``n`` touches hit after ``max_attempts * n`` tries.
     """
-    from tnf.sim.base import TouchBatch
 
     kept: list[TouchBatch] = []
     starts: list[np.ndarray] = []

@@ -10,6 +10,14 @@ from __future__ import annotations
 
 from typing import Any
 
+from tnf.artifacts import ArtifactStore
+from tnf.errors import TnfError
+from tnf.real.calibrate import FitSettings, calibrate_sensor
+from tnf.real.presses import INDEX, import_taxim, load_presses
+from tnf.real.realism import table
+from tnf.registry import SENSORS, from_dict, split_spec
+from tnf.runtime import progress
+
 
 def run(cfg: Any) -> dict[str, Any] | None:
     import hashlib
@@ -17,13 +25,6 @@ def run(cfg: Any) -> dict[str, Any] | None:
 
     from omegaconf import OmegaConf
     from rich.console import Console
-
-    from tnf.artifacts import ArtifactStore
-    from tnf.errors import TnfError
-    from tnf.real.calibrate import FitSettings, calibrate_sensor
-    from tnf.real.presses import INDEX, import_taxim, load_presses
-    from tnf.registry import SENSORS, from_dict, split_spec
-    from tnf.runtime import progress
 
     console = Console(highlight=False)
     c = cfg.calibrate
@@ -70,7 +71,6 @@ def run(cfg: Any) -> dict[str, Any] | None:
                 presses, sensor, simulator, train, test, settings, tmp,
                 grid_presses=int(c.grid_presses), on_step=lambda _: bar.advance(task),
             )  # fmt: skip
-    from tnf.real.realism import table
 
     console.print(table(record["mean"], record["seconds_per_frame"]))
     console.print(f"calibration: {where}\nuse it with: sensor={sensor.name} sensor.calibration={where}")

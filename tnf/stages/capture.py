@@ -9,18 +9,18 @@ from __future__ import annotations
 
 from typing import Any
 
+from tnf.artifacts import ArtifactStore
+from tnf.capture import capture_config
+from tnf.capture.run import capture_objects
+from tnf.objects import select, shard
+from tnf.registry import split_spec
+
 
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Capture the objects of ``cfg`` (cfg.object / cfg.object_names of cfg.objects); returns one row each."""
     from omegaconf import OmegaConf
     from rich.console import Console
     from rich.table import Table
-
-    from tnf.artifacts import ArtifactStore
-    from tnf.capture import capture_config
-    from tnf.capture.run import capture_objects
-    from tnf.objects import select, shard
-    from tnf.registry import split_spec
 
     ccfg = capture_config(cfg.capture)
     source, names = select(cfg)

@@ -14,17 +14,18 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, cast
 
+from tnf.artifacts import ArtifactStore, config_hash, exclusive, write_bytes, write_json
 from tnf.errors import TnfError
+from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
+from tnf.eval.paper import METHOD_LABELS
+from tnf.eval.run import EvalJob, check_not_another_models, collect_sweep, evaluate_model, run_id
 
 
 def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore, config_hash, exclusive, write_bytes, write_json
-    from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
     from tnf.eval.report import write_report
-    from tnf.eval.run import check_not_another_models, collect_sweep, evaluate_model, run_id
 
     console = Console(highlight=False)
     ecfg = cfg.evaluate
@@ -100,7 +101,6 @@ def run(cfg: Any) -> dict[str, Any]:
 
 
 def _method_label(cfg: Any) -> str:
-    from tnf.eval.paper import METHOD_LABELS
 
     name = str(cfg.generator.name) if "generator" in cfg and "name" in cfg.generator else "G"
     return METHOD_LABELS.get(name, name)
@@ -108,7 +108,6 @@ def _method_label(cfg: Any) -> str:
 
 def _job(cfg: Any, settings: dict[str, Any], method: str) -> Any:
     """The evaluation of ``evaluate.model`` as plain values (``settings``: the whole config as plain data)."""
-    from tnf.eval.run import EvalJob
 
     datasets = cfg.data.get("datasets")
     return EvalJob(

@@ -13,12 +13,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, cast
 
+from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
+from tnf.runtime import seed_everything
+from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config
 
 
 def resolve_checkpoint(value: str, data_root: Any) -> Path:
     """A checkpoint given as a path, as ``<run>/<file>`` under ``models/``, or as a run name (best.ckpt)."""
-    from tnf.artifacts import ArtifactStore
 
     p = Path(value).expanduser()
     if p.is_file():
@@ -36,11 +38,8 @@ def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore
     from tnf.generators.names import finetune_run_name
     from tnf.generators.system import GeneratorSystem
-    from tnf.runtime import seed_everything
-    from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config
 
     console = Console(highlight=False)
     f = cfg.finetune

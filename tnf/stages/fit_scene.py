@@ -16,7 +16,11 @@ import logging
 import time
 from typing import Any
 
+from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
+from tnf.objects import shard, shard_of
+from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
+from tnf.runtime import job_device, progress, resolve_device, seed_everything
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +41,6 @@ def selected_objects(cfg: Any, store: Any, source: str) -> list[str]:
 
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Fit every selected object; returns one summary row per object."""
-    from tnf.artifacts import ArtifactStore
-    from tnf.objects import shard, shard_of
-    from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
-    from tnf.runtime import job_device, progress, resolve_device, seed_everything
     from tnf.scenes.fit import fit_object
     from tnf.scenes.system import FitSettings
 

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 from typing import Any
 
+from tnf.objects import select
+
 
 def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     from tnf.generators.generate import GenerateJob, generate
-    from tnf.objects import select
 
     def plain(node: Any) -> Any:
         return OmegaConf.to_container(node, resolve=True) if node is not None else None

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from typing import Any
 
+from tnf.objects import select
+from tnf.runtime import progress
+
 
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Print a table of the selected objects (name, size in cm, triangles); returns its rows."""
     from rich.console import Console
     from rich.table import Table
-
-    from tnf.objects import select
-    from tnf.runtime import progress
 
     source, names = select(cfg)
     rows: list[dict[str, Any]] = []

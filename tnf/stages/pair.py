@@ -16,14 +16,15 @@ from __future__ import annotations
 
 from typing import Any
 
+from tnf.objects import select, shard_of
+from tnf.runtime import seed_everything
+
 
 def run(cfg: Any) -> None:
     from omegaconf import OmegaConf
 
     from tnf.data.pairing import PairJob, make_pairs
     from tnf.data.store import dataset_name
-    from tnf.objects import select, shard_of
-    from tnf.runtime import seed_everything
 
     def plain(node: Any) -> Any:
         return OmegaConf.to_container(node, resolve=True) if node is not None else None

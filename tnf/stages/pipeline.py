@@ -15,7 +15,9 @@ import json
 import time
 from typing import Any
 
+from tnf.artifacts import ArtifactStore, write_json
 from tnf.errors import TnfError
+from tnf.runtime import resolve_device
 
 ORDER = ("calibrate", "capture", "fit-scene", "touch", "pair", "train", "finetune", "generate", "evaluate")
 
@@ -69,7 +71,6 @@ def run(cfg: Any) -> dict[str, Any]:
 def expected_times(cfg: Any) -> dict[str, float]:
     """Seconds each stage is expected to take: the last finished run of this experiment in this store (its
     ``timings`` file), else the experiment's ``pipeline.expected_s`` (measured on 2 CPU cores), else none."""
-    from tnf.artifacts import ArtifactStore
 
     folder = ArtifactStore(cfg.data_root).path("reports", str(cfg.evaluate.name), "timings")
     done = []
@@ -157,8 +158,6 @@ def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float],
 def _write_timings(cfg: Any, times: dict[str, float], total: float | None) -> Any:
     """``<report>/timings/<model>.json``: this run's wall time per stage (the stages run so far; ``total_s`` once
     all have run), which the report shows. Returns the report's folder."""
-    from tnf.artifacts import ArtifactStore, write_json
-    from tnf.runtime import resolve_device
 
     report = ArtifactStore(cfg.data_root).path("reports", str(cfg.evaluate.name))
     device = resolve_device(str(cfg.device))

@@ -10,7 +10,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.sim.items import SPLITS
+from tnf.artifacts import ArtifactStore
+from tnf.errors import TnfError
+from tnf.objects import select, shard, shard_of
+from tnf.objects.captured import import_touches
+from tnf.registry import SENSORS, split_spec
+from tnf.runtime import job_device, resolve_device, warp_device
+from tnf.sim.forces import force_plan
+from tnf.sim.items import SPLITS, TouchJob, simulate_touches
 
 __all__ = ["SPLITS", "item_config", "run"]
 
@@ -18,8 +25,6 @@ __all__ = ["SPLITS", "item_config", "run"]
 def item_config(cfg: Any, sensor: Any) -> dict[str, Any]:
     """What decides a touch item's content (its hash decides whether a finished item is reused)."""
     from omegaconf import OmegaConf
-
-    from tnf.registry import split_spec
 
     touch = OmegaConf.to_container(cfg.touch, resolve=True)
     assert isinstance(touch, dict)
@@ -37,14 +42,6 @@ def run(cfg: Any) -> None:
     from omegaconf import OmegaConf
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore
-    from tnf.errors import TnfError
-    from tnf.objects import select, shard, shard_of
-    from tnf.registry import SENSORS
-    from tnf.runtime import job_device, resolve_device, warp_device
-    from tnf.sim.forces import force_plan
-    from tnf.sim.items import TouchJob, simulate_touches
-
     console = Console(highlight=False)
     tc = cfg.touch
     store = ArtifactStore(cfg.data_root)
@@ -56,8 +53,6 @@ def run(cfg: Any) -> None:
     source, names = select(cfg)
     names = shard(names, cfg)  # a job of a sweep over shards: its share
     if any(source.touches(n) is not None for n in names):  # the source's own tactile frames: imported, not simulated
-        from tnf.objects.captured import import_touches
-
         for n in names:
             console.print(import_touches(store, sensor, source, n, start_radius=float(tc.radius)))
         return

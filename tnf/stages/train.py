@@ -11,16 +11,18 @@ from __future__ import annotations
 
 from typing import Any, cast
 
+from tnf.artifacts import ArtifactStore
+from tnf.errors import TnfError
+from tnf.runtime import seed_everything
+
 
 def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
     from rich.console import Console
 
-    from tnf.artifacts import ArtifactStore
     from tnf.generators.names import train_run_name
     from tnf.generators.system import GeneratorSystem, generator_spec
     from tnf.generators.training import process_rank
-    from tnf.runtime import seed_everything
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
     console = Console(highlight=False, quiet=process_rank() != 0)
@@ -106,7 +108,6 @@ def dataset_names(cfg: Any) -> list[str]:
     """``data.datasets``, with an unset name (``pair.name: null``) replaced by the name ``tnf pair`` gives the
     dataset of this config."""
     from tnf.data.store import dataset_name
-    from tnf.errors import TnfError
 
     listed = cfg.data.datasets
     if listed is None:  # the dataset `tnf pair` builds with this config

@@ -29,7 +29,11 @@ import pytest
 
 from tnf.cameras import look_at
 from tnf.errors import TnfError
+from tnf.objects import REFUSE_SIZE, ObjectSource
 from tnf.registry import GENERATORS, OBJECTS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict, split_spec
+from tnf.scenes import load_scene, save_scene
+from tnf.sensors import Sensor
+from tnf.sim.base import Simulator
 from tnf.testing.config import compose
 
 
@@ -172,7 +176,6 @@ class SensorContract(_ComponentContract):
         return float(lo + 0.1 * (hi - lo))
 
     def test_is_a_sensor_named_as_registered(self, sensor):
-        from tnf.sensors import Sensor
 
         assert isinstance(sensor, Sensor)
         assert sensor.name == self.name, "set the class attribute `name` to the registry name"
@@ -451,7 +454,6 @@ class SceneContract(_ComponentContract):
 
         if not self.saveable:
             pytest.skip(f"{self.name} scenes are not saved as checkpoints")
-        from tnf.scenes import load_scene, save_scene
 
         path = save_scene(scene, tmp_path)
         blob = torch.load(path, map_location="cpu", weights_only=True)
@@ -527,7 +529,6 @@ class SimulatorContract(_ComponentContract):
         return simulator.press(sphere, cls.poses(simulator.sensor), cls.forces(simulator.sensor)[0], seed=0)
 
     def test_is_a_simulator(self, simulator):
-        from tnf.sim.base import Simulator
 
         assert isinstance(simulator, Simulator)
         s = simulator.sensor
@@ -623,7 +624,6 @@ class ObjectSourceContract(_ComponentContract):
         return OBJECTS.build(cls.spec())
 
     def test_is_an_object_source_named_as_registered(self, source):
-        from tnf.objects import ObjectSource
 
         assert isinstance(source, ObjectSource)
         assert source.name == self.name, "set the class attribute `name` to the registry name"
@@ -631,7 +631,6 @@ class ObjectSourceContract(_ComponentContract):
         assert names and names == sorted(set(names)) and all(isinstance(n, str) and n for n in names)
 
     def test_objects_load_as_the_contract_says(self, source):
-        from tnf.objects import REFUSE_SIZE
 
         for name in source.names()[: self.max_objects]:
             views = source.views(name)
