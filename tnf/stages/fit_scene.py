@@ -38,21 +38,21 @@ def selected_objects(cfg: Any, store: Any, source: str) -> list[str]:
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Fit every selected object; returns one summary row per object."""
     from tnf.artifacts import ArtifactStore
-    from tnf.objects import shard, shard_of
     from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
     from tnf.runtime import job_device, progress, resolve_device, seed_everything
     from tnf.scenes.fit import fit_object
     from tnf.scenes.system import FitSettings
+    from tnf.stages import run_shard, shard_share
 
     settings = from_dict(FitSettings, cfg.fit, where="fit")
     kind, params = split_spec(cfg.scene, "scene")
     SCENES.config(kind, params)  # fail early on a bad scene config
     source, _ = split_spec(cfg.objects, "objects")
-    part = shard_of(cfg)
+    part = run_shard(cfg)
     device = job_device(resolve_device(cfg.device), part)
     store = ArtifactStore(cfg.data_root)
     store.clean_partials("scenes")
-    names = shard(selected_objects(cfg, store, source), cfg)  # a job of a sweep over shards: its share
+    names = shard_share(selected_objects(cfg, store, source), cfg)  # a job of a sweep over shards: its share
     # Check every input before the first (long) fit.
     captures = {}
     for name in names:

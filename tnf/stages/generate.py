@@ -18,12 +18,12 @@ def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     from tnf.generators.generate import GenerateJob, generate
-    from tnf.objects import select
+    from tnf.stages import run_objects
 
     def plain(node: Any) -> Any:
         return OmegaConf.to_container(node, resolve=True) if node is not None else None
 
-    source, names = select(cfg)
+    source, names = run_objects(cfg)
     job = GenerateJob(
         settings=plain(cfg.generate),
         pair=plain(cfg.pair),

@@ -22,8 +22,8 @@ def run(cfg: Any) -> None:
 
     from tnf.data.pairing import PairJob, make_pairs
     from tnf.data.store import dataset_name
-    from tnf.objects import select, shard_of
     from tnf.runtime import seed_everything
+    from tnf.stages import run_objects, run_shard
 
     def plain(node: Any) -> Any:
         return OmegaConf.to_container(node, resolve=True) if node is not None else None
@@ -31,7 +31,7 @@ def run(cfg: Any) -> None:
     settings = plain(cfg.pair)
     PairJob.check(settings)
     seed_everything(int(cfg.seed))
-    source, names = select(cfg)
+    source, names = run_objects(cfg)
     job = PairJob(
         settings=settings,
         name=dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name)),
@@ -46,6 +46,6 @@ def run(cfg: Any) -> None:
         seed=int(cfg.seed),
         device=str(cfg.device),
         progress=bool(cfg.progress),
-        shard=shard_of(cfg),
+        shard=run_shard(cfg),
     )
     make_pairs(job)

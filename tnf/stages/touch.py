@@ -39,11 +39,11 @@ def run(cfg: Any) -> None:
 
     from tnf.artifacts import ArtifactStore
     from tnf.errors import TnfError
-    from tnf.objects import select, shard, shard_of
     from tnf.registry import SENSORS
     from tnf.runtime import job_device, resolve_device, warp_device
     from tnf.sim.forces import force_plan
     from tnf.sim.items import TouchJob, simulate_touches
+    from tnf.stages import run_objects, run_shard, shard_share
 
     console = Console(highlight=False)
     tc = cfg.touch
@@ -53,8 +53,8 @@ def run(cfg: Any) -> None:
     plan = force_plan(tc.get("force_range"), sensor)  # None: every touch presses with touch.force
     if tc.radius <= 0:
         raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
-    source, names = select(cfg)
-    names = shard(names, cfg)  # a job of a sweep over shards: its share
+    source, names = run_objects(cfg)
+    names = shard_share(names, cfg)  # a job of a sweep over shards: its share
     if any(source.touches(n) is not None for n in names):  # the source's own tactile frames: imported, not simulated
         from tnf.objects.captured import import_touches
 
@@ -77,7 +77,7 @@ def run(cfg: Any) -> None:
         config=config,
         plan=plan,
         seed=int(cfg.seed),
-        device=warp_device(job_device(resolve_device(cfg.device), shard_of(cfg))),
+        device=warp_device(job_device(resolve_device(cfg.device), run_shard(cfg))),
         progress=bool(cfg.progress),
     )
     simulate_touches(job, store, console)
