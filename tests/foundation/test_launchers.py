@@ -143,18 +143,16 @@ def made_touch_items(out):
 
 
 def test_shards_split_the_objects_disjointly_and_cover_them():
-    from omegaconf import OmegaConf
-
     from tnf.errors import TnfError
     from tnf.objects import shard
 
     names = [f"o{i}" for i in range(10)]
-    parts = [shard(names, OmegaConf.create({"shard": i, "shards": 3})) for i in range(3)]
+    parts = [shard(names, i, 3) for i in range(3)]
     assert sorted(sum(parts, [])) == sorted(names) and [len(p) for p in parts] == [4, 3, 3]
-    assert shard(names, OmegaConf.create({"shard": None, "shards": 3})) == names
-    for bad in ({"shard": 3, "shards": 3}, {"shard": 0, "shards": 0}, {"shard": "x", "shards": 2}):
+    assert shard(names, None, 3) == names
+    for bad in ((3, 3), (0, 0), ("x", 2)):
         with pytest.raises(TnfError, match="shard"):
-            shard(names, OmegaConf.create(bad))
+            shard(names, *bad)
 
 
 def test_joblib_sweep_over_shards_makes_each_object_once_and_redoes_a_killed_jobs_objects(data_root):

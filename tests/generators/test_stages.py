@@ -41,12 +41,17 @@ def write_pairs(folder, n=12, seed=0, objects=("ball", "box")):
 TINY = ["debug=tiny", "progress=false", "data.batch_size=4"]
 
 
-def test_train_stage_writes_a_loadable_run(data_root):
+def test_train_stage_writes_a_loadable_run(data_root, monkeypatch):
+    from tnf.registry import GENERATORS
     from tnf.stages import train
 
     write_pairs(data_root / "pairs" / "digit-hashgrid")
     cfg = compose("train", TINY)
-    out = train.run(cfg)
+    checks, check = [], GENERATORS.config
+    with monkeypatch.context() as m:
+        m.setattr(GENERATORS, "config", lambda name, params=None: checks.append(name) or check(name, params))
+        out = train.run(cfg)
+    assert checks == ["tn_cgan"]  # the spec is checked once: the system builds from the stage's checked Config
     run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
     assert out["run_dir"] == str(run_dir)
     for f in ("last.ckpt", "best.ckpt", "metrics.csv", "manifest.json", "grids/epoch_001.png"):

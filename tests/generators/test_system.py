@@ -11,7 +11,7 @@ from tests.generators.synthetic import SyntheticPairs, make_pairs
 from tnf.data import mirror_batch
 from tnf.errors import TnfError
 from tnf.generators import GeneratorSystem, load_generator
-from tnf.generators.system import NonFiniteLoss, image_grid
+from tnf.generators.system import NonFiniteLoss, generator_config, generator_spec, image_grid
 from tnf.generators.training import fit, merge_metrics_parts
 
 # With the adversarial term (not the default), so that both players' optimisers, schedules and logs are exercised.
@@ -439,3 +439,10 @@ def test_finetuning_starts_from_the_average(averaged_run):
         torch.testing.assert_close(v, state["generator_ema." + k])
         torch.testing.assert_close(again.generator_ema.state_dict()[k], v)  # a fresh average of the start
     assert int(again.ema_updates) == 0
+
+
+def test_system_builds_from_a_checked_config_as_it_is():
+    name, config = generator_config(SPEC)
+    system = GeneratorSystem((name, config), epochs=2, decay_epochs=1)
+    assert system.generator.cfg is config
+    assert system.hparams["generator"] == generator_spec(SPEC) == GeneratorSystem(SPEC).hparams["generator"]

@@ -92,7 +92,7 @@ def import_all(user: Path, root: Path, cfg_overrides=()) -> None:
     """`tnf capture` on the user's objects, then their touches imported as `tnf touch` does."""
     assert main(["capture", *captured(user, root, *cfg_overrides)]) == 0
     cfg = compose("touch", captured(user, root, *cfg_overrides))
-    source, names = select(cfg)
+    source, names = select(cfg.objects, cfg.object_names, cfg.object)
     sensor = SENSORS.build(cfg.sensor)
     for name in names:
         import_touches(ArtifactStore(root), sensor, source, name, start_radius=float(cfg.touch.radius))
@@ -222,7 +222,7 @@ def small_dataset(root: Path, obj: str = "cube", sensor_size=(60, 80)) -> Path:
 
 def touch_cfg(user: Path, root: Path):
     cfg = compose("touch", captured(user, root, "object=cube"))
-    source, _ = select(cfg)
+    source, _ = select(cfg.objects, single=cfg.object)
     return source, SENSORS.build(cfg.sensor)
 
 

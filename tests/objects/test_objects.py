@@ -65,12 +65,15 @@ def test_scale_config_and_select(tmp_path):
     src = OBJECTS.build({"name": "builtin", "scale": 2.0})
     assert np.isclose(src.load("box").extents.max(), 2 * Builtin().load("box").extents.max())
     cfg = compose("capture", ["object=mug"])
-    source, names = select(cfg)
+    source, names = select(cfg.objects, cfg.object_names, cfg.object)
     assert source.name == "builtin" and names == ["mug"]
+    assert select("builtin", ["box", "mug"], single="ball")[1] == ["ball"]  # one name wins over the list
     cfg = compose("capture", ["debug=tiny"])
-    assert select(cfg)[1] == ["ball", "box"]
+    assert select(cfg.objects, cfg.object_names, cfg.object)[1] == ["ball", "box"]
     with pytest.raises(TnfError, match="unknown object 'teapot'.*available: apple"):
-        select(compose("capture", ["object=teapot"]))
+        select("builtin", single="teapot")
+    with pytest.raises(TnfError, match="no objects selected from source 'builtin'"):
+        select("builtin", [])
 
 
 # -- validation ---------------------------------------------------------------------------------------------

@@ -93,7 +93,8 @@ class GeneratorSystem(L.LightningModule):
     """Trains and validates the generator named in ``generator`` (``{"name": ..., **config}``).
 
     Args:
-        generator: registry name and config of the generator.
+        generator: registry name and config of the generator, or the ``(name, Config)`` pair of
+            :func:`generator_config`, built from as it is (not checked again).
         epochs: total training epochs (for the learning-rate schedule).
         decay_epochs: the last ``decay_epochs`` epochs decay the learning rate linearly to zero (pix2pix).
         grid_rows: validation pairs shown in the per-epoch image grid.
@@ -109,7 +110,7 @@ class GeneratorSystem(L.LightningModule):
 
     def __init__(
         self,
-        generator: Mapping[str, Any] | str,
+        generator: Mapping[str, Any] | str | tuple[str, Any],
         epochs: int = 200,
         decay_epochs: int = 100,
         grid_rows: int = 8,
@@ -119,7 +120,8 @@ class GeneratorSystem(L.LightningModule):
         compile_nets: bool = False,
     ):
         super().__init__()
-        name, config = generator_config(generator)  # the generator is built from this Config, not checked again
+        # The generator is built from this Config, not checked again.
+        name, config = generator if isinstance(generator, tuple) else generator_config(generator)
         spec = {"name": name, **config_to_dict(config)}
         self.compile_nets = compile_nets  # a speed setting, not a hyperparameter: checkpoints do not record it
         if decay_epochs < 0 or decay_epochs > epochs:

@@ -7,7 +7,7 @@ validated (:func:`validate_mesh`). In-tree sources: ``builtin`` (procedural hous
 ``captured`` (a user's own camera images and tactile frames, no meshes: :meth:`ObjectSource.views` and
 :meth:`ObjectSource.touches` give their files, which ``tnf capture`` and ``tnf touch`` import).
 
-    src = OBJECTS.build(cfg.objects)          # or: src, names = select(cfg)
+    src = OBJECTS.build(cfg.objects)          # or: src, names = select(cfg.objects, names)
     mesh = src.load("mug")                   # trimesh.Trimesh, metres
 """
 
@@ -211,22 +211,23 @@ def validate_mesh(mesh: Any, where: str) -> None:
             raise TnfError(f"{where}: zero-volume mesh (volume {vol:.3g} m^3, extent {ext.tolist()})")
 
 
-def select(cfg: Any) -> tuple[ObjectSource, list[str]]:
-    """The object source of ``cfg.objects`` and the object names a run uses.
+def select(
+    spec: Any, object_names: Sequence[str] | None = None, single: str | None = None
+) -> tuple[ObjectSource, list[str]]:
+    """The object source of ``spec`` (the ``objects`` config, ``{name, **params}`` or a bare name) and the object
+    names a run uses.
 
-    ``cfg.object`` (one name) wins over ``cfg.object_names`` (a list, or null for every object of the
-    source). Unknown names raise a TnfError listing what is available.
+    ``single`` (one name, the ``object`` setting) wins over ``object_names`` (a list, or None for every object of
+    the source). Unknown names raise a TnfError listing what is available.
     """
 
-    source = OBJECTS.build(cfg.objects)
-    source.name = split_spec(cfg.objects, "objects")[0]
+    source = OBJECTS.build(spec)
+    source.name = split_spec(spec, "objects")[0]
     available = source.names()
-    single = cfg.get("object") if hasattr(cfg, "get") else getattr(cfg, "object", None)
-    many = cfg.get("object_names") if hasattr(cfg, "get") else getattr(cfg, "object_names", None)
     if single not in (None, ""):
         wanted: Sequence[str] = [str(single)]
-    elif many is not None:
-        wanted = [str(n) for n in many]
+    elif object_names is not None:
+        wanted = [str(n) for n in object_names]
     else:
         wanted = available
     unknown = [n for n in wanted if n not in available]
@@ -237,11 +238,9 @@ def select(cfg: Any) -> tuple[ObjectSource, list[str]]:
     return source, list(dict.fromkeys(wanted))
 
 
-def shard_of(cfg: Any) -> tuple[int, int] | None:
+def shard_of(index: Any, count: Any = 1) -> tuple[int, int] | None:
     """``(shard, shards)`` of a job in a sweep over object shards (``shard=I shards=N``), or None when the run
-    takes every selected object (``shard`` null). A bad pair raises a one-line TnfError."""
-    get = cfg.get if hasattr(cfg, "get") else lambda k, d=None: getattr(cfg, k, d)
-    index, count = get("shard", None), get("shards", 1)
+    takes every selected object (``index`` None). A bad pair raises a one-line TnfError."""
     if index in (None, ""):
         return None
     try:
@@ -253,12 +252,12 @@ def shard_of(cfg: Any) -> tuple[int, int] | None:
     return i, n
 
 
-def shard(names: Sequence[str], cfg: Any) -> list[str]:
-    """This job's share of ``names``: names number ``shard``, ``shard + shards``, ... (all of them when ``shard``
-    is null). The jobs ``shard=0..shards-1`` of one sweep select the same names in the same order, so their shares
-    are disjoint and cover every name: each object is made by one job, and a rerun of the sweep redoes only what
-    a killed job left unfinished (finished items are skipped)."""
-    spec = shard_of(cfg)
+def shard(names: Sequence[str], index: Any = None, count: Any = 1) -> list[str]:
+    """This job's share of ``names``: names number ``index``, ``index + count``, ... (all of them when ``index``
+    is None), for the ``shard`` and ``shards`` settings. The jobs ``shard=0..shards-1`` of one sweep select the
+    same names in the same order, so their shares are disjoint and cover every name: each object is made by one
+    job, and a rerun of the sweep redoes only what a killed job left unfinished (finished items are skipped)."""
+    spec = shard_of(index, count)
     if spec is None:
         return list(names)
     i, n = spec

@@ -1,1 +1,23 @@
 """One module per ``tnf`` stage; each exposes ``run(cfg)``, called by the Hydra app in ``tnf.cli``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tnf.objects import ObjectSource, select, shard, shard_of
+
+
+def run_objects(cfg: Any) -> tuple[ObjectSource, list[str]]:
+    """The object source and object names of a run's ``objects``, ``object_names`` and ``object`` settings."""
+    return select(cfg.objects, cfg.get("object_names"), cfg.get("object"))
+
+
+def run_shard(cfg: Any) -> tuple[int, int] | None:
+    """``(shard, shards)`` of a job in a sweep over object shards, or None (the ``shard`` setting is null)."""
+    return shard_of(cfg.get("shard", None), cfg.get("shards", 1))
+
+
+def shard_share(names: list[str], cfg: Any) -> list[str]:
+    """This job's share of ``names`` under the run's ``shard`` and ``shards`` settings (all of them outside a
+    sweep over shards)."""
+    return shard(names, cfg.get("shard", None), cfg.get("shards", 1))

@@ -12,8 +12,8 @@ from typing import Any
 from tnf.artifacts import ArtifactStore
 from tnf.capture import capture_config
 from tnf.capture.run import capture_objects
-from tnf.objects import select, shard
 from tnf.registry import split_spec
+from tnf.stages import run_objects, shard_share
 
 
 def run(cfg: Any) -> list[dict[str, Any]]:
@@ -23,8 +23,8 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     from rich.table import Table
 
     ccfg = capture_config(cfg.capture)
-    source, names = select(cfg)
-    names = shard(names, cfg)  # a job of a sweep over shards: its share
+    source, names = run_objects(cfg)
+    names = shard_share(names, cfg)  # a job of a sweep over shards: its share
     store = ArtifactStore(cfg.data_root)
     store.clean_partials("capture")
     _, source_params = split_spec(cfg.objects, "objects")

@@ -18,9 +18,9 @@ from typing import Any
 
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
-from tnf.objects import shard, shard_of
 from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
 from tnf.runtime import job_device, progress, resolve_device, seed_everything
+from tnf.stages import run_shard, shard_share
 
 log = logging.getLogger(__name__)
 
@@ -48,11 +48,11 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     kind, params = split_spec(cfg.scene, "scene")
     SCENES.config(kind, params)  # fail early on a bad scene config
     source, _ = split_spec(cfg.objects, "objects")
-    part = shard_of(cfg)
+    part = run_shard(cfg)
     device = job_device(resolve_device(cfg.device), part)
     store = ArtifactStore(cfg.data_root)
     store.clean_partials("scenes")
-    names = shard(selected_objects(cfg, store, source), cfg)  # a job of a sweep over shards: its share
+    names = shard_share(selected_objects(cfg, store, source), cfg)  # a job of a sweep over shards: its share
     # Check every input before the first (long) fit.
     captures = {}
     for name in names:

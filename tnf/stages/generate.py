@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.objects import select
+from tnf.stages import run_objects
 
 
 def run(cfg: Any) -> dict[str, Any]:
@@ -24,7 +24,7 @@ def run(cfg: Any) -> dict[str, Any]:
     def plain(node: Any) -> Any:
         return OmegaConf.to_container(node, resolve=True) if node is not None else None
 
-    source, names = select(cfg)
+    source, names = run_objects(cfg)
     job = GenerateJob(
         settings=plain(cfg.generate),
         pair=plain(cfg.pair),

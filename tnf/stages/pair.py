@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.objects import select, shard_of
 from tnf.runtime import seed_everything
+from tnf.stages import run_objects, run_shard
 
 
 def run(cfg: Any) -> None:
@@ -32,7 +32,7 @@ def run(cfg: Any) -> None:
     settings = plain(cfg.pair)
     PairJob.check(settings)
     seed_everything(int(cfg.seed))
-    source, names = select(cfg)
+    source, names = run_objects(cfg)
     job = PairJob(
         settings=settings,
         name=dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name)),
@@ -47,6 +47,6 @@ def run(cfg: Any) -> None:
         seed=int(cfg.seed),
         device=str(cfg.device),
         progress=bool(cfg.progress),
-        shard=shard_of(cfg),
+        shard=run_shard(cfg),
     )
     make_pairs(job)

@@ -12,12 +12,12 @@ from typing import Any
 
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
-from tnf.objects import select, shard, shard_of
 from tnf.objects.captured import import_touches
 from tnf.registry import SENSORS, split_spec
 from tnf.runtime import job_device, resolve_device, warp_device
 from tnf.sim.forces import force_plan
 from tnf.sim.items import SPLITS, TouchJob, simulate_touches
+from tnf.stages import run_objects, run_shard, shard_share
 
 __all__ = ["SPLITS", "item_config", "run"]
 
@@ -50,8 +50,8 @@ def run(cfg: Any) -> None:
     plan = force_plan(tc.get("force_range"), sensor)  # None: every touch presses with touch.force
     if tc.radius <= 0:
         raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
-    source, names = select(cfg)
-    names = shard(names, cfg)  # a job of a sweep over shards: its share
+    source, names = run_objects(cfg)
+    names = shard_share(names, cfg)  # a job of a sweep over shards: its share
     if any(source.touches(n) is not None for n in names):  # the source's own tactile frames: imported, not simulated
         for n in names:
             console.print(import_touches(store, sensor, source, n, start_radius=float(tc.radius)))
@@ -72,7 +72,7 @@ def run(cfg: Any) -> None:
         config=config,
         plan=plan,
         seed=int(cfg.seed),
-        device=warp_device(job_device(resolve_device(cfg.device), shard_of(cfg))),
+        device=warp_device(job_device(resolve_device(cfg.device), run_shard(cfg))),
         progress=bool(cfg.progress),
     )
     simulate_touches(job, store, console)

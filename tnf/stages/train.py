@@ -13,6 +13,7 @@ from typing import Any, cast
 
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
+from tnf.registry import config_to_dict
 from tnf.runtime import seed_everything
 
 
@@ -21,13 +22,15 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     from tnf.generators.names import train_run_name
-    from tnf.generators.system import GeneratorSystem, generator_spec
+    from tnf.generators.system import GeneratorSystem, generator_config
     from tnf.generators.training import process_rank
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
     console = Console(highlight=False, quiet=process_rank() != 0)
     t = cfg.train
-    spec = generator_spec(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
+    # Checked once: the system builds the generator from this Config, the run's hash records its fields.
+    checked = generator_config(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
+    spec = {"name": checked[0], **config_to_dict(checked[1])}
     datasets = dataset_names(cfg)
     run_name = str(t.run_name or train_run_name(spec["name"], datasets))
     store = ArtifactStore(cfg.data_root)
@@ -40,7 +43,7 @@ def run(cfg: Any) -> dict[str, Any]:
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)
     system = GeneratorSystem(
-        spec,
+        checked,
         epochs=int(t.epochs),
         decay_epochs=int(t.decay_epochs),
         grid_rows=int(t.grid_rows),
