@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.objects import select
 from tnf.runtime import progress
+from tnf.stages import run_objects
 
 
 def run(cfg: Any) -> list[dict[str, Any]]:
@@ -13,7 +13,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     from rich.console import Console
     from rich.table import Table
 
-    source, names = select(cfg)
+    source, names = run_objects(cfg)
     rows: list[dict[str, Any]] = []
     with progress(cfg.progress, transient=True) as p:
         task = p.add_task(f"loading {source.name}", total=len(names))
