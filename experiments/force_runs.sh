@@ -4,9 +4,9 @@
 #   data    sim_digit's data in PAPER_DATA (experiments/paper_runs.sh digit-data), then the force store FORCE_DATA with
 #           sim_digit's captures and scenes linked in, and its own touches and pairs
 #   models  side by side, one process each, dealt round-robin over the GPUs: tn_cgan_force with force=plane
-#           (train, generate, evaluate), force=film (train only: the decision needs its validation SSIM), and
-#           sim_digit's fixed-force T-N (train, generate, evaluate) for each of SEEDS. A run stopped by the job's
-#           limit resumes when the phase runs again.
+#           (STAGES, default train, generate, evaluate), force=film (train only: the decision needs its validation
+#           SSIM), and sim_digit's fixed-force T-N (STAGES) for each of SEEDS. KINDS picks among plane, tn and film
+#           (default all three). A run stopped by the job's limit resumes when the phase runs again.
 #   decide  the rule of docs/force.md on seed 0's validation split: plane unless film's SSIM is 0.001 higher
 #   at-3n   the chosen force models evaluated on sim_digit's own pairs (3 N), beside sim_digit's T-N
 #   report  rebuild both reports and copy them to $OUT
@@ -18,6 +18,7 @@ force=${FORCE_DATA:-/tmp/tnf-force}
 export OUT=${OUT:-$force/out} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 mkdir -p "$OUT"
 seeds=${SEEDS:-0 1 2}
+stages=${STAGES:-[train,generate,evaluate]}
 gpus=${GPUS:-1}
 extra=(${EXTRA:-})
 dev=(device=${DEVICE:-cuda} trainer=${TRAINER:-gpu} progress=false "${extra[@]}")
@@ -32,26 +33,30 @@ chosen() {  # the force input that decide wrote (plane until it has run)
 }
 case "$1" in
   data)
-    TNF_DATA=$paper bash "$here/paper_runs.sh" digit-data
+    TNF_DATA=$paper bash "$here/paper_runs.sh" digit-scenes
     mkdir -p "$force"
     ln -sfn "$paper/capture" "$force/capture"
     ln -sfn "$paper/scenes" "$force/scenes"
-    TNF_DATA=$force EXPERIMENT=sim_digit_force bash "$here/paper_runs.sh" digit-pairs
+    # sim_digit's touches and pairs (for fixed-force T-N and at-3n) beside the force store's, on two GPUs when there are.
+    ( if ((gpus > 1)); then export CUDA_VISIBLE_DEVICES=0; fi
+      TNF_DATA=$paper OUT=$OUT/digit bash "$here/paper_runs.sh" digit-pairs ) & p1=$!
+    ( if ((gpus > 1)); then export CUDA_VISIBLE_DEVICES=1; fi
+      TNF_DATA=$force OUT=$OUT/force EXPERIMENT=sim_digit_force bash "$here/paper_runs.sh" digit-pairs ) & p2=$!
+    rc=0; wait $p1 || rc=1; wait $p2 || rc=1
+    exit $rc
     ;;
   models)
     t0=$SECONDS
     jobs=()
-    for s in $seeds; do jobs+=("plane $s"); done
-    for s in $seeds; do jobs+=("tn $s"); done
-    for s in $seeds; do jobs+=("film $s"); done
+    for k in ${KINDS:-plane tn film}; do for s in $seeds; do jobs+=("$k $s"); done; done
     run_one() {  # run_one KIND SEED
       case $1 in
         plane) TNF_DATA=$force tnf pipeline experiment=sim_digit_force "${dev[@]}" seed=$2 generator.force=plane \
-          "pipeline.stages=[train,generate,evaluate]" ;;
+          "pipeline.stages=$stages" ;;
         film) TNF_DATA=$force tnf train experiment=sim_digit_force "${dev[@]}" seed=$2 generator.force=film \
           train.run_name=tn_cgan_film-digit-force-seed$2 ;;
         tn) TNF_DATA=$paper tnf pipeline experiment=sim_digit "${dev[@]}" seed=$2 generator=tn_cgan \
-          "pipeline.stages=[train,generate,evaluate]" ;;
+          "pipeline.stages=$stages" ;;
       esac
     }
     pids=() i=0
