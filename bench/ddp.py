@@ -2,6 +2,8 @@
 
     python bench/ddp.py --devices 1,2,4                  # tn_cgan, batch 64 per device, bf16, as trainer=ddp runs
     python bench/ddp.py --devices 1,2 --graph find-unused  # DDP searching for unused parameters every step
+    python bench/ddp.py --devices 2 --comm-hook bf16        # gradients all-reduced in bf16 (half the bytes)
+    python bench/ddp.py --devices 2 --profile               # rank 0's 20 busiest operators over 20 batches
     python bench/ddp.py --accelerator cpu --devices 1,2 --batch 4 --steps 6 --warmup 2 --precision 32-true
 
 Each device count runs in its own process: tnf's ``GeneratorSystem`` in a Lightning ``Trainer`` with
@@ -58,6 +60,34 @@ class SyntheticSystem(GeneratorSystem):
         return self._cache
 
 
+class Profile(Callback):
+    """Rank 0's operators over ``batches`` training batches from batch ``start``: the busiest by device time
+    (CPU time on a CPU), printed as torch.profiler's table."""
+
+    def __init__(self, start: int, batches: int = 20):
+        self.start, self.stop = start, start + batches
+        self.seen = 0
+        self.prof: Any = None
+
+    def on_train_batch_start(self, trainer: Any, pl_module: Any, batch: Any, batch_idx: int) -> None:
+        self.seen += 1
+        if not trainer.is_global_zero:
+            return
+        if self.seen - 1 == self.start:
+            acts = [torch.profiler.ProfilerActivity.CPU]
+            if pl_module.device.type == "cuda":
+                acts.append(torch.profiler.ProfilerActivity.CUDA)
+            self.prof = torch.profiler.profile(activities=acts)
+            self.prof.__enter__()
+        elif self.seen - 1 == self.stop and self.prof is not None:
+            if pl_module.device.type == "cuda":
+                torch.cuda.synchronize(pl_module.device)
+            self.prof.__exit__(None, None, None)
+            key = "device_time_total" if pl_module.device.type == "cuda" else "cpu_time_total"
+            print(self.prof.key_averages().table(sort_by=key, row_limit=20, max_name_column_width=60), flush=True)
+            self.prof = None
+
+
 class Clock(Callback):
     """Wall seconds between the starts of two training batches, each after a device synchronisation."""
 
@@ -99,6 +129,13 @@ def run_one(args: argparse.Namespace, devices: int) -> None:
             gradient_as_bucket_view=args.bucket_view,
             start_method="spawn",
         )
+    if devices > 1 and args.comm_hook == "bf16":
+        from torch.distributed.algorithms.ddp_comm_hooks import default_hooks
+
+        strategy._ddp_comm_hook = default_hooks.bf16_compress_hook
+    if devices > 1 and args.bucket_mb:
+        strategy._ddp_kwargs["bucket_cap_mb"] = args.bucket_mb
+    callbacks: list[Any] = [Profile(args.warmup) if args.profile else clock]
     trainer = L.Trainer(
         accelerator=args.accelerator,
         devices=devices,
@@ -110,7 +147,7 @@ def run_one(args: argparse.Namespace, devices: int) -> None:
         enable_checkpointing=False,
         enable_progress_bar=False,
         enable_model_summary=False,
-        callbacks=[clock],
+        callbacks=callbacks,
     )
     loader = torch.utils.data.DataLoader(Steps((args.warmup + args.steps + 2) * devices), batch_size=1)
     trainer.fit(system, loader)
@@ -133,6 +170,11 @@ def main() -> None:
         "find_unused_parameters and static_graph as named (plain: neither)",
     )
     p.add_argument("--bucket-view", action="store_true", help="gradient_as_bucket_view=True (not with tnf)")
+    p.add_argument(
+        "--comm-hook", choices=["none", "bf16"], default="none", help="bf16: DDP all-reduces gradients in bf16"
+    )
+    p.add_argument("--bucket-mb", type=int, default=0, help="DDP's bucket_cap_mb (0: its default, 25)")
+    p.add_argument("--profile", action="store_true", help="print rank 0's busiest operators instead of timing")
     p.add_argument("--json", help="also write the figures here")
     p.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: time this device count and print it
     args = p.parse_args()
@@ -144,15 +186,21 @@ def main() -> None:
     for n in counts:
         cmd = [sys.executable, __file__, *sys.argv[1:], "--one", str(n)]
         done = subprocess.run(cmd, capture_output=True, text=True)
+        if args.profile:
+            print(f"{n} device(s):", done.stdout[-12000:], done.stderr[-3000:] if done.returncode else "")
+            continue
         found = [ln for ln in done.stdout.splitlines() if ln.startswith("RESULT ")]
         if done.returncode != 0 or not found:
             print(done.stdout[-2000:], done.stderr[-4000:], file=sys.stderr)
             raise SystemExit(f"{n} device(s): the run failed (exit {done.returncode})")
         rows.append((n, float(found[-1].split()[1])))
+    if not rows:
+        return
     name = torch.cuda.get_device_name(0) if args.accelerator == "gpu" and torch.cuda.is_available() else "cpu"
     print(
         f"{args.generator}, batch {args.batch} per device, {args.precision}, DDP graph: {args.graph}, "
-        f"gradient_as_bucket_view={args.bucket_view}, steps {args.warmup}..{args.warmup + args.steps}, on {name}"
+        f"gradient_as_bucket_view={args.bucket_view}, comm hook {args.comm_hook}, "
+        f"bucket_cap_mb {args.bucket_mb or 25}, steps {args.warmup}..{args.warmup + args.steps}, on {name}"
     )
     print(f"{'devices':>8} {'pairs/s':>10} {'per device':>11} {'speed-up':>9}")
     for n, rate in rows:
