@@ -259,29 +259,60 @@ def _read_image(img_path: Path) -> np.ndarray:
         raise TnfError(f"{img_path}: not a readable image ({e})") from None
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class Views:
-    """The frames of one transforms file. All tensors on the CPU."""
+    """Frames of one ``transforms.json`` (:func:`read_views`): numpy arrays on the CPU.
 
-    rgba: torch.Tensor  # [N, H, W, 4] float in [0, 1]
-    c2w: torch.Tensor  # [N, 4, 4] camera-to-world, OpenGL, metres
-    intrinsics: torch.Tensor  # [N, 4] (fx, fy, cx, cy) pixels
-    depth: torch.Tensor | None  # [N, H, W] z-depth metres, 0 where no object; None when the dataset has none
+    Fields keep the precision the file is read at (``load_transforms``); :meth:`rgba` and :meth:`cameras`
+    give the float32 tensors that scene fitting takes.
+    """
+
+    images: np.ndarray
+    """[N, H, W, 4] uint8 RGBA."""
+    c2w: np.ndarray
+    """[N, 4, 4] float64 camera-to-world (OpenGL: looks along -z, +y up), metres; the file's float32 values."""
+    intrinsics: tuple[float, float, float, float]
+    """``(fx, fy, cx, cy)`` in pixels, shared by every frame."""
     width: int
     height: int
+    depth: np.ndarray | None
+    """[N, H, W] float32 z-depth, metres, 0 where no object; None when the file has none."""
+    frames: np.ndarray
+    """[N] int64 index of each frame in its file."""
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def take(self, keep: np.ndarray) -> Views:
+        """The frames that ``keep`` (a boolean mask or indices into the N frames) selects."""
+        depth = self.depth[keep] if self.depth is not None else None
+        return Views(
+            self.images[keep], self.c2w[keep], self.intrinsics, self.width, self.height, depth, self.frames[keep]
+        )
+
+    def rgba(self) -> torch.Tensor:
+        """[N, H, W, 4] float32 RGBA in [0, 1]."""
+        import torch
+
+        return torch.from_numpy(self.images).float() / 255.0
+
+    def cameras(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """c2w [N, 4, 4] float32 (metres) and intrinsics [N, 4] float32 ``(fx, fy, cx, cy)`` pixels."""
+        import torch
+
+        return torch.from_numpy(self.c2w).float(), torch.tensor([self.intrinsics] * len(self), dtype=torch.float32)
 
 
 def read_views(path: str | os.PathLike[str], limit: int | None = None) -> Views:
     """The first ``limit`` (default all) frames of a ``transforms.json``-style file (``load_transforms``)."""
-    import torch
-
     images, c2w, intr, w, h, depth = load_transforms(path)
     n = min(limit, len(images)) if limit else len(images)
     return Views(
-        rgba=torch.from_numpy(images[:n]).float() / 255.0,
-        c2w=torch.from_numpy(np.asarray(c2w[:n])).float(),
-        intrinsics=torch.tensor([intr] * n, dtype=torch.float32),
-        depth=torch.from_numpy(depth[:n]) if depth is not None else None,
+        images=images[:n],
+        c2w=np.asarray(c2w[:n], dtype=np.float64),
+        intrinsics=intr,
         width=int(w),
         height=int(h),
+        depth=depth[:n] if depth is not None else None,
+        frames=np.arange(n),
     )

@@ -20,7 +20,7 @@ from tnf.env import PRIMARY_CONFIG, conf_dir, stage_choices, stage_overrides
 from tnf.errors import TnfError
 from tnf.listing import print_components
 from tnf.runtime import available_memory
-from tnf.settings import check_settings, check_sizes
+from tnf.stages.settings import check_settings, check_sizes
 
 # name -> one line of help. Order is the pipeline's order; COMMANDS are not Hydra apps.
 STAGES: dict[str, str] = {

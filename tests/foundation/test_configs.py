@@ -140,7 +140,7 @@ def test_config_drift_names_the_key():
 def test_run_wide_setting_defaults_match_base_yaml():
     from omegaconf import OmegaConf
 
-    from tnf.settings import TOP_LEVEL
+    from tnf.stages.settings import TOP_LEVEL
 
     base = OmegaConf.load(CONF / "base.yaml")
     assert {k: base[k] for k in TOP_LEVEL} == TOP_LEVEL

@@ -23,7 +23,6 @@ LAYERS: list[tuple[str, ...]] = [
         "tnf.registry",
         "tnf.artifacts",
         "tnf.env",
-        "tnf.settings",
         "tnf.runtime",
         "tnf.listing",
         "tnf.cameras",

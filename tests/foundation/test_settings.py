@@ -1,4 +1,4 @@
-"""The stage sections are checked against their defaults' types before any stage works (tnf.settings)."""
+"""The stage sections are checked against their defaults' types before any stage works (tnf.stages.settings)."""
 
 from pathlib import Path
 
@@ -6,7 +6,7 @@ import pytest
 
 from tnf.cli import main
 from tnf.errors import TnfError
-from tnf.settings import check_settings, schema
+from tnf.stages.settings import check_settings, schema
 from tnf.testing import compose
 
 EXPERIMENTS = sorted(p.stem for p in (Path(__file__).resolve().parents[2] / "conf" / "experiment").glob("*.yaml"))

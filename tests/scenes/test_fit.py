@@ -205,7 +205,7 @@ def test_load_scene_rejects_other_files(tmp_path):
 def test_carving_keeps_the_object_and_removes_seen_empty_space(dataset):
     views = read_views(dataset / "transforms.json")
     scene = build_scene({**TINY, "bound": 0.1}, views)
-    kept = scene.carve(views.c2w, views.intrinsics, views.rgba[..., 3])
+    kept = scene.carve(*views.cameras(), views.rgba()[..., 3])
     G = TINY["occupancy_resolution"]
     ar = (torch.arange(G) + 0.5) / G * 0.2 - 0.1
     centres = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3)

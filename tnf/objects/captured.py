@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from tnf.artifacts import read_json, write_json
-from tnf.cameras import load_transforms
+from tnf.cameras import Views, read_views
 from tnf.errors import TnfError
 from tnf.objects import TOUCH_SPLITS, ObjectSource
 from tnf.registry import config_to_dict
@@ -121,30 +121,6 @@ class Captured(ObjectSource):
 
 
 # -- camera views ------------------------------------------------------------------------------------------
-@dataclass
-class _Views:
-    """Frames of one transforms file (``tnf.cameras.load_transforms``), with their indices in it."""
-
-    images: np.ndarray  # [N, H, W, 4] uint8 RGBA
-    c2w: np.ndarray  # [N, 4, 4] camera-to-world, metres
-    intrinsics: tuple[float, float, float, float]  # fx, fy, cx, cy pixels
-    width: int
-    height: int
-    depth: np.ndarray | None  # [N, H, W] float32 metres or None
-    frames: np.ndarray  # [N] index of each frame in its file
-
-    @classmethod
-    def load(cls, path: Path) -> _Views:
-        images, c2w, intr, w, h, depth = load_transforms(path)
-        return cls(images, np.asarray(c2w, np.float64), intr, w, h, depth, np.arange(len(images)))
-
-    def take(self, keep: np.ndarray) -> _Views:
-        depth = self.depth[keep] if self.depth is not None else None
-        return _Views(
-            self.images[keep], self.c2w[keep], self.intrinsics, self.width, self.height, depth, self.frames[keep]
-        )
-
-
 def view_centre(c2w: np.ndarray, where: str = "poses") -> np.ndarray:
     """The point [3] (metres) nearest to every camera's view axis in the least-squares sense; ``c2w`` [N, 4, 4].
 
@@ -164,7 +140,7 @@ def view_centre(c2w: np.ndarray, where: str = "poses") -> np.ndarray:
     return np.linalg.solve(a, b)
 
 
-def _transforms(views: _Views, split: str, shift: np.ndarray) -> dict[str, Any]:
+def _transforms(views: Views, split: str, shift: np.ndarray) -> dict[str, Any]:
     """``transforms.json`` content of ``views`` with their translations moved by ``shift`` (metres)."""
     fx, fy, cx, cy = views.intrinsics
     frames = []
@@ -193,7 +169,7 @@ def _transforms(views: _Views, split: str, shift: np.ndarray) -> dict[str, Any]:
     return meta
 
 
-def _write_views(folder: Path, split: str, views: _Views, shift: np.ndarray) -> None:
+def _write_views(folder: Path, split: str, views: Views, shift: np.ndarray) -> None:
     from PIL import Image
 
     meta = _transforms(views, split, shift)
@@ -233,11 +209,11 @@ def import_views(store: ArtifactStore, source: ObjectSource, name: str) -> dict[
     config = {"objects": source.describe(), "files": files_digest(file.parent, skip="tactile")}
     if store.is_done("capture", source.name, name, config=config):
         return {"object": name, "status": "skipped (done)", "views": None, "seconds": 0.0}
-    views = _Views.load(file)
+    views = read_views(file)
     _warn_distortion(file)
     test_file = file.with_name("transforms_test.json")
     if test_file.is_file():
-        train, test = views, _Views.load(test_file)
+        train, test = views, read_views(test_file)
     elif source.cfg.test_every:
         held = views.frames % source.cfg.test_every == 0
         if held.all():

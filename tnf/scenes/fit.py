@@ -43,8 +43,9 @@ def bound_from_cameras(views: Views) -> float:
     The object is framed by every camera, so it lies within the nearest camera's view cone; the cube's
     half-size is that camera's distance to the origin times the tangent of its narrowest half field of view.
     """
-    dist = views.c2w[:, :3, 3].norm(dim=-1)
-    fx, fy = views.intrinsics[:, 0], views.intrinsics[:, 1]
+    c2w, intrinsics = views.cameras()
+    dist = c2w[:, :3, 3].norm(dim=-1)
+    fx, fy = intrinsics[:, 0], intrinsics[:, 1]
     half = torch.minimum(torch.atan(0.5 * views.width / fx), torch.atan(0.5 * views.height / fy))
     b = (dist * torch.tan(half)).min()
     return float(b)
@@ -54,10 +55,12 @@ def object_size(views: Views) -> float | None:
     """Largest extent (metres) of the axis-aligned box around the ground-truth depth points; None without depth."""
     if views.depth is None:
         return None
+    c2w, intrinsics = views.cameras()
+    depth = torch.from_numpy(views.depth)
     pts = []
-    for k in range(views.rgba.shape[0]):
-        o, d, z = camera_rays(views.c2w[k : k + 1], views.intrinsics[k], views.width, views.height)
-        zk = views.depth[k]
+    for k in range(len(views)):
+        o, d, z = camera_rays(c2w[k : k + 1], intrinsics[k], views.width, views.height)
+        zk = depth[k]
         m = zk > 0
         if m.any():
             dist = zk[m] / z[0][m]
@@ -192,10 +195,11 @@ def evaluate_scene(scene: FieldScene, views: Views, chunk: int | None, size: flo
     """
     scene.eval()
     dev = scene.background.device
+    c2w, intrinsics = views.cameras()
     rgb, depth = [], []
     t0 = time.perf_counter()
-    for k in range(views.c2w.shape[0]):
-        r = scene.render_rgbd(views.c2w[k : k + 1], views.intrinsics[k], views.width, views.height, chunk)
+    for k in range(len(views)):
+        r = scene.render_rgbd(c2w[k : k + 1], intrinsics[k], views.width, views.height, chunk)
         rgb.append(r["rgb"].cpu())
         depth.append(r["depth"].cpu())
     if dev.type == "cuda":
@@ -203,7 +207,7 @@ def evaluate_scene(scene: FieldScene, views: Views, chunk: int | None, size: flo
     seconds = time.perf_counter() - t0
     pred = torch.cat(rgb)
     pdepth = torch.cat(depth)
-    gt = composite(views.rgba, scene.background.cpu())
+    gt = composite(views.rgba(), scene.background.cpu())
     p = psnr(pred, gt)
     to_net = lambda x: x.permute(0, 3, 1, 2) * 2 - 1  # noqa: E731  metrics take [-1, 1] images
     s = ssim(to_net(pred), to_net(gt))
@@ -215,9 +219,10 @@ def evaluate_scene(scene: FieldScene, views: Views, chunk: int | None, size: flo
         "render_seconds_per_view": seconds / max(pred.shape[0], 1),
     }
     if views.depth is not None:
-        m = views.depth > 0
+        true_depth = torch.from_numpy(views.depth)
+        m = true_depth > 0
         if m.any():
-            err = (pdepth[m] - views.depth[m]).abs()
+            err = (pdepth[m] - true_depth[m]).abs()
             metrics["depth_error_median_m"] = float(err.median())
             if size:
                 metrics["depth_error_median_rel"] = float(err.median()) / size
@@ -271,7 +276,7 @@ def fit_object(
     scene = build_scene(scene_spec, train)
     if settings.carve and hasattr(scene, "carve"):
         # Empty space seen by the cameras is skipped from the first step (visual hull of the RGBA masks).
-        cast(Any, scene).carve(train.c2w, train.intrinsics, train.rgba[..., 3])
+        cast(Any, scene).carve(*train.cameras(), train.rgba()[..., 3])
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     info = fit_scene(scene, train, settings, kind, device, resume_path, on_step, seed)
@@ -283,7 +288,7 @@ def fit_object(
         "final_loss": info["final_loss"],
         "bound_m": scene.bound,
         "object_size_m": size,
-        "train_views": int(train.c2w.shape[0]),
+        "train_views": len(train),
         "resolution": [train.width, train.height],
     }
     if test is not None:

@@ -142,7 +142,7 @@ class SceneFitSystem(L.LightningModule):
 
     Args:
         scene: the scene to fit; its parameters are updated in place.
-        views: training views (CPU tensors); their rays move to the training device when the fit starts.
+        views: training views; their rays move to the training device when the fit starts.
         settings: fit settings with every field resolved (``FitSettings.resolved``).
         seed: seed of the step-wise random draws (ray batches, backgrounds, the scene's sampling).
         resume_path: where to write a resumable checkpoint every ``settings.checkpoint_every`` steps; None
@@ -169,12 +169,12 @@ class SceneFitSystem(L.LightningModule):
         self.seed = seed
         self.resume_path = Path(resume_path) if resume_path is not None else None
         self.on_step = on_step
-        o, d, _ = camera_rays(views.c2w, views.intrinsics, views.width, views.height)
+        o, d, _ = camera_rays(*views.cameras(), views.width, views.height)
         # Plain attributes, not buffers: they are no part of a checkpoint and Lightning's teardown need not
         # copy them back to the CPU. on_fit_start moves them to the device.
         self.origins = o.reshape(-1, 3)  # [M, 3] metres, world frame
         self.directions = d.reshape(-1, 3)  # [M, 3] unit vectors
-        self.targets = views.rgba.reshape(-1, 4)  # [M, 4] RGBA in [0, 1]
+        self.targets = views.rgba().reshape(-1, 4)  # [M, 4] RGBA in [0, 1]
         self.num_rays = int(self.origins.shape[0])
         self.loss_log: list[dict[str, Any]] = []  # {"step", "loss"} every log_every steps and at the last
         self.train_seconds = 0.0  # of the earlier parts of a resumed fit, then of the whole fit

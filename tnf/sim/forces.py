@@ -159,15 +159,11 @@ def default_range(sensor: Any) -> tuple[float, float]:
 
 
 def force_plan(spec: Any, sensor: Any) -> ForcePlan | None:
-    """The plan of a ``touch.force_range`` section (None when it is null), checked: one-line TnfError for a
-    negative or non-finite force, min not below max, an unknown distribution, an interpolation band not inside
-    the range, an extrapolation band not above it, or a force outside the sensor's force range."""
+    """The plan of a ``touch.force_range`` section as plain data (None when it is null), checked: one-line
+    TnfError for a negative or non-finite force, min not below max, an unknown distribution, an interpolation
+    band not inside the range, an extrapolation band not above it, or a force outside the sensor's force range."""
     if spec is None:
         return None
-    if hasattr(spec, "items"):
-        from omegaconf import OmegaConf
-
-        spec = OmegaConf.to_container(spec, resolve=True) if OmegaConf.is_config(spec) else dict(spec)
     if not isinstance(spec, Mapping):
         raise TnfError(f"touch.force_range: expected a section {{min, max, dist, ...}} or null, got {spec!r}")
     known = {"min", "max", "dist", "interpolation", "extrapolation"}

@@ -1,4 +1,8 @@
-"""One module per ``tnf`` stage; each exposes ``run(cfg)``, called by the Hydra app in ``tnf.cli``."""
+"""One module per ``tnf`` stage; each exposes ``run(cfg)``, called by the Hydra app in ``tnf.cli``.
+
+The stage layer is the only one that reads a run's config: ``settings`` checks it before any stage works, and
+the stages pass plain values to the layers below.
+"""
 
 from __future__ import annotations
 

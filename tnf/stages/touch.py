@@ -47,7 +47,10 @@ def run(cfg: Any) -> None:
     store = ArtifactStore(cfg.data_root)
     sensor = SENSORS.build(cfg.sensor)
     sensor.check_force(float(tc.force))
-    plan = force_plan(tc.get("force_range"), sensor)  # None: every touch presses with touch.force
+    force_range = tc.get("force_range")
+    if OmegaConf.is_config(force_range):
+        force_range = OmegaConf.to_container(force_range, resolve=True)
+    plan = force_plan(force_range, sensor)  # None: every touch presses with touch.force
     if tc.radius <= 0:
         raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
     source, names = run_objects(cfg)
