@@ -9,7 +9,7 @@ in the authors' released code.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -26,6 +26,7 @@ from tnf.generators.nets import (
     needed_keys,
     norm_layer,
 )
+from tnf.registry import yaml_defaults
 
 
 class LeeDiscriminator(nn.Module):
@@ -57,26 +58,27 @@ class Lee(Generator):
     """Lee et al. 2019 baseline: RGB-only U-Net cGAN with 5x5 convolutions, FC discriminator, RMSProp."""
 
     @dataclass
+    @yaml_defaults("generator/lee")
     class Config:
-        inputs: list[str] = field(default_factory=lambda: ["rgb"])
+        inputs: list[str]
         """Conditions (the original uses the RGB image only)."""
-        image_size: int = 128
+        image_size: int
         """Input and output image size in pixels (square, a power of two)."""
-        ngf: int = 64
+        ngf: int
         """Channels of the first generator layer."""
-        ndf: int = 64
+        ndf: int
         """Channels of the first discriminator layer."""
-        norm: str = "batch"
+        norm: str
         """Normalisation: batch (original), instance or none."""
-        dropout: float = 0.5
+        dropout: float
         """Dropout probability in the first decoder blocks."""
-        dropout_blocks: int = 3
+        dropout_blocks: int
         """How many of the first decoder blocks have dropout."""
-        dropout_at_generation: bool = False
+        dropout_at_generation: bool
         """Keep dropout on when generating (the original's test mode turns it off)."""
-        lambda_l1: float = 0.0
+        lambda_l1: float
         """Weight of the L1 loss (0 in the authors' released code)."""
-        lr: float = 2e-4
+        lr: float
         """RMSProp learning rate of generator and discriminator."""
 
         @property

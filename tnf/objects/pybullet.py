@@ -18,6 +18,7 @@ import numpy as np
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
 from tnf.objects.mesh_dir import load_mesh_file
+from tnf.registry import from_dict, yaml_defaults
 
 log = logging.getLogger(__name__)
 
@@ -110,14 +111,15 @@ class PyBulletData(ObjectSource):
     """Objects of pybullet_data: random_urdfs blobs and textured assets (pip install tnf[assets])."""
 
     @dataclass
+    @yaml_defaults("objects/pybullet")
     class Config:
-        include_random: bool = True
+        include_random: bool
         """Include the 1000 ``random_urdfs`` blobs (random_000 ... random_999)."""
-        include_textured: bool = True
+        include_textured: bool
         """Include the textured assets (duck, teddy, lego, jenga, domino, mug, ...)."""
-        scale: float = 1.0
+        scale: float
         """Multiplies every object's size (URDF units are metres)."""
-        skip_invalid: bool = True
+        skip_invalid: bool
         """Leave out meshes that fail validation (e.g. random_urdfs/168), logging why."""
 
         def validate(self) -> None:
@@ -127,7 +129,7 @@ class PyBulletData(ObjectSource):
     name = "pybullet"
 
     def __init__(self, cfg: Config | None = None):
-        self.cfg = cfg or PyBulletData.Config()
+        self.cfg = cfg or from_dict(PyBulletData.Config, {})
         self.skip_invalid = self.cfg.skip_invalid
         self.root = data_path()
         self._urdfs: dict[str, Path] = {}
