@@ -14,7 +14,7 @@ Discovery is lazy: the entry points of a kind are imported at the first lookup i
 never at ``import tnf``. A plugin whose import fails raises its own error.
 
 A ``Config`` takes its defaults from the component's YAML option (``yaml_defaults``): each default is written
-once, in the file that users read and override.
+once, in the file that users read and override, and each field says so with ``= FROM_YAML``.
 """
 
 from __future__ import annotations
@@ -219,7 +219,7 @@ def _where(obj: Any, origin: str) -> str:
 def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T:
     """Build dataclass ``cls`` from ``data``, checking keys and value types.
 
-    Unknown keys and values of the wrong type are errors that name the key and what was expected.
+    Unknown keys, values of the wrong type and fields left ``FROM_YAML`` are errors that name the key.
     """
     data = _plain(data)
     if not isinstance(data, dict):
@@ -234,6 +234,9 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
         obj = cls(**kwargs)
     except (TypeError, ValueError) as e:
         raise TnfError(f"{where}: {e}") from None
+    unset = [k for k in fields if getattr(obj, k) is FROM_YAML]
+    if unset:
+        raise TnfError(f"{where}: no value for {unset[0]!r} (FROM_YAML in a class without @yaml_defaults)")
     check = getattr(obj, "validate", None)
     if callable(check):
         try:
@@ -310,10 +313,41 @@ def _name(tp: Any) -> str:
 
 
 # -- defaults from YAML -----------------------------------------------------------------------------
+class _FromYaml:
+    """The default of a Config field whose value is in the component's YAML (one instance: ``FROM_YAML``)."""
+
+    _instance: _FromYaml | None = None
+
+    def __new__(cls) -> _FromYaml:
+        if cls._instance is None:
+            cls._instance = super().__new__(cls)
+        return cls._instance
+
+    def __repr__(self) -> str:
+        return "FROM_YAML"
+
+    def __copy__(self) -> _FromYaml:
+        return self
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> _FromYaml:
+        return self
+
+    def __reduce__(self) -> str:
+        return "FROM_YAML"
+
+
+FROM_YAML: Any = _FromYaml()
+"""A Config field's default when ``yaml_defaults`` puts the YAML's value there: ``ngf: int = FROM_YAML``.
+
+Typed ``Any`` so that type checkers see a default of every field's type, and ``Config()`` type-checks."""
+
+
 def yaml_defaults(
     option: str, conf: str | os.PathLike[str] | None = None, node: str | None = None, partial: bool = False
 ) -> Callable[[type[T]], type[T]]:
     """Class decorator, under ``@dataclass``: every field's default is its value in ``<conf>/<option>.yaml``.
+
+    Each field of the class is written ``name: type = FROM_YAML``; this puts the file's value in its place.
 
     ``option`` is a config group option such as ``"generator/tn_cgan"``; ``conf`` the folder of the YAML files,
     tnf's own ``conf/`` (``tnf.env.conf_dir``) unless given (a plugin passes its package's ``conf`` folder).
@@ -323,8 +357,8 @@ def yaml_defaults(
 
     Errors at import, each one line naming the file and the key: a field without a value in the file, a key of
     the file without a field (``name``, the registry name, aside; ``partial=True`` takes only the file's keys
-    that are fields, for a Config that shares some of a stage's settings), and a field with a default written
-    in the class as well.
+    that are fields, for a Config that shares some of a stage's settings), and a field of the class whose
+    default is not ``FROM_YAML`` (a value written in the code too, or none at all).
     """
 
     def apply(cls: type[T]) -> type[T]:
@@ -343,7 +377,9 @@ def yaml_defaults(
         ]
         names = list(dict.fromkeys(declared + inherited))
         for k in declared:
-            if k in cls.__dict__:
+            if k not in cls.__dict__:
+                raise TnfError(f"{where}: {cls.__qualname__}.{k} has no default; write `{k}: ... = FROM_YAML`")
+            if cls.__dict__[k] is not FROM_YAML:
                 raise TnfError(f"{where}: {cls.__qualname__}.{k} has a default in the code too; write it once, here")
         for k in names:
             if k not in values:

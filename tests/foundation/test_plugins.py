@@ -192,7 +192,7 @@ def test_refresh_keeps_what_was_added_directly(tmp_path, monkeypatch):
 def test_the_contract_wants_the_defaults_from_the_plugins_yaml(tmp_path, monkeypatch):
     """The contract suites' check passes for a plugin whose Config takes its defaults from its own YAML, and fails,
     saying what to do, for one that writes them in the code or takes them from another file."""
-    from tnf.registry import yaml_defaults
+    from tnf.registry import FROM_YAML, yaml_defaults
     from tnf.testing import SensorContract
 
     monkeypatch.syspath_prepend(str(install_tiny_plugin(tmp_path / "site")))
@@ -215,7 +215,7 @@ def test_the_contract_wants_the_defaults_from_the_plugins_yaml(tmp_path, monkeyp
         @dataclass
         @yaml_defaults("sensor/tiny", conf=other.parent)
         class Config:
-            width: int
+            width: int = FROM_YAML
 
     with pytest.raises(AssertionError, match="sensor=tiny composes other values than"):
         check(Stale)

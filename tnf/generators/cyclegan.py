@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import ImagePool, PatchDiscriminator, ResnetGenerator, gan_loss, init_weights
-from tnf.registry import yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults
 
 
 class CycleGAN(Generator):
@@ -26,27 +26,27 @@ class CycleGAN(Generator):
     @dataclass
     @yaml_defaults("generator/cyclegan")
     class Config:
-        image_size: int
+        image_size: int = FROM_YAML
         """Input and output image size in pixels (a multiple of 4)."""
-        ngf: int
+        ngf: int = FROM_YAML
         """Channels of the generators' first layer."""
-        ndf: int
+        ndf: int = FROM_YAML
         """Channels of the discriminators' first layer."""
-        n_blocks: int
+        n_blocks: int = FROM_YAML
         """Residual blocks per generator (the authors: 6 at 128 px, 9 at 256 px)."""
-        d_layers: int
+        d_layers: int = FROM_YAML
         """PatchGAN depth (70 x 70 patches)."""
-        norm: str
+        norm: str = FROM_YAML
         """Normalisation: instance (the authors'), batch or none."""
-        lambda_cycle: float
+        lambda_cycle: float = FROM_YAML
         """Weight of each cycle-consistency L1 loss."""
-        lambda_identity: float
+        lambda_identity: float = FROM_YAML
         """Weight of the identity loss, relative to lambda_cycle."""
-        pool_size: int
+        pool_size: int = FROM_YAML
         """Generated images kept per discriminator's history pool (0: none)."""
-        lr: float
+        lr: float = FROM_YAML
         """Adam learning rate."""
-        beta1: float
+        beta1: float = FROM_YAML
         """Adam beta1."""
 
         def validate(self) -> None:

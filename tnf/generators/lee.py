@@ -26,7 +26,7 @@ from tnf.generators.nets import (
     needed_keys,
     norm_layer,
 )
-from tnf.registry import yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults
 
 
 class LeeDiscriminator(nn.Module):
@@ -60,25 +60,25 @@ class Lee(Generator):
     @dataclass
     @yaml_defaults("generator/lee")
     class Config:
-        inputs: list[str]
+        inputs: list[str] = FROM_YAML
         """Conditions (the original uses the RGB image only)."""
-        image_size: int
+        image_size: int = FROM_YAML
         """Input and output image size in pixels (square, a power of two)."""
-        ngf: int
+        ngf: int = FROM_YAML
         """Channels of the first generator layer."""
-        ndf: int
+        ndf: int = FROM_YAML
         """Channels of the first discriminator layer."""
-        norm: str
+        norm: str = FROM_YAML
         """Normalisation: batch (original), instance or none."""
-        dropout: float
+        dropout: float = FROM_YAML
         """Dropout probability in the first decoder blocks."""
-        dropout_blocks: int
+        dropout_blocks: int = FROM_YAML
         """How many of the first decoder blocks have dropout."""
-        dropout_at_generation: bool
+        dropout_at_generation: bool = FROM_YAML
         """Keep dropout on when generating (the original's test mode turns it off)."""
-        lambda_l1: float
+        lambda_l1: float = FROM_YAML
         """Weight of the L1 loss (0 in the authors' released code)."""
-        lr: float
+        lr: float = FROM_YAML
         """RMSProp learning rate of generator and discriminator."""
 
         @property

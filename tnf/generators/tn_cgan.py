@@ -50,7 +50,7 @@ from tnf.generators.nets import (
     init_weights,
     needed_keys,
 )
-from tnf.registry import yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults
 
 
 class TNcGAN(Generator):
@@ -67,83 +67,83 @@ class TNcGAN(Generator):
     @dataclass
     @yaml_defaults("generator/tn_cgan")
     class Config:
-        inputs: list[str]
+        inputs: list[str] = FROM_YAML
         """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations),
         depth_slope, the depth image's x and y slopes (``depth_slope``), which a lit gel's image follows, and
         depth_and_slope, the two together for one encoder (the default, in place of the paper's depth); prior,
         the simulator's image of the depth crop (datasets made with ``pair.prior=true``), and surface, the
         features of a surface field learned with the generator (datasets made with ``pair.points=true``)."""
-        skips: list[str]
+        skips: list[str] = FROM_YAML
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only). Depth
         skips place the imprint's edges from the depth image at every scale, not from the 1 x 1 bottleneck."""
-        image_size: int
+        image_size: int = FROM_YAML
         """Input and output image size in pixels (square, a power of two)."""
-        ngf: int
+        ngf: int = FROM_YAML
         """Channels of the first encoder/last decoder layer (doubling per level up to 8 x ngf)."""
-        ndf: int
+        ndf: int = FROM_YAML
         """Channels of the discriminator's first layer."""
-        d_layers: int
+        d_layers: int = FROM_YAML
         """PatchGAN depth: 3 gives 70 x 70 pixel patches."""
-        norm: str
+        norm: str = FROM_YAML
         """Normalisation in generator and discriminator: batch, instance or none."""
-        dropout: float
+        dropout: float = FROM_YAML
         """Dropout probability in the innermost decoder blocks (the noise z; pix2pix and the paper: 0.5)."""
-        dropout_blocks: int
+        dropout_blocks: int = FROM_YAML
         """How many innermost decoder blocks have dropout (pix2pix: 3)."""
-        dropout_at_generation: bool
+        dropout_at_generation: bool = FROM_YAML
         """Keep dropout on when generating (the noise z), as pix2pix; false for deterministic outputs."""
-        gan_mode: str
+        gan_mode: str = FROM_YAML
         """Adversarial loss: vanilla (sigmoid cross-entropy, the paper's Eq. 3) or lsgan."""
-        lambda_gan: float
+        lambda_gan: float = FROM_YAML
         """Weight of the adversarial term in the generator's loss (the paper: 1). 0, the default, trains the
         generator as a plain regression on the L1 and SSIM terms: the discriminator then has no optimiser and is
         never run."""
-        lambda_l1: float
+        lambda_l1: float = FROM_YAML
         """Weight lambda of the L1 loss (Eq. 2)."""
-        lambda_ssim: float
+        lambda_ssim: float = FROM_YAML
         """Weight of an SSIM loss, 1 - SSIM (the evaluation's window and constants), added to the generator's
         loss (0: the paper's cGAN + L1 loss only)."""
-        full_res_head: bool
+        full_res_head: bool = FROM_YAML
         """End the decoder in two 3 x 3 convolutions at full resolution that also see the skip inputs' own
         images (the 128 px depth, say); false: the decoder's last transposed convolution makes the image."""
-        residual: bool
+        residual: bool = FROM_YAML
         """Add the network's output to an input image (``residual_on``) instead of making the image outright:
         only the change that the press makes (or what the prior gets wrong) is learned."""
-        residual_on: str
+        residual_on: str = FROM_YAML
         """The input image the residual output adds to: background, or prior (the simulator's image of the depth
         crop, ``pair.prior=true``). It must be in inputs."""
-        coords: list[str]
+        coords: list[str] = FROM_YAML
         """Inputs that also get each pixel's x and y position as two channels (``coordinate_grid``), for their
         encoder and, if skipped, the head: where on the gel a pixel lies changes how a press there looks (the
         gel's sag, the lights' directions). Empty: the network sees positions only through its borders."""
-        force: str
+        force: str = FROM_YAML
         """How the generator sees each touch's force (datasets made with ``pair.force=true``; docs/force.md):
         none, film (FiLM on the bottleneck and the decoder's features) or plane (a constant input plane)."""
-        force_center: float
+        force_center: float = FROM_YAML
         """With a force: the force (newtons) that maps to 0; the training range's middle."""
-        force_scale: float
+        force_scale: float = FROM_YAML
         """With a force: the force span (newtons) that maps to 1; the training range's half width."""
-        surface_levels: int
+        surface_levels: int = FROM_YAML
         """With ``surface`` in inputs: the surface field's grid levels (``tnf.generators.field``)."""
-        surface_features: int
+        surface_features: int = FROM_YAML
         """With ``surface``: features per grid vertex and level (the input has levels x features channels)."""
-        surface_coarsest: float
+        surface_coarsest: float = FROM_YAML
         """With ``surface``: the coarsest grid cell, metres."""
-        surface_finest: float
+        surface_finest: float = FROM_YAML
         """With ``surface``: the finest grid cell, metres."""
-        surface_log2_table: int
+        surface_log2_table: int = FROM_YAML
         """With ``surface``: hash table entries per level, as a power of two."""
-        surface_dropout: float
+        surface_dropout: float = FROM_YAML
         """With ``surface``: the share of training pairs whose field features are zeroed, so that the generator
         also works for objects the field never saw."""
-        surface_lr: float
+        surface_lr: float = FROM_YAML
         """With ``surface``: Adam learning rate of the field's table (hash grids learn at far larger rates than
         convolutions)."""
-        lr: float
+        lr: float = FROM_YAML
         """Adam learning rate of generator and discriminator."""
-        beta1: float
+        beta1: float = FROM_YAML
         """Adam beta1."""
-        beta2: float
+        beta2: float = FROM_YAML
         """Adam beta2."""
 
         @property

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from tnf.objects import ObjectSource
-from tnf.registry import from_dict, yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults
 
 Array = np.ndarray
 TAU = 2 * np.pi
@@ -886,7 +886,7 @@ class Builtin(ObjectSource):
     @dataclass
     @yaml_defaults("objects/builtin")
     class Config:
-        scale: float
+        scale: float = FROM_YAML
         """Multiplies every object's size (1.0: objects are 5-25 cm)."""
 
         def validate(self) -> None:
@@ -896,7 +896,7 @@ class Builtin(ObjectSource):
     name = "builtin"
 
     def __init__(self, cfg: Config | None = None):
-        self.cfg = cfg or from_dict(Builtin.Config, {})
+        self.cfg = cfg or Builtin.Config()
 
     def names(self) -> list[str]:
         return sorted(MAKERS)

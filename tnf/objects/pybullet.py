@@ -18,7 +18,7 @@ import numpy as np
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
 from tnf.objects.mesh_dir import load_mesh_file
-from tnf.registry import from_dict, yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults
 
 log = logging.getLogger(__name__)
 
@@ -113,13 +113,13 @@ class PyBulletData(ObjectSource):
     @dataclass
     @yaml_defaults("objects/pybullet")
     class Config:
-        include_random: bool
+        include_random: bool = FROM_YAML
         """Include the 1000 ``random_urdfs`` blobs (random_000 ... random_999)."""
-        include_textured: bool
+        include_textured: bool = FROM_YAML
         """Include the textured assets (duck, teddy, lego, jenga, domino, mug, ...)."""
-        scale: float
+        scale: float = FROM_YAML
         """Multiplies every object's size (URDF units are metres)."""
-        skip_invalid: bool
+        skip_invalid: bool = FROM_YAML
         """Leave out meshes that fail validation (e.g. random_urdfs/168), logging why."""
 
         def validate(self) -> None:
@@ -129,7 +129,7 @@ class PyBulletData(ObjectSource):
     name = "pybullet"
 
     def __init__(self, cfg: Config | None = None):
-        self.cfg = cfg or from_dict(PyBulletData.Config, {})
+        self.cfg = cfg or PyBulletData.Config()
         self.skip_invalid = self.cfg.skip_invalid
         self.root = data_path()
         self._urdfs: dict[str, Path] = {}

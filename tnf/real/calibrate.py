@@ -34,7 +34,7 @@ from tnf.artifacts import write_json
 from tnf.errors import TnfError
 from tnf.real import realism
 from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, disk_masks, sphere_gaps
-from tnf.registry import SIMULATORS, yaml_defaults
+from tnf.registry import FROM_YAML, SIMULATORS, yaml_defaults
 from tnf.sensors.base import Sensor
 from tnf.sensors.calibration import Calibration
 
@@ -44,23 +44,23 @@ from tnf.sensors.calibration import Calibration
 class FitSettings:
     """How the optics are fitted (``calibrate.fit`` in the config)."""
 
-    table_size: int
+    table_size: int = FROM_YAML
     """Table nodes per slope axis."""
-    max_slope: float
+    max_slope: float = FROM_YAML
     """Half-width of the table's slope grid (dimensionless); steeper slopes read the edge."""
-    falloffs: list[float]
+    falloffs: list[float] = FROM_YAML
     """Candidate gel fall-off lengths, multiples of the sensor's gel thickness."""
-    depth_scales: list[float]
+    depth_scales: list[float] = FROM_YAML
     """Candidate factors on each press's depth: hand-drawn contact circles tend to miss the gel's outer slope."""
-    blurs: list[float]
+    blurs: list[float] = FROM_YAML
     """Candidate blur sigmas of the change image, pixels at the sensor's size."""
-    smoothness: float
+    smoothness: float = FROM_YAML
     """Weight of the second-difference penalty over the table."""
-    ridge: float
+    ridge: float = FROM_YAML
     """Weight pulling table entries toward zero (matters only where no press reached)."""
-    fit_scale: float
+    fit_scale: float = FROM_YAML
     """Pixels within this multiple of a press's contact radius enter the fit."""
-    region_scale: float
+    region_scale: float = FROM_YAML
     """The contact region, scored in the search and in the realism report: this multiple of the contact radius."""
 
     def validate(self) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from tnf.capture.render import MeshRenderer
-from tnf.registry import SCENES, yaml_defaults
+from tnf.registry import FROM_YAML, SCENES, yaml_defaults
 from tnf.scenes.base import RGBD, Scene
 
 
@@ -21,11 +21,11 @@ class MeshScene(Scene):
     class Config:
         """Background and lights as the capture's: the defaults are those of ``conf/capture/default.yaml``."""
 
-        background: tuple[float, float, float]
+        background: tuple[float, float, float] = FROM_YAML
         """RGB background colour in [0, 1] where no surface is hit (match the capture's)."""
-        ambient: float
+        ambient: float = FROM_YAML
         """Ambient light level in [0, 1] (match the capture's)."""
-        light_intensity: float
+        light_intensity: float = FROM_YAML
         """Strength of the world-fixed key light (match the capture's)."""
 
     def __init__(self, cfg: Config, mesh: Any):

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tnf.registry import yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.scenes.render import FieldScene, RayOutput, ray_box, volume_render
 
 
@@ -83,24 +83,24 @@ class NerfScene(FieldScene):
     @dataclass
     @yaml_defaults("scene/nerf")
     class Config:
-        depth: int
+        depth: int = FROM_YAML
         """Layers of the position MLP."""
-        width: int
+        width: int = FROM_YAML
         """Width of the position MLP (the colour branch has width / 2)."""
-        skip: int
+        skip: int = FROM_YAML
         """Layer that receives the encoded position again (0 = no skip)."""
-        pos_freqs: int
+        pos_freqs: int = FROM_YAML
         """Positional-encoding frequencies of the position (normalised by bound)."""
-        dir_freqs: int
+        dir_freqs: int = FROM_YAML
         """Positional-encoding frequencies of the view direction."""
-        samples_coarse: int
+        samples_coarse: int = FROM_YAML
         """Stratified samples per ray for the coarse network."""
-        samples_fine: int
+        samples_fine: int = FROM_YAML
         """Extra samples per ray drawn from the coarse weights for the fine network (0 = coarse only)."""
-        bound: float | None
+        bound: float | None = FROM_YAML
         """Half-size of the cube [-bound, bound]^3 around the origin that holds the object, metres;
         null: derived from the training cameras when fitting."""
-        background: tuple[float, float, float]
+        background: tuple[float, float, float] = FROM_YAML
         """RGB colour in [0, 1] behind the object."""
 
         def validate(self) -> None:

@@ -22,7 +22,7 @@ own)::
 
     from dataclasses import dataclass
     from pathlib import Path
-    from tnf.registry import yaml_defaults
+    from tnf.registry import FROM_YAML, yaml_defaults
     from tnf.sensors import Sensor, SensorConfig
 
     class GelSight(Sensor):
@@ -31,7 +31,7 @@ own)::
         @dataclass
         @yaml_defaults("sensor/gelsight", conf=Path(__file__).parent / "conf")
         class Config(SensorConfig):
-            marker_spacing: float
+            marker_spacing: float = FROM_YAML
             \"\"\"Distance between printed markers, metres.\"\"\"
 
         def decorate(self, image, indentation):
@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from tnf.errors import TnfError
-from tnf.registry import config_to_dict
+from tnf.registry import FROM_YAML, config_to_dict
 from tnf.sensors.calibration import Calibration, load_calibration
 
 
@@ -77,51 +77,51 @@ class SensorConfig:
     """Data shared by every sensor. A sensor's ``Config`` subclasses it, takes every value from the sensor's YAML
     (``@yaml_defaults("sensor/NAME")``) and may add fields (document each)."""
 
-    width: int
+    width: int = FROM_YAML
     """Image width W, pixels."""
-    height: int
+    height: int = FROM_YAML
     """Image height H, pixels."""
-    fov: float
+    fov: float = FROM_YAML
     """Vertical field of view of the camera, degrees (square pixels; principal point at the centre)."""
-    camera_distance: float
+    camera_distance: float = FROM_YAML
     """Distance from the camera to the plane of the gel's rim along the view axis, metres."""
-    gel_width: float
+    gel_width: float = FROM_YAML
     """Gel size along the image x axis, metres."""
-    gel_height: float
+    gel_height: float = FROM_YAML
     """Gel size along the image y axis, metres."""
-    sag: float
+    sag: float = FROM_YAML
     """How far the gel's centre bulges out beyond its rim (convex curvature), metres; 0 = flat."""
-    thickness: float
+    thickness: float = FROM_YAML
     """Elastomer thickness over its rigid backing, metres (a thin layer is stiffer than a half-space)."""
-    young_modulus: float
+    young_modulus: float = FROM_YAML
     """Elastomer Young's modulus E, pascals."""
-    poisson_ratio: float
+    poisson_ratio: float = FROM_YAML
     """Elastomer Poisson ratio (nearly incompressible silicone: ~0.5)."""
-    max_penetration: float
+    max_penetration: float = FROM_YAML
     """Deepest indentation the simulator considers, metres (presses stop there)."""
-    force_range: tuple[float, float]
+    force_range: tuple[float, float] = FROM_YAML
     """Normal forces the sensor is used with, newtons (a target force outside it is an error)."""
-    lights: list[Light]
+    lights: list[Light] = FROM_YAML
     """Point lights inside the sensor."""
-    ambient: float
+    ambient: float = FROM_YAML
     """Ambient light level added to the shading, in [0, 1]."""
-    diffuse: float
+    diffuse: float = FROM_YAML
     """Weight of Lambertian (diffuse) shading."""
-    specular: float
+    specular: float = FROM_YAML
     """Weight of Blinn-Phong specular highlights."""
-    shininess: float
+    shininess: float = FROM_YAML
     """Blinn-Phong exponent (higher = tighter highlights)."""
-    contrast: float
+    contrast: float = FROM_YAML
     """Gain from shading difference (deformed minus undeformed, in [0, 1] units) to 8-bit image values."""
-    blur_sigma: float
+    blur_sigma: float = FROM_YAML
     """Gaussian blur of the difference image, pixels (the gel and lens are not perfectly sharp); 0 = off."""
-    noise_std: float
+    noise_std: float = FROM_YAML
     """Standard deviation of Gaussian pixel noise, 8-bit units; 0 = off."""
-    background_image: str | None
+    background_image: str | None = FROM_YAML
     """Image file of the sensor with nothing touching it (a real photo); null = procedural background."""
-    background_seed: int
+    background_seed: int = FROM_YAML
     """Seed of the procedural background (gel texture, LED variation)."""
-    calibration: str | None
+    calibration: str | None = FROM_YAML
     """Folder written by ``tnf calibrate`` (measured shading table, blur, noise, gel fall-off and background);
     null = the hand-set optics above. When set, its values replace ``lights``, ``contrast``, ``blur_sigma``,
     ``noise_std``, the background and the simulator's ``falloff``."""

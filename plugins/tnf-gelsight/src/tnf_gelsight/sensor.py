@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tnf.registry import yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.sensors import Sensor, SensorConfig
 
 CONF = Path(__file__).parent / "conf"
@@ -37,17 +37,17 @@ class GelSight(Sensor):
     class Config(SensorConfig):
         """The GelSight's values: ``conf/sensor/gelsight.yaml`` in this package."""
 
-        markers: bool
+        markers: bool = FROM_YAML
         """Draw the printed marker grid (use false with a background photo that already shows markers)."""
-        marker_spacing: float
+        marker_spacing: float = FROM_YAML
         """Distance between neighbouring markers, metres (the grid is centred on the gel)."""
-        marker_radius: float
+        marker_radius: float = FROM_YAML
         """Radius of a printed marker dot, metres."""
-        marker_darkness: float
+        marker_darkness: float = FROM_YAML
         """Fraction of light a marker blocks, in [0, 1] (1 = black)."""
-        marker_flow: float
+        marker_flow: float = FROM_YAML
         """Lateral marker motion per unit of indentation slope, in units of ``thickness`` (dimensionless)."""
-        marker_smoothing: float
+        marker_smoothing: float = FROM_YAML
         """Gaussian smoothing of the indentation before its slope drives the markers, metres (std dev)."""
 
         def validate(self) -> None:
