@@ -12,19 +12,28 @@ must be installed (``pip install -e .`` in a checkout), and reinstalled after it
 
 Discovery is lazy: the entry points of a kind are imported at the first lookup in that kind's registry,
 never at ``import tnf``. A plugin whose import fails raises its own error.
+
+A ``Config`` takes its defaults from the component's YAML option (``yaml_defaults``): each default is written
+once, in the file that users read and override, and each field says so with ``= FROM_YAML``.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 import importlib.metadata as md
+import inspect
 import math
+import os
 import threading
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any, TypeVar
 
+from tnf.env import conf_dir
 from tnf.errors import TnfError
 
 T = TypeVar("T")
@@ -210,7 +219,7 @@ def _where(obj: Any, origin: str) -> str:
 def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T:
     """Build dataclass ``cls`` from ``data``, checking keys and value types.
 
-    Unknown keys and values of the wrong type are errors that name the key and what was expected.
+    Unknown keys, values of the wrong type and fields left ``FROM_YAML`` are errors that name the key.
     """
     data = _plain(data)
     if not isinstance(data, dict):
@@ -225,6 +234,9 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
         obj = cls(**kwargs)
     except (TypeError, ValueError) as e:
         raise TnfError(f"{where}: {e}") from None
+    unset = [k for k in fields if getattr(obj, k) is FROM_YAML]
+    if unset:
+        raise TnfError(f"{where}: no value for {unset[0]!r} (FROM_YAML in a class without @yaml_defaults)")
     check = getattr(obj, "validate", None)
     if callable(check):
         try:
@@ -298,6 +310,124 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
 
 def _name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+# -- defaults from YAML -----------------------------------------------------------------------------
+class _FromYaml:
+    """The default of a Config field whose value is in the component's YAML (one instance: ``FROM_YAML``)."""
+
+    _instance: _FromYaml | None = None
+
+    def __new__(cls) -> _FromYaml:
+        if cls._instance is None:
+            cls._instance = super().__new__(cls)
+        return cls._instance
+
+    def __repr__(self) -> str:
+        return "FROM_YAML"
+
+    def __copy__(self) -> _FromYaml:
+        return self
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> _FromYaml:
+        return self
+
+    def __reduce__(self) -> str:
+        return "FROM_YAML"
+
+
+FROM_YAML: Any = _FromYaml()
+"""A Config field's default when ``yaml_defaults`` puts the YAML's value there: ``ngf: int = FROM_YAML``.
+
+Typed ``Any`` so that type checkers see a default of every field's type, and ``Config()`` type-checks."""
+
+
+def yaml_defaults(
+    option: str, conf: str | os.PathLike[str] | None = None, node: str | None = None, partial: bool = False
+) -> Callable[[type[T]], type[T]]:
+    """Class decorator, under ``@dataclass``: every field's default is its value in ``<conf>/<option>.yaml``.
+
+    Each field of the class is written ``name: type = FROM_YAML``; this puts the file's value in its place.
+
+    ``option`` is a config group option such as ``"generator/tn_cgan"``; ``conf`` the folder of the YAML files,
+    tnf's own ``conf/`` (``tnf.env.conf_dir``) unless given (a plugin passes its package's ``conf`` folder).
+    ``node`` takes the defaults from one section of the file (``"fit"`` in ``calibrate/default``). Inherited
+    dataclass fields take the file's values too. The YAML values are validated as ``from_dict`` does; lists,
+    dicts and dataclasses are copied for each instance.
+
+    Errors at import, each one line naming the file and the key: a field without a value in the file, a key of
+    the file without a field (``name``, the registry name, aside; ``partial=True`` takes only the file's keys
+    that are fields, for a Config that shares some of a stage's settings), and a field of the class whose
+    default is not ``FROM_YAML`` (a value written in the code too, or none at all).
+    """
+
+    def apply(cls: type[T]) -> type[T]:
+        path = Path(conf if conf is not None else conf_dir()) / f"{option}.yaml"
+        where = f"{path}" + (f" ({node})" if node else "")
+        values = _yaml_values(path, node, where)
+        hints = typing.get_type_hints(cls)
+        own = inspect.get_annotations(cls)
+        declared = [k for k in own if typing.ClassVar not in (hints[k], typing.get_origin(hints[k]))]
+        inherited = [
+            f.name
+            for base in cls.__mro__[1:]
+            if dataclasses.is_dataclass(base)
+            for f in dataclasses.fields(base)
+            if f.name not in own
+        ]
+        names = list(dict.fromkeys(declared + inherited))
+        for k in declared:
+            if k not in cls.__dict__:
+                raise TnfError(f"{where}: {cls.__qualname__}.{k} has no default; write `{k}: ... = FROM_YAML`")
+            if cls.__dict__[k] is not FROM_YAML:
+                raise TnfError(f"{where}: {cls.__qualname__}.{k} has a default in the code too; write it once, here")
+        for k in names:
+            if k not in values:
+                raise TnfError(f"{where}: no key {k!r}, a field of {cls.__qualname__}")
+        for k in values:
+            if k not in names and not partial and not (k == "name" and node is None):
+                raise TnfError(f"{where}: key {k!r} is no field of {cls.__qualname__}")
+        annotations = dict(own)
+        for k in names:
+            value = _coerce(values[k], hints[k], f"{where}: {k}")
+            annotations.setdefault(k, hints[k])  # an inherited field, declared again to take this file's default
+            if _shareable(value):
+                setattr(cls, k, value)
+            else:  # a list, a dict, a dataclass: each instance gets its own copy
+                setattr(cls, k, dataclasses.field(default_factory=functools.partial(copy.deepcopy, value)))
+        cls.__annotations__ = annotations
+        cls._yaml_defaults = str(path) if node is None else f"{path}#{node}"  # type: ignore[attr-defined]
+        return cls
+
+    return apply
+
+
+def defaults_source(config_class: type) -> str | None:
+    """The YAML file that ``config_class`` takes its defaults from (``path`` or ``path#node``); None if none."""
+    return config_class.__dict__.get("_yaml_defaults")
+
+
+def _yaml_values(path: Path, node: str | None, where: str) -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    if not path.is_file():
+        raise TnfError(f"{path}: no such file (a Config takes its defaults from it)")
+    loaded = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    values = loaded.get(node) if node is not None and isinstance(loaded, dict) else loaded
+    if not isinstance(values, dict):
+        raise TnfError(f"{where}: expected a mapping of settings, got {values!r}")
+    out = {str(k): v for k, v in values.items()}
+    for k, v in out.items():
+        if isinstance(v, str) and "${" in v:
+            raise TnfError(f"{where}: {k} is an interpolation ({v}); a default must be a value")
+    return out
+
+
+def _shareable(value: Any) -> bool:
+    """None, a bool, a number, a string or a tuple of them: safe to share between instances."""
+    if isinstance(value, tuple):
+        return all(_shareable(v) for v in value)
+    return value is None or isinstance(value, (bool, int, float, str))
 
 
 # -- the registries ---------------------------------------------------------------------------------

@@ -187,3 +187,35 @@ def test_refresh_keeps_what_was_added_directly(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(install_tiny_plugin(tmp_path / "site")))
     reg.refresh()
     assert "tiny" in reg and "stand_in" in reg and "digit" in reg
+
+
+def test_the_contract_wants_the_defaults_from_the_plugins_yaml(tmp_path, monkeypatch):
+    """The contract suites' check passes for a plugin whose Config takes its defaults from its own YAML, and fails,
+    saying what to do, for one that writes them in the code or takes them from another file."""
+    from tnf.registry import FROM_YAML, yaml_defaults
+    from tnf.testing import SensorContract
+
+    monkeypatch.syspath_prepend(str(install_tiny_plugin(tmp_path / "site")))
+
+    def check(sensor: type) -> None:
+        registry = Registry("sensor", "tnf.no_such_group")
+        registry.add("tiny", sensor, origin="tests")
+        type("Check", (SensorContract,), {"registry": registry, "name": "tiny"})().test_config_defaults_are_its_yaml()
+
+    from tnf_tiny_plugin.sensor import TinySensor
+
+    check(TinySensor)
+    with pytest.raises(AssertionError, match=r"decorate it with @yaml_defaults\(\"sensor/tiny\""):
+        check(FakeSensor)
+    other = tmp_path / "other" / "sensor"
+    other.mkdir(parents=True)
+    (other / "tiny.yaml").write_text("name: tiny\nwidth: 9\n")
+
+    class Stale:
+        @dataclass
+        @yaml_defaults("sensor/tiny", conf=other.parent)
+        class Config:
+            width: int = FROM_YAML
+
+    with pytest.raises(AssertionError, match="sensor=tiny composes other values than"):
+        check(Stale)

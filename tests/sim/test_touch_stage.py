@@ -35,3 +35,24 @@ def test_touch_tiny_writes_item_and_rerun_skips(data_root, capsys):
     assert main(["touch", "debug=tiny", "object=ball", "progress=false", "device=cpu"]) == 0
     assert "skipped" in capsys.readouterr().out
     assert (item / "manifest.json").stat().st_mtime_ns == mtime
+
+
+def test_a_speed_setting_leaves_the_touch_items_hash_alone():
+    """warp_gel's cpu_threads changes how fast touches are made, not the touches: an item's hash leaves it out, so
+    finished items stay valid whatever it is set to; a setting that changes the touches changes the hash."""
+    from omegaconf import OmegaConf
+
+    from tnf.artifacts import config_hash
+    from tnf.env import conf_dir
+    from tnf.registry import SENSORS
+    from tnf.stages.touch import item_config
+    from tnf.testing import compose
+
+    digit = SENSORS.build("digit")
+    key = item_config(compose("touch"), digit)
+    yaml = OmegaConf.to_container(OmegaConf.load(f"{conf_dir()}/simulator/warp_gel.yaml"))
+    assert key["simulator"] == ("warp_gel", {k: v for k, v in yaml.items() if k not in ("name", "cpu_threads")})
+    threads = item_config(compose("touch", ["simulator.cpu_threads=1"]), digit)
+    assert config_hash(threads) == config_hash(key)
+    falloff = item_config(compose("touch", ["simulator.falloff=0.6"]), digit)
+    assert config_hash(falloff) != config_hash(key)

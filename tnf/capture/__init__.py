@@ -24,44 +24,45 @@ from typing import Any, Literal
 import numpy as np
 
 from tnf.cameras import look_at
-from tnf.registry import from_dict
+from tnf.registry import FROM_YAML, from_dict, yaml_defaults
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 
 @dataclass
+@yaml_defaults("capture/default")
 class CaptureConfig:
     """Settings of the capture stage (``cfg.capture``)."""
 
-    views: Literal["sphere", "hemisphere"] = "sphere"
+    views: Literal["sphere", "hemisphere"] = FROM_YAML
     """Training camera layout: evenly on a whole sphere, or uniformly in an azimuth/elevation range."""
-    num_views: int = 48
+    num_views: int = FROM_YAML
     """Number of training views per object."""
-    num_test_views: int = 8
+    num_test_views: int = FROM_YAML
     """Number of held-out test views per object (a different set of poses)."""
-    resolution: int = 128
+    resolution: int = FROM_YAML
     """Image width and height in pixels."""
-    fov_deg: float = 40.0
+    fov_deg: float = FROM_YAML
     """Horizontal (= vertical) field of view in degrees."""
-    fill: float = 0.8
+    fill: float = FROM_YAML
     """Fraction of the image width the object's bounding sphere spans; sets the camera distance."""
-    distance: float | None = None
+    distance: float | None = FROM_YAML
     """Camera distance from the origin in metres; null: from ``fill``, the object's size and the fov."""
-    min_elevation_deg: float = -30.0
+    min_elevation_deg: float = FROM_YAML
     """Lowest camera elevation above the xy plane for ``hemisphere`` views, degrees."""
-    max_elevation_deg: float = 80.0
+    max_elevation_deg: float = FROM_YAML
     """Highest camera elevation for ``hemisphere`` views, degrees."""
-    min_azimuth_deg: float = 0.0
+    min_azimuth_deg: float = FROM_YAML
     """Start of the azimuth range for ``hemisphere`` views, degrees."""
-    max_azimuth_deg: float = 360.0
+    max_azimuth_deg: float = FROM_YAML
     """End of the azimuth range for ``hemisphere`` views, degrees."""
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    background: tuple[float, float, float] = FROM_YAML
     """RGB background colour in [0, 1] (the PNGs' colour where alpha is 0)."""
-    ambient: float = 0.35
+    ambient: float = FROM_YAML
     """Ambient light level in [0, 1]."""
-    light_intensity: float = 3.0
+    light_intensity: float = FROM_YAML
     """Strength of the key directional light (pyrender units); fill and rim lights are fractions of it."""
-    antialias: int = 0
+    antialias: int = FROM_YAML
     """Multisample anti-aliasing samples of the colour images: 0 samples each pixel at its centre, so colour,
     alpha and depth agree with one ray per pixel; 4 or 8 smooth the silhouettes at 3-4x the CPU cost."""
 

@@ -26,6 +26,7 @@ from tnf.errors import TnfError
 from tnf.registry import SCENES, SENSORS, config_to_dict, split_spec
 from tnf.runtime import job_device, progress, resolve_device, warp_device
 from tnf.scenes import load_scene
+from tnf.sim.base import simulator_key
 
 ASSEMBLE_CHUNK = 256  # pairs copied per step while assembling (bounds memory)
 SCENE_SOURCES = ("fitted", "mesh")
@@ -191,7 +192,8 @@ def _cache_keys(job: PairJob, inputs: dict[str, Any], framing: Any) -> dict[str,
             "size": SIZE,
         }
         if p["prior"]:
-            key["prior"] = _plain_json(job.simulator)
+            assert job.simulator is not None
+            key["prior"] = _plain_json(simulator_key(job.simulator))
         if p["points"]:
             key["points"] = True
         cache_keys[obj] = key

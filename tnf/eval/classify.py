@@ -28,31 +28,33 @@ from tnf.artifacts import read_json
 from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.errors import TnfError
 from tnf.metrics import exact_fp32_matmul
+from tnf.registry import FROM_YAML, yaml_defaults
 
 
 @dataclass
+@yaml_defaults("evaluate/default", node="classifier")
 class ClassifierConfig:
     """Settings of the tactile object classifier (identical for every training set)."""
 
-    image_size: int = 64
+    image_size: int = FROM_YAML
     """Side of the square input image in pixels (128 is the generators' size; 64 trains 4x faster)."""
-    width: int = 32
+    width: int = FROM_YAML
     """Channels of the first convolution block; doubled in each of the next blocks (up to 4 blocks)."""
-    steps: int = 1500
+    steps: int = FROM_YAML
     """Optimisation steps (batches); the same for every row, so a larger training set gets no extra steps."""
-    batch_size: int = 64
+    batch_size: int = FROM_YAML
     """Images per step."""
-    lr: float = 1e-3
+    lr: float = FROM_YAML
     """Adam learning rate, decayed with a cosine schedule to zero over ``steps``."""
-    weight_decay: float = 1e-4
+    weight_decay: float = FROM_YAML
     """AdamW weight decay."""
-    shift: int = 4
+    shift: int = FROM_YAML
     """Augmentation: random translation of each batch by up to this many pixels (0 = none)."""
-    real_fraction: float | None = None
+    real_fraction: float | None = FROM_YAML
     """In a training set that mixes ground-truth and generated images (``Sim + G``), the share of each batch drawn
     from the ground truth; None draws batches uniformly from the whole set, so adding generated images also cuts
     how often each ground-truth image is seen. Sets of one kind (``Sim``, ``G only``) are drawn as with None."""
-    restarts: int = 1
+    restarts: int = FROM_YAML
     """Classifiers trained per row, each from its own seed; the row's accuracy is their mean. On a small test set
     a classifier's run-to-run spread can exceed the difference between rows; more restarts average it out."""
 

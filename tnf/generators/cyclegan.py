@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.nets import ImagePool, PatchDiscriminator, ResnetGenerator, gan_loss, init_weights
+from tnf.registry import FROM_YAML, yaml_defaults
 
 
 class CycleGAN(Generator):
@@ -23,28 +24,29 @@ class CycleGAN(Generator):
     optimizer_names = ("g", "d")
 
     @dataclass
+    @yaml_defaults("generator/cyclegan")
     class Config:
-        image_size: int = 128
+        image_size: int = FROM_YAML
         """Input and output image size in pixels (a multiple of 4)."""
-        ngf: int = 64
+        ngf: int = FROM_YAML
         """Channels of the generators' first layer."""
-        ndf: int = 64
+        ndf: int = FROM_YAML
         """Channels of the discriminators' first layer."""
-        n_blocks: int = 6
+        n_blocks: int = FROM_YAML
         """Residual blocks per generator (the authors: 6 at 128 px, 9 at 256 px)."""
-        d_layers: int = 3
+        d_layers: int = FROM_YAML
         """PatchGAN depth (70 x 70 patches)."""
-        norm: str = "instance"
+        norm: str = FROM_YAML
         """Normalisation: instance (the authors'), batch or none."""
-        lambda_cycle: float = 10.0
+        lambda_cycle: float = FROM_YAML
         """Weight of each cycle-consistency L1 loss."""
-        lambda_identity: float = 0.5
+        lambda_identity: float = FROM_YAML
         """Weight of the identity loss, relative to lambda_cycle."""
-        pool_size: int = 50
+        pool_size: int = FROM_YAML
         """Generated images kept per discriminator's history pool (0: none)."""
-        lr: float = 2e-4
+        lr: float = FROM_YAML
         """Adam learning rate."""
-        beta1: float = 0.5
+        beta1: float = FROM_YAML
         """Adam beta1."""
 
         def validate(self) -> None:

@@ -31,6 +31,7 @@ from tnf.generators import load_generator
 from tnf.registry import SENSORS
 from tnf.runtime import progress, resolve_device, warp_device
 from tnf.scenes import load_scene
+from tnf.sim.base import simulator_key
 from tnf.sim.forces import requested_forces
 from tnf.sim.touch import sphere_directions, start_poses
 
@@ -268,12 +269,17 @@ def _item_config(
             and not (k == "touch_force" and v is None)  # (hashes of items made before forces existed)
         },
         "seed": job.seed,
-        # What makes the prior of a model that takes it: other settings make other images.
-        "prior": {"simulator": job.simulator, "force": job.touch_force} if model.needs_prior else None,
+        "prior": _prior_key(job) if model.needs_prior else None,
     }
     if own is not None:  # generate.touch_force=sim: the touches' forces make the images too
         config["touch_forces"] = [t["force"] for t in own]
     return config
+
+
+def _prior_key(job: GenerateJob) -> dict[str, Any]:
+    """What makes the prior of a model that takes it: other settings make other images."""
+    simulator = simulator_key(job.simulator) if job.simulator is not None else None
+    return {"simulator": simulator, "force": job.touch_force}
 
 
 def _generate_object(job: GenerateJob, store: Any, model: _Model, item: tuple[Any, ...], advance: Any) -> int:

@@ -9,7 +9,7 @@ in the authors' released code.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -26,6 +26,7 @@ from tnf.generators.nets import (
     needed_keys,
     norm_layer,
 )
+from tnf.registry import FROM_YAML, yaml_defaults
 
 
 class LeeDiscriminator(nn.Module):
@@ -57,26 +58,27 @@ class Lee(Generator):
     """Lee et al. 2019 baseline: RGB-only U-Net cGAN with 5x5 convolutions, FC discriminator, RMSProp."""
 
     @dataclass
+    @yaml_defaults("generator/lee")
     class Config:
-        inputs: list[str] = field(default_factory=lambda: ["rgb"])
+        inputs: list[str] = FROM_YAML
         """Conditions (the original uses the RGB image only)."""
-        image_size: int = 128
+        image_size: int = FROM_YAML
         """Input and output image size in pixels (square, a power of two)."""
-        ngf: int = 64
+        ngf: int = FROM_YAML
         """Channels of the first generator layer."""
-        ndf: int = 64
+        ndf: int = FROM_YAML
         """Channels of the first discriminator layer."""
-        norm: str = "batch"
+        norm: str = FROM_YAML
         """Normalisation: batch (original), instance or none."""
-        dropout: float = 0.5
+        dropout: float = FROM_YAML
         """Dropout probability in the first decoder blocks."""
-        dropout_blocks: int = 3
+        dropout_blocks: int = FROM_YAML
         """How many of the first decoder blocks have dropout."""
-        dropout_at_generation: bool = False
+        dropout_at_generation: bool = FROM_YAML
         """Keep dropout on when generating (the original's test mode turns it off)."""
-        lambda_l1: float = 0.0
+        lambda_l1: float = FROM_YAML
         """Weight of the L1 loss (0 in the authors' released code)."""
-        lr: float = 2e-4
+        lr: float = FROM_YAML
         """RMSProp learning rate of generator and discriminator."""
 
         @property

@@ -27,7 +27,7 @@ full_res_head=false residual=false lambda_gan=1``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
@@ -50,6 +50,7 @@ from tnf.generators.nets import (
     init_weights,
     needed_keys,
 )
+from tnf.registry import FROM_YAML, yaml_defaults
 
 
 class TNcGAN(Generator):
@@ -64,84 +65,85 @@ class TNcGAN(Generator):
     }
 
     @dataclass
+    @yaml_defaults("generator/tn_cgan")
     class Config:
-        inputs: list[str] = field(default_factory=lambda: ["rgb", "depth_and_slope", "background"])
+        inputs: list[str] = FROM_YAML
         """Conditions, each with its own encoder: any of rgb, depth, background (drop some for ablations),
         depth_slope, the depth image's x and y slopes (``depth_slope``), which a lit gel's image follows, and
         depth_and_slope, the two together for one encoder (the default, in place of the paper's depth); prior,
         the simulator's image of the depth crop (datasets made with ``pair.prior=true``), and surface, the
         features of a surface field learned with the generator (datasets made with ``pair.points=true``)."""
-        skips: list[str] = field(default_factory=lambda: ["background", "depth_and_slope"])
+        skips: list[str] = FROM_YAML
         """Inputs whose encoder features are skip-connected to the decoder (the paper: background only). Depth
         skips place the imprint's edges from the depth image at every scale, not from the 1 x 1 bottleneck."""
-        image_size: int = 128
+        image_size: int = FROM_YAML
         """Input and output image size in pixels (square, a power of two)."""
-        ngf: int = 64
+        ngf: int = FROM_YAML
         """Channels of the first encoder/last decoder layer (doubling per level up to 8 x ngf)."""
-        ndf: int = 64
+        ndf: int = FROM_YAML
         """Channels of the discriminator's first layer."""
-        d_layers: int = 3
+        d_layers: int = FROM_YAML
         """PatchGAN depth: 3 gives 70 x 70 pixel patches."""
-        norm: str = "batch"
+        norm: str = FROM_YAML
         """Normalisation in generator and discriminator: batch, instance or none."""
-        dropout: float = 0.0
+        dropout: float = FROM_YAML
         """Dropout probability in the innermost decoder blocks (the noise z; pix2pix and the paper: 0.5)."""
-        dropout_blocks: int = 3
+        dropout_blocks: int = FROM_YAML
         """How many innermost decoder blocks have dropout (pix2pix: 3)."""
-        dropout_at_generation: bool = True
+        dropout_at_generation: bool = FROM_YAML
         """Keep dropout on when generating (the noise z), as pix2pix; false for deterministic outputs."""
-        gan_mode: str = "vanilla"
+        gan_mode: str = FROM_YAML
         """Adversarial loss: vanilla (sigmoid cross-entropy, the paper's Eq. 3) or lsgan."""
-        lambda_gan: float = 0.0
+        lambda_gan: float = FROM_YAML
         """Weight of the adversarial term in the generator's loss (the paper: 1). 0, the default, trains the
         generator as a plain regression on the L1 and SSIM terms: the discriminator then has no optimiser and is
         never run."""
-        lambda_l1: float = 100.0
+        lambda_l1: float = FROM_YAML
         """Weight lambda of the L1 loss (Eq. 2)."""
-        lambda_ssim: float = 60.0
+        lambda_ssim: float = FROM_YAML
         """Weight of an SSIM loss, 1 - SSIM (the evaluation's window and constants), added to the generator's
         loss (0: the paper's cGAN + L1 loss only)."""
-        full_res_head: bool = True
+        full_res_head: bool = FROM_YAML
         """End the decoder in two 3 x 3 convolutions at full resolution that also see the skip inputs' own
         images (the 128 px depth, say); false: the decoder's last transposed convolution makes the image."""
-        residual: bool = True
+        residual: bool = FROM_YAML
         """Add the network's output to an input image (``residual_on``) instead of making the image outright:
         only the change that the press makes (or what the prior gets wrong) is learned."""
-        residual_on: str = "background"
+        residual_on: str = FROM_YAML
         """The input image the residual output adds to: background, or prior (the simulator's image of the depth
         crop, ``pair.prior=true``). It must be in inputs."""
-        coords: list[str] = field(default_factory=list)
+        coords: list[str] = FROM_YAML
         """Inputs that also get each pixel's x and y position as two channels (``coordinate_grid``), for their
         encoder and, if skipped, the head: where on the gel a pixel lies changes how a press there looks (the
         gel's sag, the lights' directions). Empty: the network sees positions only through its borders."""
-        force: str = "none"
+        force: str = FROM_YAML
         """How the generator sees each touch's force (datasets made with ``pair.force=true``; docs/force.md):
         none, film (FiLM on the bottleneck and the decoder's features) or plane (a constant input plane)."""
-        force_center: float = 4.5
+        force_center: float = FROM_YAML
         """With a force: the force (newtons) that maps to 0; the training range's middle."""
-        force_scale: float = 3.5
+        force_scale: float = FROM_YAML
         """With a force: the force span (newtons) that maps to 1; the training range's half width."""
-        surface_levels: int = 5
+        surface_levels: int = FROM_YAML
         """With ``surface`` in inputs: the surface field's grid levels (``tnf.generators.field``)."""
-        surface_features: int = 2
+        surface_features: int = FROM_YAML
         """With ``surface``: features per grid vertex and level (the input has levels x features channels)."""
-        surface_coarsest: float = 0.008
+        surface_coarsest: float = FROM_YAML
         """With ``surface``: the coarsest grid cell, metres."""
-        surface_finest: float = 0.0005
+        surface_finest: float = FROM_YAML
         """With ``surface``: the finest grid cell, metres."""
-        surface_log2_table: int = 20
+        surface_log2_table: int = FROM_YAML
         """With ``surface``: hash table entries per level, as a power of two."""
-        surface_dropout: float = 0.25
+        surface_dropout: float = FROM_YAML
         """With ``surface``: the share of training pairs whose field features are zeroed, so that the generator
         also works for objects the field never saw."""
-        surface_lr: float = 0.005
+        surface_lr: float = FROM_YAML
         """With ``surface``: Adam learning rate of the field's table (hash grids learn at far larger rates than
         convolutions)."""
-        lr: float = 2e-4
+        lr: float = FROM_YAML
         """Adam learning rate of generator and discriminator."""
-        beta1: float = 0.5
+        beta1: float = FROM_YAML
         """Adam beta1."""
-        beta2: float = 0.999
+        beta2: float = FROM_YAML
         """Adam beta2."""
 
         @property

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from tnf.objects import ObjectSource
+from tnf.registry import FROM_YAML, yaml_defaults
 
 Array = np.ndarray
 TAU = 2 * np.pi
@@ -883,8 +884,9 @@ class Builtin(ObjectSource):
     """Procedural household objects (bottles, cans, mugs, tools, fruit...) with fingertip-scale detail."""
 
     @dataclass
+    @yaml_defaults("objects/builtin")
     class Config:
-        scale: float = 1.0
+        scale: float = FROM_YAML
         """Multiplies every object's size (1.0: objects are 5-25 cm)."""
 
         def validate(self) -> None:

@@ -47,7 +47,7 @@ from tnf.artifacts import read_json, write_json
 from tnf.cameras import Views, read_views
 from tnf.errors import TnfError
 from tnf.objects import TOUCH_SPLITS, ObjectSource
-from tnf.registry import config_to_dict
+from tnf.registry import FROM_YAML, config_to_dict, yaml_defaults
 
 if TYPE_CHECKING:  # pragma: no cover
     from tnf.artifacts import ArtifactStore
@@ -62,12 +62,13 @@ class Captured(ObjectSource):
     """Your own objects: camera images with poses (transforms.json) and real tactile frames; no meshes."""
 
     @dataclass
+    @yaml_defaults("objects/captured")
     class Config:
-        root: str = ""
+        root: str = FROM_YAML
         """The folder with one sub-folder per object, ``<root>/<object>/transforms.json`` (required)."""
-        test_every: int = 8
+        test_every: int = FROM_YAML
         """Without transforms_test.json, frames 0, k, 2k, ... of transforms.json are held out as test views; 0: none."""
-        centre: bool = True
+        centre: bool = FROM_YAML
         """Move the world origin to the point the cameras look at (nearest to their view axes); false: the poses'
         origin must be the object's centre."""
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
+from tnf.registry import FROM_YAML, yaml_defaults
 
 if TYPE_CHECKING:
     from trimesh.resolvers import Resolver
@@ -141,14 +142,15 @@ class MeshDir(ObjectSource):
     """Meshes from a folder (OBJ+MTL+textures, PLY, STL, GLB/GLTF), YCB layout included."""
 
     @dataclass
+    @yaml_defaults("objects/mesh_dir")
     class Config:
-        path: str = ""
+        path: str = FROM_YAML
         """The folder of meshes (searched recursively)."""
-        scale: float = 1.0
+        scale: float = FROM_YAML
         """Factor from file units to metres (0.001 for millimetres)."""
-        up_axis: UP_AXES = "z"
+        up_axis: UP_AXES = FROM_YAML
         """The files' up axis; it is rotated to +z."""
-        skip_invalid: bool = True
+        skip_invalid: bool = FROM_YAML
         """Leave out meshes that fail validation, logging why (false: such a mesh is an error)."""
 
         def validate(self) -> None:

@@ -18,6 +18,7 @@ import numpy as np
 from tnf.errors import TnfError
 from tnf.objects import ObjectSource
 from tnf.objects.mesh_dir import load_mesh_file
+from tnf.registry import FROM_YAML, yaml_defaults
 
 log = logging.getLogger(__name__)
 
@@ -110,14 +111,15 @@ class PyBulletData(ObjectSource):
     """Objects of pybullet_data: random_urdfs blobs and textured assets (pip install tnf[assets])."""
 
     @dataclass
+    @yaml_defaults("objects/pybullet")
     class Config:
-        include_random: bool = True
+        include_random: bool = FROM_YAML
         """Include the 1000 ``random_urdfs`` blobs (random_000 ... random_999)."""
-        include_textured: bool = True
+        include_textured: bool = FROM_YAML
         """Include the textured assets (duck, teddy, lego, jenga, domino, mug, ...)."""
-        scale: float = 1.0
+        scale: float = FROM_YAML
         """Multiplies every object's size (URDF units are metres)."""
-        skip_invalid: bool = True
+        skip_invalid: bool = FROM_YAML
         """Leave out meshes that fail validation (e.g. random_urdfs/168), logging why."""
 
         def validate(self) -> None:

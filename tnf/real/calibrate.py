@@ -24,7 +24,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,32 +34,33 @@ from tnf.artifacts import write_json
 from tnf.errors import TnfError
 from tnf.real import realism
 from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, disk_masks, sphere_gaps
-from tnf.registry import SIMULATORS
+from tnf.registry import FROM_YAML, SIMULATORS, yaml_defaults
 from tnf.sensors.base import Sensor
 from tnf.sensors.calibration import Calibration
 
 
 @dataclass
+@yaml_defaults("calibrate/default", node="fit")
 class FitSettings:
     """How the optics are fitted (``calibrate.fit`` in the config)."""
 
-    table_size: int = 21
+    table_size: int = FROM_YAML
     """Table nodes per slope axis."""
-    max_slope: float = 1.5
+    max_slope: float = FROM_YAML
     """Half-width of the table's slope grid (dimensionless); steeper slopes read the edge."""
-    falloffs: list[float] = field(default_factory=lambda: [0.02, 0.05, 0.1, 0.2, 0.4])
+    falloffs: list[float] = FROM_YAML
     """Candidate gel fall-off lengths, multiples of the sensor's gel thickness."""
-    depth_scales: list[float] = field(default_factory=lambda: [1.0, 1.5, 2.0])
+    depth_scales: list[float] = FROM_YAML
     """Candidate factors on each press's depth: hand-drawn contact circles tend to miss the gel's outer slope."""
-    blurs: list[float] = field(default_factory=lambda: [1.0, 2.0, 3.0, 4.5, 6.0])
+    blurs: list[float] = FROM_YAML
     """Candidate blur sigmas of the change image, pixels at the sensor's size."""
-    smoothness: float = 20.0
+    smoothness: float = FROM_YAML
     """Weight of the second-difference penalty over the table."""
-    ridge: float = 0.01
+    ridge: float = FROM_YAML
     """Weight pulling table entries toward zero (matters only where no press reached)."""
-    fit_scale: float = 2.0
+    fit_scale: float = FROM_YAML
     """Pixels within this multiple of a press's contact radius enter the fit."""
-    region_scale: float = 1.5
+    region_scale: float = FROM_YAML
     """The contact region, scored in the search and in the realism report: this multiple of the contact radius."""
 
     def validate(self) -> None:

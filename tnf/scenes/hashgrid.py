@@ -17,6 +17,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.scenes.render import (
     EMPTY_OPACITY,
     FieldScene,
@@ -203,41 +204,42 @@ class HashGridScene(FieldScene):
     hull: torch.Tensor
 
     @dataclass
+    @yaml_defaults("scene/hashgrid")
     class Config:
-        levels: int = 16
+        levels: int = FROM_YAML
         """Number of hash-grid levels."""
-        features_per_level: int = 2
+        features_per_level: int = FROM_YAML
         """Features stored per grid vertex and level."""
-        log2_table_size: int = 19
+        log2_table_size: int = FROM_YAML
         """log2 of the entries per level's hash table (19 -> 524288)."""
-        base_resolution: int = 16
+        base_resolution: int = FROM_YAML
         """Cells per axis of the coarsest level."""
-        max_resolution: int = 2048
+        max_resolution: int = FROM_YAML
         """Cells per axis of the finest level."""
-        hidden: int = 64
+        hidden: int = FROM_YAML
         """Width of the density and colour MLPs."""
-        geo_features: int = 15
+        geo_features: int = FROM_YAML
         """Features the density MLP passes to the colour MLP."""
-        density_layers: int = 1
+        density_layers: int = FROM_YAML
         """Hidden layers of the density MLP."""
-        color_layers: int = 2
+        color_layers: int = FROM_YAML
         """Hidden layers of the colour MLP."""
-        samples_per_ray: int = 512
+        samples_per_ray: int = FROM_YAML
         """Ray-marching steps across the cube's diagonal (step = 2 sqrt(3) bound / samples_per_ray)."""
-        occupancy_resolution: int = 64
+        occupancy_resolution: int = FROM_YAML
         """Cells per axis of the occupancy grid."""
-        occupancy_threshold: float = 0.01
+        occupancy_threshold: float = FROM_YAML
         """A cell is empty when a step through it would absorb less than this fraction of light."""
-        occupancy_update_every: int = 16
+        occupancy_update_every: int = FROM_YAML
         """Training steps between occupancy-grid refreshes."""
-        occupancy_warmup: int = 256
+        occupancy_warmup: int = FROM_YAML
         """Training steps before empty cells start being skipped."""
-        occupancy_decay: float = 0.95
+        occupancy_decay: float = FROM_YAML
         """Decay of the grid's running density at each refresh (forgets floaters that training removes)."""
-        bound: float | None = None
+        bound: float | None = FROM_YAML
         """Half-size of the cube [-bound, bound]^3 around the origin that holds the object, metres;
         null: derived from the training cameras when fitting."""
-        background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+        background: tuple[float, float, float] = FROM_YAML
         """RGB colour in [0, 1] behind the object."""
 
         def validate(self) -> None:

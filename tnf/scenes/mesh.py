@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from tnf.capture.render import MeshRenderer
-from tnf.registry import SCENES
+from tnf.registry import FROM_YAML, SCENES, yaml_defaults
 from tnf.scenes.base import RGBD, Scene
 
 
@@ -17,12 +17,15 @@ class MeshScene(Scene):
     """The object's ground-truth mesh rendered with pyrender (exact RGB-D, no fitting)."""
 
     @dataclass
+    @yaml_defaults("capture/default", partial=True)
     class Config:
-        background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+        """Background and lights as the capture's: the defaults are those of ``conf/capture/default.yaml``."""
+
+        background: tuple[float, float, float] = FROM_YAML
         """RGB background colour in [0, 1] where no surface is hit (match the capture's)."""
-        ambient: float = 0.35
+        ambient: float = FROM_YAML
         """Ambient light level in [0, 1] (match the capture's)."""
-        light_intensity: float = 3.0
+        light_intensity: float = FROM_YAML
         """Strength of the world-fixed key light (match the capture's)."""
 
     def __init__(self, cfg: Config, mesh: Any):

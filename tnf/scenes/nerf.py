@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.scenes.render import FieldScene, RayOutput, ray_box, volume_render
 
 
@@ -80,25 +81,26 @@ class NerfScene(FieldScene):
     """Original NeRF: positional encoding, 8x256 MLP with skip, coarse + fine hierarchical sampling."""
 
     @dataclass
+    @yaml_defaults("scene/nerf")
     class Config:
-        depth: int = 8
+        depth: int = FROM_YAML
         """Layers of the position MLP."""
-        width: int = 256
+        width: int = FROM_YAML
         """Width of the position MLP (the colour branch has width / 2)."""
-        skip: int = 4
+        skip: int = FROM_YAML
         """Layer that receives the encoded position again (0 = no skip)."""
-        pos_freqs: int = 10
+        pos_freqs: int = FROM_YAML
         """Positional-encoding frequencies of the position (normalised by bound)."""
-        dir_freqs: int = 4
+        dir_freqs: int = FROM_YAML
         """Positional-encoding frequencies of the view direction."""
-        samples_coarse: int = 64
+        samples_coarse: int = FROM_YAML
         """Stratified samples per ray for the coarse network."""
-        samples_fine: int = 128
+        samples_fine: int = FROM_YAML
         """Extra samples per ray drawn from the coarse weights for the fine network (0 = coarse only)."""
-        bound: float | None = None
+        bound: float | None = FROM_YAML
         """Half-size of the cube [-bound, bound]^3 around the origin that holds the object, metres;
         null: derived from the training cameras when fitting."""
-        background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+        background: tuple[float, float, float] = FROM_YAML
         """RGB colour in [0, 1] behind the object."""
 
         def validate(self) -> None:

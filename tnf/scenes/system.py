@@ -26,6 +26,7 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from tnf.artifacts import write_bytes
 from tnf.cameras import Views, camera_rays
 from tnf.errors import NonFiniteLoss, TnfError
+from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.scenes.render import FieldScene, composite
 
 # Defaults per scene kind where one value does not suit both (fit settings of null pick these).
@@ -36,38 +37,39 @@ KIND_DEFAULTS: dict[str, dict[str, Any]] = {
 
 
 @dataclass
+@yaml_defaults("fit/default")
 class FitSettings:
     """How to fit one scene (the ``fit`` config section)."""
 
-    steps: int | None = None
+    steps: int | None = FROM_YAML
     """Training steps (ray batches); null: the scene kind's default (hashgrid 3000, nerf 30000)."""
-    batch_rays: int | None = None
+    batch_rays: int | None = FROM_YAML
     """Rays per training batch; null: the scene kind's default (hashgrid 4096, nerf 2048)."""
-    lr: float | None = None
+    lr: float | None = FROM_YAML
     """Adam learning rate at the start; null: the scene kind's default (hashgrid 1e-2, nerf 5e-4)."""
-    lr_final_factor: float = 0.05
+    lr_final_factor: float = FROM_YAML
     """Learning rate at the last step as a fraction of lr (exponential decay)."""
-    random_background: bool = True
+    random_background: bool = FROM_YAML
     """Composite each training ray's RGBA target over a random colour (teaches empty space to be empty)."""
-    checkpoint_every: int = 1000
+    checkpoint_every: int = FROM_YAML
     """Steps between resumable checkpoints (0: none)."""
-    eval_views: int | None = None
+    eval_views: int | None = FROM_YAML
     """Held-out views to evaluate (null: all of transforms_test.json)."""
-    preview_views: int = 4
+    preview_views: int = FROM_YAML
     """Held-out views shown in preview.png."""
-    chunk: int | None = None
+    chunk: int | None = FROM_YAML
     """Rays per rendering chunk during evaluation (bounds memory); null: the scene kind's default."""
-    log_every: int = 100
+    log_every: int = FROM_YAML
     """Steps between loss records in the training log."""
-    carve: bool = True
+    carve: bool = FROM_YAML
     """Start the occupancy grid from the visual hull of the training views' alpha masks (skips empty space)."""
-    distortion_weight: float = 0.1
+    distortion_weight: float = FROM_YAML
     """Weight of the distortion loss (Mip-NeRF 360) that gathers each ray's weights on one surface; scenes
     that report it (hashgrid) only. The colour loss alone leaves the density profile behind an opaque
     surface free, and a spread-out profile biases the expected depth away from the camera. On an H100 at
     128 px, 0.1 took the median depth error of the box from 2.1 % to 0.91 % and of the mug from 3.2 % to
     0.94 % of their size, for 1.8 and 0.1 dB of PSNR (results/scenes/distortion_weight.md)."""
-    distortion_start: float = 0.3
+    distortion_start: float = FROM_YAML
     """Fraction of the steps fitted by colour alone before the distortion loss starts: it gathers each ray's
     weights on the surface the colour has formed by then, rather than on a guess of the first steps. On
     sim_digit's 27 objects (H100, 1500 steps) starting at 0.3 rather than 0 took the lowest held-out PSNR from

@@ -16,23 +16,22 @@ Frames and units: the **sensor frame** is the camera frame in the OpenGL convent
 looking along its -z axis, +x right, +y up, metres. The gel lies in front of the camera (negative z). A
 sensor pose is a camera-to-world 4x4 matrix. Images are ``[H, W, 3]`` uint8, row 0 at the top (+y).
 
-A plugin sensor, e.g. in a package ``tnf_gelsight`` registered through the ``tnf.sensors`` entry point::
+A plugin sensor, e.g. in a package ``tnf_gelsight`` registered through the ``tnf.sensors`` entry point, takes
+every value from its YAML (``tnf_gelsight/conf/sensor/gelsight.yaml``: all of ``SensorConfig``'s fields and its
+own)::
 
-    from dataclasses import dataclass, field
-    from tnf.sensors import Light, Sensor, SensorConfig
+    from dataclasses import dataclass
+    from pathlib import Path
+    from tnf.registry import FROM_YAML, yaml_defaults
+    from tnf.sensors import Sensor, SensorConfig
 
     class GelSight(Sensor):
         \"\"\"GelSight Mini with a marker grid.\"\"\"
 
         @dataclass
+        @yaml_defaults("sensor/gelsight", conf=Path(__file__).parent / "conf")
         class Config(SensorConfig):
-            width: int = 320
-            height: int = 240
-            gel_width: float = 0.018
-            gel_height: float = 0.024
-            sag: float = 0.0
-            lights: list[Light] = field(default_factory=lambda: [Light((0.01, 0.0, -0.02), (1.0, 0.2, 0.2))])
-            marker_spacing: float = 0.0015
+            marker_spacing: float = FROM_YAML
             \"\"\"Distance between printed markers, metres.\"\"\"
 
         def decorate(self, image, indentation):
@@ -44,14 +43,14 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from tnf.errors import TnfError
-from tnf.registry import config_to_dict
+from tnf.registry import FROM_YAML, config_to_dict
 from tnf.sensors.calibration import Calibration, load_calibration
 
 
@@ -75,53 +74,54 @@ class Light:
 
 @dataclass
 class SensorConfig:
-    """Data shared by every sensor. Subclasses change defaults and may add fields (document each)."""
+    """Data shared by every sensor. A sensor's ``Config`` subclasses it, takes every value from the sensor's YAML
+    (``@yaml_defaults("sensor/NAME")``) and may add fields (document each)."""
 
-    width: int = 240
+    width: int = FROM_YAML
     """Image width W, pixels."""
-    height: int = 320
+    height: int = FROM_YAML
     """Image height H, pixels."""
-    fov: float = 60.0
+    fov: float = FROM_YAML
     """Vertical field of view of the camera, degrees (square pixels; principal point at the centre)."""
-    camera_distance: float = 0.022
+    camera_distance: float = FROM_YAML
     """Distance from the camera to the plane of the gel's rim along the view axis, metres."""
-    gel_width: float = 0.020
+    gel_width: float = FROM_YAML
     """Gel size along the image x axis, metres."""
-    gel_height: float = 0.030
+    gel_height: float = FROM_YAML
     """Gel size along the image y axis, metres."""
-    sag: float = 0.005
+    sag: float = FROM_YAML
     """How far the gel's centre bulges out beyond its rim (convex curvature), metres; 0 = flat."""
-    thickness: float = 0.004
+    thickness: float = FROM_YAML
     """Elastomer thickness over its rigid backing, metres (a thin layer is stiffer than a half-space)."""
-    young_modulus: float = 3.0e5
+    young_modulus: float = FROM_YAML
     """Elastomer Young's modulus E, pascals."""
-    poisson_ratio: float = 0.48
+    poisson_ratio: float = FROM_YAML
     """Elastomer Poisson ratio (nearly incompressible silicone: ~0.5)."""
-    max_penetration: float = 0.003
+    max_penetration: float = FROM_YAML
     """Deepest indentation the simulator considers, metres (presses stop there)."""
-    force_range: tuple[float, float] = (0.0, 20.0)
+    force_range: tuple[float, float] = FROM_YAML
     """Normal forces the sensor is used with, newtons (a target force outside it is an error)."""
-    lights: list[Light] = field(default_factory=lambda: [Light()])
+    lights: list[Light] = FROM_YAML
     """Point lights inside the sensor."""
-    ambient: float = 0.0
+    ambient: float = FROM_YAML
     """Ambient light level added to the shading, in [0, 1]."""
-    diffuse: float = 1.0
+    diffuse: float = FROM_YAML
     """Weight of Lambertian (diffuse) shading."""
-    specular: float = 0.2
+    specular: float = FROM_YAML
     """Weight of Blinn-Phong specular highlights."""
-    shininess: float = 20.0
+    shininess: float = FROM_YAML
     """Blinn-Phong exponent (higher = tighter highlights)."""
-    contrast: float = 255.0
+    contrast: float = FROM_YAML
     """Gain from shading difference (deformed minus undeformed, in [0, 1] units) to 8-bit image values."""
-    blur_sigma: float = 0.8
+    blur_sigma: float = FROM_YAML
     """Gaussian blur of the difference image, pixels (the gel and lens are not perfectly sharp); 0 = off."""
-    noise_std: float = 2.0
+    noise_std: float = FROM_YAML
     """Standard deviation of Gaussian pixel noise, 8-bit units; 0 = off."""
-    background_image: str | None = None
+    background_image: str | None = FROM_YAML
     """Image file of the sensor with nothing touching it (a real photo); null = procedural background."""
-    background_seed: int = 0
+    background_seed: int = FROM_YAML
     """Seed of the procedural background (gel texture, LED variation)."""
-    calibration: str | None = None
+    calibration: str | None = FROM_YAML
     """Folder written by ``tnf calibrate`` (measured shading table, blur, noise, gel fall-off and background);
     null = the hand-set optics above. When set, its values replace ``lights``, ``contrast``, ``blur_sigma``,
     ``noise_std``, the background and the simulator's ``falloff``."""

@@ -2,23 +2,10 @@
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from tnf.sensors.base import Light, Sensor, SensorConfig
-
-
-def _ring_light(angle_deg: float, color: tuple[float, float, float], radius: float = 0.013, z: float = -0.020) -> Light:
-    a = math.radians(angle_deg)
-    return Light((radius * math.cos(a), radius * math.sin(a), z), color, 1.0)
-
-
-def _digit_lights() -> list[Light]:
-    return [
-        _ring_light(30.0, (1.0, 0.0, 0.0)),
-        _ring_light(150.0, (0.0, 1.0, 0.0)),
-        _ring_light(270.0, (0.0, 0.0, 1.0)),
-    ]
+from tnf.registry import yaml_defaults
+from tnf.sensors.base import Sensor, SensorConfig
 
 
 class Digit(Sensor):
@@ -27,20 +14,6 @@ class Digit(Sensor):
     name = "digit"
 
     @dataclass
+    @yaml_defaults("sensor/digit")
     class Config(SensorConfig):
-        width: int = 240
-        """Image width W, pixels."""
-        height: int = 320
-        """Image height H, pixels (portrait)."""
-        fov: float = 60.0
-        """Vertical field of view, degrees."""
-        camera_distance: float = 0.022
-        """Camera to the gel's rim plane, metres."""
-        gel_width: float = 0.020
-        """Gel width, metres."""
-        gel_height: float = 0.030
-        """Gel height, metres."""
-        sag: float = 0.005
-        """Convex bulge of the gel's centre beyond its rim, metres."""
-        lights: list[Light] = field(default_factory=_digit_lights)
-        """Red, green and blue LEDs at 30, 150 and 270 degrees around the gel's edge."""
+        """The DIGIT's values: ``conf/sensor/digit.yaml``."""

@@ -8,8 +8,9 @@ touches as a :class:`TouchBatch`. ``tnf.testing.SimulatorContract`` checks an im
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -55,6 +56,8 @@ class Simulator(ABC):
     cfg: Any
     sensor: Sensor
     background: np.ndarray
+    unhashed: ClassVar[tuple[str, ...]] = ()
+    """Config fields that change only how fast it runs, not its touches: item hashes leave them out."""
 
     @abstractmethod
     def press(self, mesh: Any, start_c2w: np.ndarray, force: float | np.ndarray, seed: int = 0) -> TouchBatch:
@@ -87,3 +90,13 @@ class Simulator(ABC):
         Returns:
             The touches, with the sensor frame as the world frame (the start pose is the identity).
         """
+
+
+def simulator_key(spec: Mapping[str, Any]) -> dict[str, Any]:
+    """A simulator's config node (``{"name": ..., **fields}``) as item hashes record it: without the fields
+    its class lists in ``unhashed``."""
+    from tnf.registry import SIMULATORS, split_spec
+
+    name, params = split_spec(spec, "simulator")
+    skip = getattr(SIMULATORS.get(name), "unhashed", ())
+    return {"name": name, **{k: v for k, v in params.items() if k not in skip}}

@@ -44,6 +44,7 @@ import numpy as np
 import warp as wp
 
 from tnf.errors import TnfError
+from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.runtime import check_memory, init_warp
 from tnf.sensors.base import Sensor
 from tnf.sim.base import Simulator, TouchBatch
@@ -602,19 +603,22 @@ def _normal_quantiles(n: int) -> np.ndarray:
 class WarpGel(Simulator):
     """Elastic gel pressed with a constant force, ray cast and shaded in NVIDIA Warp (CPU or CUDA)."""
 
+    unhashed = ("cpu_threads",)
+
     @dataclass
+    @yaml_defaults("simulator/warp_gel")
     class Config:
-        histogram_bins: int = 512
+        histogram_bins: int = FROM_YAML
         """Resolution of the gap histogram that tabulates force against penetration (bins over max_penetration)."""
-        coarse_factor: int = 4
+        coarse_factor: int = FROM_YAML
         """Downsampling of the grid on which the fall-off around the contact is relaxed (pixels per cell)."""
-        relax_iterations: int = 60
+        relax_iterations: int = FROM_YAML
         """Jacobi iterations of the fall-off relaxation."""
-        falloff: float = 0.5
+        falloff: float = FROM_YAML
         """Decay length of the gel's deformation around the contact, as a multiple of the gel thickness."""
-        max_distance: float = 2.0
+        max_distance: float = FROM_YAML
         """Longest ray cast from the gel toward the object, metres."""
-        cpu_threads: int = 2
+        cpu_threads: int = FROM_YAML
         """Threads that share a batch on the ``cpu`` device (warp runs each CPU launch on one thread); 1 = off."""
 
         def validate(self) -> None:

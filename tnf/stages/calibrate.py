@@ -17,6 +17,7 @@ from tnf.real.presses import INDEX, import_taxim, load_presses
 from tnf.real.realism import table
 from tnf.registry import SENSORS, from_dict, split_spec
 from tnf.runtime import progress
+from tnf.sim.base import simulator_key
 
 
 def run(cfg: Any) -> dict[str, Any] | None:
@@ -55,7 +56,7 @@ def run(cfg: Any) -> dict[str, Any] | None:
         "presses": str(presses.folder),
         "presses_digest": digest,
         "sensor": sensor.describe(),
-        "simulator": simulator,
+        "simulator": simulator_key(simulator),
         "calibrate": OmegaConf.to_container(c, resolve=True),
     }
     item = ("calibration", sensor.name, name)

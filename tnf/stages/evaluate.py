@@ -19,6 +19,7 @@ from tnf.errors import TnfError
 from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
 from tnf.eval.paper import METHOD_LABELS
 from tnf.eval.run import EvalJob, check_not_another_models, collect_sweep, evaluate_model, run_id
+from tnf.sim.base import simulator_key
 
 
 def run(cfg: Any) -> dict[str, Any]:
@@ -49,6 +50,8 @@ def run(cfg: Any) -> dict[str, Any]:
         hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate", "data_root")}
         report_only = ("name", "notes", "next", "sweep_dir", "force")
         hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in report_only}
+        if settings.get("simulator") is not None:
+            hashed["simulator"] = simulator_key(settings["simulator"])
         chash = config_hash(hashed)
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
         old = folder / RESULTS_FILE

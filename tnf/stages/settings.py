@@ -33,18 +33,20 @@ SECTIONS = (
     "pipeline",
 )
 """Config sections with a ``default.yaml`` that sets every key's type."""
-TOP_LEVEL = {"seed": 0, "progress": True}
-"""Run-wide settings and their defaults (their types)."""
+TOP_LEVEL = ("seed", "progress")
+"""Run-wide settings; their defaults in ``conf/base.yaml`` set their types."""
 HINTS = {"generate.force": " (it redoes finished images; the force of a generated touch is generate.touch_force)"}
 """What a refused setting's line adds, where a value is likely meant for another setting."""
 
 
 @functools.lru_cache(maxsize=1)
 def schema() -> dict[str, Any]:
-    """``{section: defaults}`` from ``conf/<section>/default.yaml``, plus the run-wide settings."""
+    """``{section: defaults}`` from ``conf/<section>/default.yaml``, plus the run-wide settings (``conf/base.yaml``)."""
     from omegaconf import OmegaConf
 
-    out: dict[str, Any] = dict(TOP_LEVEL)
+    base = OmegaConf.to_container(OmegaConf.load(Path(conf_dir()) / "base.yaml"), resolve=False)
+    assert isinstance(base, dict)
+    out: dict[str, Any] = {k: base[k] for k in TOP_LEVEL}
     for section in SECTIONS:
         path = Path(conf_dir()) / section / "default.yaml"
         if path.is_file():

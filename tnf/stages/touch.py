@@ -15,6 +15,7 @@ from tnf.errors import TnfError
 from tnf.objects.captured import import_touches
 from tnf.registry import SENSORS, split_spec
 from tnf.runtime import job_device, resolve_device, warp_device
+from tnf.sim.base import simulator_key
 from tnf.sim.forces import force_plan
 from tnf.sim.items import SPLITS, TouchJob, simulate_touches
 from tnf.stages import run_objects, run_shard, shard_share
@@ -32,7 +33,7 @@ def item_config(cfg: Any, sensor: Any) -> dict[str, Any]:
         touch.pop("force_range", None)
     return {
         "sensor": sensor.describe(),
-        "simulator": split_spec(cfg.simulator, "simulator"),
+        "simulator": split_spec(simulator_key(cfg.simulator), "simulator"),
         "touch": touch,
         "seed": int(cfg.seed),
     }

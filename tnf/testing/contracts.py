@@ -20,8 +20,8 @@ import ast
 import dataclasses
 import inspect
 import json
-import math
 import textwrap
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -30,7 +30,17 @@ import pytest
 from tnf.cameras import look_at
 from tnf.errors import TnfError
 from tnf.objects import REFUSE_SIZE, ObjectSource
-from tnf.registry import GENERATORS, OBJECTS, SCENES, SENSORS, SIMULATORS, Registry, config_to_dict, split_spec
+from tnf.registry import (
+    GENERATORS,
+    OBJECTS,
+    SCENES,
+    SENSORS,
+    SIMULATORS,
+    Registry,
+    config_to_dict,
+    defaults_source,
+    split_spec,
+)
 from tnf.scenes import load_scene, save_scene
 from tnf.sensors import Sensor
 from tnf.sim.base import Simulator
@@ -54,34 +64,6 @@ def undocumented_fields(config_class: type) -> list[str]:
                 if not (doc and isinstance(nxt.value.value, str)):  # type: ignore[union-attr]
                     missing.append(f"{klass.__qualname__}.{stmt.target.id}")
     return missing
-
-
-def config_drift(config_class: type, node: Any) -> list[str]:
-    """Keys of a component's YAML option (``node``, with its ``name``) whose value differs from the default of its
-    ``Config`` dataclass, as ``"key: yaml X, dataclass Y"``; a key the YAML leaves out takes the dataclass default.
-
-    Floats agree within a relative 1e-4, or 1e-12 near zero (YAML files print computed values, such as light
-    positions, to about six digits).
-    """
-    _, yaml = split_spec(node)
-    defaults = config_to_dict(config_class())
-    return [f"{k}: yaml {v!r}, dataclass {defaults.get(k)!r}" for k, v in yaml.items() if not _same(v, defaults.get(k))]
-
-
-def _same(a: Any, b: Any) -> bool:
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
-    if isinstance(a, float) or isinstance(b, float):
-        both = isinstance(a, (int, float)) and isinstance(b, (int, float))
-        return (
-            both
-            and not isinstance(a, bool)
-            and not isinstance(b, bool)
-            and math.isclose(a, b, rel_tol=1e-4, abs_tol=1e-12)
-        )
-    return type(a) is type(b) and a == b
 
 
 class _ComponentContract:
@@ -121,9 +103,10 @@ class _ComponentContract:
         with pytest.raises(TnfError, match="no_such_key"):
             self.registry.config(self.name, {**self.params, "no_such_key": 1})
 
-    def test_yaml_repeats_the_config_defaults(self):
-        """The option named like the component (``conf/<kind>/<name>.yaml``) sets nothing but the dataclass
-        defaults, so that ``<kind>=<name>`` on the command line and ``build("<name>")`` in code agree."""
+    def test_config_defaults_are_its_yaml(self):
+        """The Config takes its defaults from the option named like the component (``conf/<kind>/<name>.yaml``,
+        through ``@yaml_defaults``), so that ``<kind>=<name>`` on the command line and ``build("<name>")`` in code
+        agree, and each default is written once."""
         from hydra.errors import MissingConfigException
 
         group = self.registry.kind  # the config group has the registry's kind as its name
@@ -131,8 +114,14 @@ class _ComponentContract:
             node = compose("touch", [f"{group}={self.name}"])[group]
         except MissingConfigException:
             pytest.skip(f"no conf/{group}/{self.name}.yaml: {self.name} is built in code only")
-        drift = config_drift(self.registry.entry(self.name).config_class, node)
-        assert not drift, f"conf/{group}/{self.name}.yaml differs from the Config dataclass defaults: {drift}"
+        cls = self.registry.entry(self.name).config_class
+        source = defaults_source(cls)
+        assert source is not None and Path(source).parts[-2:] == (group, f"{self.name}.yaml"), (
+            f"{cls.__qualname__} takes its defaults from {source}: decorate it with "
+            f'@yaml_defaults("{group}/{self.name}", conf=<your package\'s conf folder>) under @dataclass'
+        )
+        _, params = split_spec(node)
+        assert config_to_dict(cls()) == params, f"{group}={self.name} composes other values than {source} holds"
 
 
 def _close(a: Any, b: Any) -> bool:

@@ -15,23 +15,16 @@ edge). ``decorate`` draws the moved dots onto the simulator's images.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from tnf.sensors import Light, Sensor, SensorConfig
+from tnf.registry import FROM_YAML, yaml_defaults
+from tnf.sensors import Sensor, SensorConfig
 
-
-def _gelsight_lights() -> list[Light]:
-    # Low, grazing LEDs just behind the gel plane along its four edges (photometric-stereo style lighting):
-    # slopes facing a light brighten in its colour. Digit instead has three LEDs on a ring well behind its gel.
-    z = -0.0135
-    return [
-        Light((0.0105, 0.0, z), (1.0, 0.1, 0.1), 1.0),  # red, right edge
-        Light((-0.0105, 0.0, z), (0.1, 0.25, 1.0), 1.0),  # blue, left edge
-        Light((0.0, -0.0082, z), (0.1, 1.0, 0.2), 1.0),  # green, bottom edge
-        Light((0.0, 0.0082, z), (1.0, 0.95, 0.8), 0.5),  # dim warm white, top edge
-    ]
+CONF = Path(__file__).parent / "conf"
+"""This package's YAML options (``tnf.conf`` entry point): the sensor's values are there."""
 
 
 class GelSight(Sensor):
@@ -40,50 +33,21 @@ class GelSight(Sensor):
     name = "gelsight"
 
     @dataclass
+    @yaml_defaults("sensor/gelsight", conf=CONF)
     class Config(SensorConfig):
-        width: int = 320
-        """Image width W, pixels (landscape: the gel's long side runs along x)."""
-        height: int = 240
-        """Image height H, pixels."""
-        fov: float = 53.0
-        """Vertical field of view, degrees: with ``camera_distance`` the image spans about 19.9 x 15.0 mm."""
-        camera_distance: float = 0.015
-        """Camera to the gel surface, metres."""
-        gel_width: float = 0.0186
-        """Gel size along image x, metres."""
-        gel_height: float = 0.0143
-        """Gel size along image y, metres."""
-        sag: float = 0.0
-        """Bulge of the gel beyond its rim, metres: 0, the gel is flat."""
-        thickness: float = 0.0035
-        """Elastomer thickness over the rigid acrylic backing, metres."""
-        young_modulus: float = 2.0e5
-        """Young's modulus of the (soft) silicone, pascals."""
-        poisson_ratio: float = 0.49
-        """Poisson ratio (nearly incompressible)."""
-        max_penetration: float = 0.002
-        """Deepest indentation simulated, metres (the thin gel bottoms out on its backing)."""
-        force_range: tuple[float, float] = (0.0, 15.0)
-        """Usable normal force (min, max), newtons."""
-        lights: list[Light] = field(default_factory=_gelsight_lights)
-        """Red (right), blue (left), green (bottom) and dim white (top) LEDs grazing the gel from its edges."""
-        specular: float = 0.1
-        """Weight of specular highlights (matte gel coating)."""
-        contrast: float = 200.0
-        """Gain from shading difference to 8-bit image values."""
-        noise_std: float = 1.5
-        """Gaussian pixel noise std, 8-bit units."""
-        markers: bool = True
+        """The GelSight's values: ``conf/sensor/gelsight.yaml`` in this package."""
+
+        markers: bool = FROM_YAML
         """Draw the printed marker grid (use false with a background photo that already shows markers)."""
-        marker_spacing: float = 0.002
+        marker_spacing: float = FROM_YAML
         """Distance between neighbouring markers, metres (the grid is centred on the gel)."""
-        marker_radius: float = 0.0003
+        marker_radius: float = FROM_YAML
         """Radius of a printed marker dot, metres."""
-        marker_darkness: float = 0.75
+        marker_darkness: float = FROM_YAML
         """Fraction of light a marker blocks, in [0, 1] (1 = black)."""
-        marker_flow: float = 0.4
+        marker_flow: float = FROM_YAML
         """Lateral marker motion per unit of indentation slope, in units of ``thickness`` (dimensionless)."""
-        marker_smoothing: float = 0.001
+        marker_smoothing: float = FROM_YAML
         """Gaussian smoothing of the indentation before its slope drives the markers, metres (std dev)."""
 
         def validate(self) -> None:
