@@ -4,6 +4,7 @@
     python bench/ddp.py --devices 1,2 --graph find-unused  # DDP searching for unused parameters every step
     python bench/ddp.py --devices 2 --comm-hook bf16        # gradients all-reduced in bf16 (half the bytes)
     python bench/ddp.py --devices 2 --profile               # rank 0's 20 busiest operators over 20 batches
+    python bench/ddp.py --devices 1,2,4 --compile default   # networks through torch.compile (or reduce-overhead)
     python bench/ddp.py --accelerator cpu --devices 1,2 --batch 4 --steps 6 --warmup 2 --precision 32-true
 
 Each device count runs in its own process: tnf's ``GeneratorSystem`` in a Lightning ``Trainer`` with
@@ -117,7 +118,9 @@ def run_one(args: argparse.Namespace, devices: int) -> None:
     torch.backends.cudnn.benchmark = True
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
-    system = SyntheticSystem({"name": args.generator}, epochs=1, decay_epochs=0, grid_dir=None, batch=args.batch)
+    system = SyntheticSystem(
+        {"name": args.generator}, epochs=1, decay_epochs=0, grid_dir=None, batch=args.batch, compile_nets=args.compile
+    )
     clock = Clock(args.warmup, args.warmup + args.steps)
     strategy: Any = "auto"
     if devices > 1 and args.graph == "tnf":
@@ -174,6 +177,7 @@ def main() -> None:
         "--comm-hook", choices=["none", "bf16"], default="none", help="bf16: DDP all-reduces gradients in bf16"
     )
     p.add_argument("--bucket-mb", type=int, default=0, help="DDP's bucket_cap_mb (0: its default, 25)")
+    p.add_argument("--compile", default="", help="torch.compile mode for the networks: default, reduce-overhead, ...")
     p.add_argument("--profile", action="store_true", help="print rank 0's busiest operators instead of timing")
     p.add_argument("--json", help="also write the figures here")
     p.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: time this device count and print it
@@ -200,7 +204,8 @@ def main() -> None:
     print(
         f"{args.generator}, batch {args.batch} per device, {args.precision}, DDP graph: {args.graph}, "
         f"gradient_as_bucket_view={args.bucket_view}, comm hook {args.comm_hook}, "
-        f"bucket_cap_mb {args.bucket_mb or 25}, steps {args.warmup}..{args.warmup + args.steps}, on {name}"
+        f"bucket_cap_mb {args.bucket_mb or 25}, compile {args.compile or 'off'}, "
+        f"steps {args.warmup}..{args.warmup + args.steps}, on {name}"
     )
     print(f"{'devices':>8} {'pairs/s':>10} {'per device':>11} {'speed-up':>9}")
     for n, rate in rows:

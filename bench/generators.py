@@ -2,6 +2,7 @@
 
     python bench/generators.py --device cuda [--generators tn_cgan,lee,cyclegan] [--steps 30] [--json out.json]
     python bench/generators.py --device cuda --generators cyclegan --compile   # networks through torch.compile
+    python bench/generators.py --device cuda --generators cyclegan --train-batches 64:bf16 --profile
     python bench/generators.py --device cpu --flops    # FLOPs per pair of one training step (counted, not timed)
 
 A generator may carry config overrides after colons: ``--generators tn_cgan,tn_cgan:lambda_gan=1`` times
@@ -63,22 +64,30 @@ def parse_spec(spec: str) -> dict:
     return out
 
 
-def build(spec: str, device: str, channels_last: bool, compile_nets: bool = False):
+def build(spec: str, device: str, channels_last: bool, compile_nets: str = ""):
     from tnf.registry import GENERATORS
 
     g = GENERATORS.build(parse_spec(spec)).to(device)
     if channels_last:
         g = g.to(memory_format=torch.channels_last)
     if compile_nets:  # each network (net_g, net_d, ...) through torch.compile; the training step stays eager
-        for name, child in list(g.named_children()):
-            if name.startswith("net_"):
-                setattr(g, name, torch.compile(child))
+        from tnf.generators.system import compile_networks
+
+        compile_networks(g, compile_nets)
     return g
 
 
 def bench_train(
-    name: str, device: str, batch: int, bf16: bool, steps: int, channels_last: bool, compile_nets: bool = False
+    name: str,
+    device: str,
+    batch: int,
+    bf16: bool,
+    steps: int,
+    channels_last: bool,
+    compile_nets: str = "",
+    profile: bool = False,
 ) -> float:
+    """Training pairs per second; with ``profile``, also print the step's busiest operators by device time."""
     from tnf.generators import PlainOptimisation
 
     g = build(name, device, channels_last, compile_nets).train()
@@ -94,7 +103,20 @@ def bench_train(
         with amp:
             g.training_step(data, opt)
     sync(device)
-    return steps * batch / (time.perf_counter() - t)
+    rate = steps * batch / (time.perf_counter() - t)
+    if profile:
+        acts = [torch.profiler.ProfilerActivity.CPU]
+        if device.startswith("cuda"):
+            acts.append(torch.profiler.ProfilerActivity.CUDA)
+        with torch.profiler.profile(activities=acts) as prof:
+            for _ in range(5):
+                with amp:
+                    g.training_step(data, opt)
+            sync(device)
+        key = "device_time_total" if device.startswith("cuda") else "cpu_time_total"
+        print(f"{name}, 5 steps of batch {batch}:", flush=True)
+        print(prof.key_averages().table(sort_by=key, row_limit=25, max_name_column_width=70), flush=True)
+    return rate
 
 
 def train_flops(name: str, device: str, batch: int = 2) -> float:
@@ -136,7 +158,10 @@ def main() -> None:
     ap.add_argument("--train-batches", default="64:fp32,64:bf16,256:bf16", help="batch:precision pairs for training")
     ap.add_argument("--gen-batch", type=int, default=1024, help="images per generate call")
     ap.add_argument("--no-channels-last", action="store_true")
-    ap.add_argument("--compile", action="store_true", help="train with each network through torch.compile")
+    ap.add_argument(
+        "--compile", nargs="?", const="default", default="", help="train with each network through torch.compile (mode)"
+    )
+    ap.add_argument("--profile", action="store_true", help="also print each training step's busiest operators")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     ap.add_argument("--flops", action="store_true", help="only count each generator's training FLOPs per pair")
     args = ap.parse_args()
@@ -159,8 +184,8 @@ def main() -> None:
     for name in names:
         for spec in args.train_batches.split(","):
             b, prec = spec.split(":")
-            rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl, args.compile)
-            tag = "/compiled" if args.compile else ""
+            rate = bench_train(name, args.device, int(b), prec == "bf16", args.steps, cl, args.compile, args.profile)
+            tag = f"/compiled-{args.compile}" if args.compile else ""
             results["train"][f"{name}/{prec}/b{b}{tag}"] = rate
             print(f"train    {name:9s} {prec:5s} batch {int(b):4d}{tag}: {rate:9.0f} pairs/s", flush=True)
             if args.device.startswith("cuda"):

@@ -81,12 +81,13 @@ def generator_spec(spec: Mapping[str, Any] | str) -> dict[str, Any]:
     return {"name": name, **config_to_dict(config)}
 
 
-def compile_networks(generator: torch.nn.Module) -> None:
-    """Run each network of ``generator`` (its ``net_*`` children) through ``torch.compile``, in place: the training
-    step stays eager, and the state dict keeps its keys, so checkpoints are the same with and without."""
+def compile_networks(generator: torch.nn.Module, mode: str | None = None) -> None:
+    """Run each network of ``generator`` (its ``net_*`` children) through ``torch.compile`` (with ``mode``, one of
+    torch.compile's, such as ``reduce-overhead``), in place: the training step stays eager, and the state dict
+    keeps its keys, so checkpoints are the same with and without."""
     for name, child in generator.named_children():
         if name.startswith("net_"):
-            child.compile()
+            child.compile(mode=mode)
 
 
 class GeneratorSystem(L.LightningModule):
@@ -117,7 +118,7 @@ class GeneratorSystem(L.LightningModule):
         grid_dir: str | None = None,
         finite_check_every: int = 50,
         ema_decay: float | None = None,
-        compile_nets: bool = False,
+        compile_nets: bool | str = False,
     ):
         super().__init__()
         # The generator is built from this Config, not checked again.
@@ -175,7 +176,8 @@ class GeneratorSystem(L.LightningModule):
         if self.trainer.strategy.root_device.type == "cuda":
             self.to(memory_format=torch.channels_last)
         if self.compile_nets:
-            compile_networks(self.generator)
+            mode = self.compile_nets if isinstance(self.compile_nets, str) else None
+            compile_networks(self.generator, mode)
 
     # -- generation -------------------------------------------------------------------------------------
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
