@@ -37,6 +37,10 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     # round 5: the classification rows as the mean of 5 classifiers each
     r3v5) echo "$(overrides r3v) evaluate.classifier.restarts=5" ;;
     widev5) echo "$(overrides widev) evaluate.classifier.restarts=5" ;;
+    # round 6: three times the generated touches per object, and a larger share of ground truth per batch
+    r3v5g) echo "$(overrides r3v5) generate.n_poses=120" ;;
+    widev5g) echo "$(overrides widev5) generate.n_poses=120" ;;
+    widev5g75) echo "$(overrides widev5g) evaluate.classifier.real_fraction=0.75" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
