@@ -41,6 +41,10 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v5g) echo "$(overrides r3v5) generate.n_poses=120" ;;
     widev5g) echo "$(overrides widev5) generate.n_poses=120" ;;
     widev5g75) echo "$(overrides widev5g) evaluate.classifier.real_fraction=0.75" ;;
+    # round 7: the least-squares adversarial loss, against round 6's collapses to the background image
+    r3v5gls) echo "$(overrides r3v5g) generator.gan_mode=lsgan" ;;
+    widev5gls) echo "$(overrides widev5g) generator.gan_mode=lsgan" ;;
+    widev5g75ls) echo "$(overrides widev5g75) generator.gan_mode=lsgan" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
