@@ -45,6 +45,10 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v5gls) echo "$(overrides r3v5g) generator.gan_mode=lsgan" ;;
     widev5gls) echo "$(overrides widev5g) generator.gan_mode=lsgan" ;;
     widev5g75ls) echo "$(overrides widev5g75) generator.gan_mode=lsgan" ;;
+    # round 8: a weaker discriminator (half the width, one layer fewer), against the saturation behind the collapses
+    r3v5d8) echo "$(overrides r3v5) generator.ndf=8" ;;
+    r3v5dl2) echo "$(overrides r3v5) generator.d_layers=2" ;;
+    r3v5d8l2) echo "$(overrides r3v5) generator.ndf=8 generator.d_layers=2" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
