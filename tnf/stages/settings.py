@@ -4,7 +4,8 @@ The components (sensors, simulators, scenes, generators, object sources) are val
 dataclasses by the registry. The stage sections are plain YAML; their defaults (``conf/<section>/default.yaml``)
 are the schema: a setting whose default is an integer takes an integer (not ``1.5``, not ``"abc"``), and a
 non-negative one (a count, a size, a number of epochs) stays non-negative; a number takes a finite number; a
-switch takes true or false; a list takes a list. Settings whose default is null take anything.
+switch takes true or false (one of ``NAMED_SWITCHES`` also a name); a list takes a list. Settings whose default
+is null take anything.
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ TOP_LEVEL = ("seed", "progress")
 """Run-wide settings; their defaults in ``conf/base.yaml`` set their types."""
 HINTS = {"generate.force": " (it redoes finished images; the force of a generated touch is generate.touch_force)"}
 """What a refused setting's line adds, where a value is likely meant for another setting."""
+NAMED_SWITCHES = ("train.compile",)
+"""Switches that also take a name (``train.compile``: a torch.compile mode); the stage checks the name."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -84,7 +87,7 @@ def _check(value: Any, default: Any, where: str) -> None:
                 _check(value[k], d, f"{where}.{k}")
         return
     if isinstance(default, bool):
-        if not isinstance(value, bool):
+        if not isinstance(value, bool) and not (where in NAMED_SWITCHES and isinstance(value, str)):
             raise TnfError(f"{where}: expected true or false, got {value!r}{HINTS.get(where, '')}")
     elif isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
