@@ -43,7 +43,10 @@ def tests(session: nox.Session, deps: str) -> None:
     Tests run in TNF_TEST_WORKERS processes (pytest-xdist; default 2, 1 runs them in this process), each with one
     thread: on 2 cores about 1.4x faster than one process of two threads."""
     install(session, deps)
-    workers = int(os.environ.get("TNF_TEST_WORKERS", "2"))
+    workers_env = os.environ.get("TNF_TEST_WORKERS", "2")
+    if not workers_env.isdigit() or int(workers_env) < 1:
+        session.error(f"TNF_TEST_WORKERS must be a whole number >= 1, got {workers_env!r}")
+    workers = int(workers_env)
     parallel = ["-n", str(workers)] if workers > 1 else []
     env = {**ENV, "OMP_NUM_THREADS": "1"} if workers > 1 else ENV
     session.run("pytest", "-q", "-p", "no:cacheprovider", *parallel, *session.posargs, env=env)

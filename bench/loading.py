@@ -46,8 +46,10 @@ def minor_faults() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
-def build(folder: Path, n: int, per_object: int) -> tuple[float, float]:
-    from tnf.data import PairWriter, write_manifest
+def build(folder: Path, n: int, per_object: int, val_every: int = 0, sensor: str = "bench") -> tuple[float, float]:
+    """Write ``n`` random 128 px pairs, ``per_object`` per object (one write each); with ``val_every`` > 0 every
+    ``val_every``-th pair of an object is a validation pair (all train otherwise). -> (seconds, peak RSS MiB)."""
+    from tnf.data import SPLITS, PairWriter, write_manifest
 
     rng = np.random.default_rng(0)
     objects = (n + per_object - 1) // per_object
@@ -64,12 +66,18 @@ def build(folder: Path, n: int, per_object: int) -> tuple[float, float]:
                 tactile=rng.integers(0, 256, (k, 128, 128, 3), dtype=np.uint8),
                 background_index=np.zeros(k, np.int32),
                 object_id=np.full(k, o, np.int32),
-                split=np.zeros(k, np.int8),
+                split=np.where(
+                    (np.arange(k) % val_every == val_every - 1) if val_every > 0 else np.zeros(k, bool),
+                    SPLITS.index("val"),
+                    SPLITS.index("train"),
+                ).astype(np.int8),
                 touch_index=np.arange(k, dtype=np.int32),
                 sensor_id=np.zeros(k, np.int16),
             )
             peak = max(peak, rss_mib())
-    write_manifest(folder, {"objects": [f"o{i}" for i in range(objects)], "sensors": ["bench"], "count": n})
+    record = {"name": sensor, "config": {}}  # the sensor record `tnf pair` writes
+    names = [f"o{i}" for i in range(objects)]
+    write_manifest(folder, {"objects": names, "sensors": [sensor], "sensor": record, "count": n})
     return time.perf_counter() - t0, peak
 
 

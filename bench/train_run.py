@@ -3,10 +3,11 @@
     python bench/train_run.py --pairs 12000 --epochs 3 --modes false,reduce-overhead
 
 Writes a paired dataset of random images at 128 px (the speed of a step does not depend on what the images show;
-a tenth of the pairs are validation pairs), then runs `tnf train` once per mode, each in its own process, with the
-same settings (tn_cgan, trainer=gpu, its precision, batch 64 unless overridden). Prints each run's wall time
-(start-up, compile, every epoch's steps and validation, checkpoints) and its ratio to the first mode's.
-Extra arguments after `--` go to every `tnf train` call (for example `trainer.precision=bf16-mixed`).
+a tenth of the pairs are validation pairs; bench/loading.py writes them), then runs `tnf train` once per mode, each
+in its own process, with the same settings (tn_cgan, trainer=gpu with its bf16-mixed precision, batch 64 unless
+overridden). Prints each run's wall time (start-up, compile, every epoch's steps and validation, checkpoints) and its
+ratio to the first mode's.
+Extra arguments after `--` go to every `tnf train` call (for example `trainer.precision=32-true`).
 """
 
 from __future__ import annotations
@@ -19,32 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
-from tnf.data import SPLITS, PairWriter, write_manifest
-
-
-def write_random_pairs(folder: Path, n: int, size: int = 128, seed: int = 0, chunk: int = 1000) -> None:
-    """``n`` pairs of random uint8 images and float16 depth at ``size`` px; every tenth pair is a validation pair."""
-    rng = np.random.default_rng(seed)
-    background = rng.integers(0, 256, (1, size, size, 3), dtype=np.uint8)
-    with PairWriter(folder, n, background) as w:
-        for start in range(0, n, chunk):
-            m = min(chunk, n - start)
-            idx = np.arange(start, start + m)
-            w.write(
-                start,
-                rgb=rng.integers(0, 256, (m, size, size, 3), dtype=np.uint8),
-                depth=rng.random((m, size, size), dtype=np.float32).astype(np.float16),
-                tactile=rng.integers(0, 256, (m, size, size, 3), dtype=np.uint8),
-                background_index=np.zeros(m, np.int32),
-                object_id=(idx % 2).astype(np.int32),
-                split=np.where(idx % 10 == 9, SPLITS.index("val"), SPLITS.index("train")).astype(np.int8),
-                touch_index=idx.astype(np.int32),
-                sensor_id=np.zeros(m, np.int16),
-            )
-    record = {"name": "digit", "config": {}}
-    write_manifest(folder, {"objects": ["a", "b"], "sensors": ["digit"], "sensor": record, "count": n})
+from loading import build  # bench/loading.py: random pairs through PairWriter
 
 
 def main() -> None:
@@ -61,7 +37,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.data_root or tmp)
         t0 = time.perf_counter()
-        write_random_pairs(root / "pairs" / "digit-hashgrid", args.pairs)
+        build(root / "pairs" / "digit-hashgrid", args.pairs, per_object=1000, val_every=10, sensor="digit")
         print(f"dataset: {args.pairs} pairs at 128 px in {time.perf_counter() - t0:.1f} s", flush=True)
         walls: dict[str, float] = {}
         for mode in args.modes.split(","):

@@ -22,6 +22,11 @@ EXPERIMENTS = sorted(p.stem for p in (Path(__file__).resolve().parents[2] / "con
         ("touch.random_roll=maybe", "touch.random_roll: expected true or false, got 'maybe'"),
         ("data.augment=mirror", "data.augment: expected a list, got 'mirror'"),
         ("progress=2", "progress: expected true or false, got 2"),
+        (
+            "train.compile=fast",
+            "train.compile: expected true, false or one of default, reduce-overhead, max-autotune, "
+            "max-autotune-no-cudagraphs, got 'fast'",
+        ),
     ],
 )
 def test_a_bad_setting_is_one_line_before_any_work(override, message, capsys, tmp_path, monkeypatch):
@@ -47,3 +52,5 @@ def test_schema_covers_every_stage_section():
     with pytest.raises(TnfError, match=r"^data\.batch_size: expected a whole number"):
         check_settings({"data": {"batch_size": 2.5}})
     check_settings({"data": {"batch_size": 3}, "touch": {"force": 4}})  # an integer where a number belongs is fine
+    for mode in (False, True, "reduce-overhead"):  # train.compile: a switch, or torch.compile's mode by name
+        check_settings({"train": {"compile": mode}})

@@ -514,14 +514,3 @@ def test_compiled_networks_compute_the_eager_losses_and_gradients_in_fp32():
     # Each parameter's gradient, as a whole: 1e-4 of its norm, plus 1e-4 for those whose gradient is rounding noise.
     for (name, p), q in zip(eager.named_parameters(), compiled.parameters(), strict=True):
         assert (q.grad - p.grad).norm() <= 1e-4 * p.grad.norm() + 1e-4, name
-
-
-def test_compile_setting_takes_a_switch_or_a_mode_by_name():
-    from tnf.errors import TnfError
-    from tnf.generators.system import COMPILE_MODES, compile_setting
-
-    assert compile_setting(False) is False and compile_setting(True) is True
-    assert [compile_setting(m) for m in COMPILE_MODES] == list(COMPILE_MODES)
-    for bad in ("fast", "", 1, None):
-        with pytest.raises(TnfError, match="train.compile must be"):
-            compile_setting(bad)

@@ -104,7 +104,6 @@ def test_unknown_registry_name_lists_the_available_ones(capsys, data_root):
         ("fit-scene", "fit.steps=-5", "steps"),
         ("train", "train.decay_epochs=9", "decay_epochs must be in [0, epochs=2], got 9"),
         ("train", "data.batch_size=0", "batch_size"),
-        ("train", "train.compile=fast", "train.compile must be true, false or one of default, reduce-overhead"),
     ],
 )
 def test_invalid_config_value(capsys, data_root, stage, override, expected):

@@ -81,19 +81,6 @@ def generator_spec(spec: Mapping[str, Any] | str) -> dict[str, Any]:
     return {"name": name, **config_to_dict(config)}
 
 
-COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
-
-
-def compile_setting(value: Any) -> bool | str:
-    """``train.compile`` as ``GeneratorSystem`` takes it: false (eager), true (torch.compile's default mode) or one
-    of ``COMPILE_MODES`` (``reduce-overhead`` captures each network's step as a CUDA graph on a GPU)."""
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, str) and value in COMPILE_MODES:
-        return value
-    raise TnfError(f"train.compile must be true, false or one of {', '.join(COMPILE_MODES)}; got {value!r}")
-
-
 def compile_networks(generator: torch.nn.Module, mode: str | None = None) -> None:
     """Run each network of ``generator`` (its ``net_*`` children) through ``torch.compile`` (with ``mode``, one of
     torch.compile's, such as ``reduce-overhead``), in place: the training step stays eager, and the state dict

@@ -38,8 +38,8 @@ TOP_LEVEL = ("seed", "progress")
 """Run-wide settings; their defaults in ``conf/base.yaml`` set their types."""
 HINTS = {"generate.force": " (it redoes finished images; the force of a generated touch is generate.touch_force)"}
 """What a refused setting's line adds, where a value is likely meant for another setting."""
-NAMED_SWITCHES = ("train.compile",)
-"""Switches that also take a name (``train.compile``: a torch.compile mode); the stage checks the name."""
+NAMED_SWITCHES = {"train.compile": ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")}
+"""Switches that also take one of these names (``train.compile``: torch.compile's modes)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -87,8 +87,10 @@ def _check(value: Any, default: Any, where: str) -> None:
                 _check(value[k], d, f"{where}.{k}")
         return
     if isinstance(default, bool):
-        if not isinstance(value, bool) and not (where in NAMED_SWITCHES and isinstance(value, str)):
-            raise TnfError(f"{where}: expected true or false, got {value!r}{HINTS.get(where, '')}")
+        names = NAMED_SWITCHES.get(where, ())
+        if not isinstance(value, bool) and value not in names:
+            either = f"true, false or one of {', '.join(names)}" if names else "true or false"
+            raise TnfError(f"{where}: expected {either}, got {value!r}{HINTS.get(where, '')}")
     elif isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             raise TnfError(f"{where}: expected a whole number, got {value!r}")

@@ -22,13 +22,12 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     from tnf.generators.names import train_run_name
-    from tnf.generators.system import GeneratorSystem, compile_setting, generator_config
+    from tnf.generators.system import GeneratorSystem, generator_config
     from tnf.generators.training import process_rank
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
     console = Console(highlight=False, quiet=process_rank() != 0)
     t = cfg.train
-    compile_nets = compile_setting(t.compile)
     # Checked once: the system builds the generator from this Config, the run's hash records its fields.
     checked = generator_config(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
     spec = {"name": checked[0], **config_to_dict(checked[1])}
@@ -50,7 +49,7 @@ def run(cfg: Any) -> dict[str, Any]:
         grid_rows=int(t.grid_rows),
         finite_check_every=int(t.finite_check_every),
         ema_decay=t.ema_decay,
-        compile_nets=compile_nets,
+        compile_nets=t.compile,  # false, true or a mode name (checked by tnf.stages.settings)
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
     info = {"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names}
