@@ -12,13 +12,16 @@ Two workloads, each run by every simulator that takes it:
   forces: per frame what its ``Sensor.render`` does after PyBullet reports the contact (bench/peers_tacto.py).
 - **Height maps, GelSight Mini** (tnf and Taxim) at Taxim's 640x480: spheres of 135 pixels' radius at random
   centres, pressed 0.3-1.0 mm (in Taxim's 0.0295 mm pixels; tnf gets the same maps in its own pixel pitch). tnf
-  presses them with ``press_heights`` (its uncalibrated optics); Taxim renders them with its JAX backend and its own
-  GelSight Mini calibration, with and without its shadows. Taxim's torch backend needs torch-scatter, which PyPI
-  ships as source only; it is not built here.
+  presses them with ``press_heights`` (its uncalibrated optics); Taxim renders them with its own GelSight Mini
+  calibration, with and without its shadows, through its JAX backend (one frame per call) and its torch backend
+  (``--taxim-batch`` frames per call, on the GPU when tnf runs there). Both tnf and Taxim's torch backend take the
+  maps from host memory and return the images to it, inside the timing.
 
-On a GPU only tnf runs on the GPU: TACTO's environment is not there unless made with ``nox -s peers`` (its EGL
-rendering could then use the GPU), Taxim's JAX backend runs on the GPU only with a CUDA build of jaxlib (with the
-CPU build its rows say ``cpu``), and its torch backend needs torch-scatter.
+Taxim's torch backend imports torch-scatter, which PyPI ships as source only. Where it is not installed,
+bench/peers_scatter.py stands in for its one function (``scatter_min``, by torch's ``scatter_reduce``) and the
+rows say so. On a GPU, TACTO's environment is there only if made with ``nox -s peers`` (its EGL rendering could
+then use the GPU), and Taxim's JAX backend runs on the GPU only with a CUDA build of jaxlib (with the CPU build its
+rows say ``cpu``).
 
 TACTO pins old numpy and pyrender: it runs in a separate interpreter (``--tacto-python``, the environment that
 ``nox -s peers`` makes) as a subprocess of this run, on the same machine, right after tnf. Every simulator runs
@@ -42,6 +45,7 @@ from pathlib import Path
 os.environ.setdefault("WARP_CACHE_PATH", str(Path(__file__).resolve().parents[1] / ".warp-cache"))
 
 import numpy as np  # noqa: E402
+from peers_scatter import install as install_scatter  # noqa: E402
 from sim import workload  # noqa: E402  (bench/sim.py: the same objects and start poses)
 
 from tnf.registry import SENSORS, SIMULATORS  # noqa: E402
@@ -159,11 +163,18 @@ def tnf_maps(device: str, centres: np.ndarray, depths_mm: np.ndarray, runs: int)
     return {"wall_ms": [1e3 * w / len(gaps) for w in walls], "cpu_ms": [1e3 * c / len(gaps) for c in cpus]}
 
 
-def taxim_maps(centres: np.ndarray, depths_mm: np.ndarray, runs: int, with_shadow: bool) -> dict:
-    """Taxim's (JAX backend) ms per GelSight Mini frame at 640x480 on the same sphere height maps."""
+def taxim_maps(
+    backend: str, device: str, centres: np.ndarray, depths_mm: np.ndarray, runs: int, with_shadow: bool, batch: int
+) -> dict:
+    """Taxim's ms per GelSight Mini frame at 640x480 on the same sphere height maps, host arrays in and out.
+
+    ``backend="jax"`` renders one frame per call (its render takes one press depth). ``backend="torch"`` renders
+    ``batch`` frames per call on ``device``: each map is shifted to its press depth first, as Taxim's own
+    ``press_depth`` does, inside the timed loop.
+    """
     from taxim import CALIB_GELSIGHT_MINI, Taxim
 
-    sim = Taxim(calib_folder=CALIB_GELSIGHT_MINI, backend="jax")
+    sim = Taxim(calib_folder=CALIB_GELSIGHT_MINI, backend=backend, **({"device": device} if backend == "torch" else {}))
     rows, cols = np.mgrid[: sim.height, : sim.width]
     r = BALL_PX * TAXIM_PIXEL_MM
 
@@ -171,13 +182,25 @@ def taxim_maps(centres: np.ndarray, depths_mm: np.ndarray, runs: int, with_shado
         d2 = ((cols - c[0]) ** 2 + (rows - c[1]) ** 2) * TAXIM_PIXEL_MM**2
         return np.where(d2 < r * r, r - np.sqrt(np.maximum(r * r - d2, 0.0)), 10.0 * r).astype(np.float32)
 
-    maps = [height_map(c) for c in centres]
-    np.asarray(sim.render(maps[0], with_shadow=with_shadow, press_depth=float(depths_mm[0])))  # compile
+    maps = np.stack([height_map(c) for c in centres])
+    if backend == "jax":
+        np.asarray(sim.render(maps[0], with_shadow=with_shadow, press_depth=float(depths_mm[0])))  # compile
 
-    def once(run: int) -> None:
-        for z, d in zip(maps, depths_mm, strict=True):
-            np.asarray(sim.render(z, with_shadow=with_shadow, press_depth=float(d)))
+        def once(run: int) -> None:
+            for z, d in zip(maps, depths_mm, strict=True):
+                np.asarray(sim.render(z, with_shadow=with_shadow, press_depth=float(d)))
 
+    else:
+        import torch
+
+        def once(run: int) -> None:
+            for b0 in range(0, len(maps), batch):
+                z = torch.from_numpy(maps[b0 : b0 + batch]).to(device)
+                d = torch.from_numpy(depths_mm[b0 : b0 + batch].astype(np.float32)).to(device)
+                z = z - z.amin(dim=(-2, -1), keepdim=True) - d[:, None, None]
+                sim.render(z, with_shadow=with_shadow).cpu().numpy()
+
+        once(-1)  # warm-up: kernels, caches of the background at this size
     walls, cpus = timed(once, runs)
     return {"wall_ms": [1e3 * w / len(maps) for w in walls], "cpu_ms": [1e3 * c / len(maps) for c in cpus]}
 
@@ -202,6 +225,7 @@ def main() -> None:
         default=os.environ.get("TNF_PEERS_PYTHON"),
         help="the interpreter of TACTO's environment (nox -s peers makes it); TACTO is skipped without it",
     )
+    ap.add_argument("--taxim-batch", type=int, default=16, help="height maps per call of Taxim's torch backend")
     ap.add_argument("--no-taxim", action="store_true", help="skip Taxim")
     ap.add_argument("--out", type=Path, default=None, help="also write the table as markdown here")
     args = ap.parse_args()
@@ -248,17 +272,32 @@ def main() -> None:
     if args.no_taxim:
         skipped.append("Taxim: --no-taxim")
     else:
-        try:
-            import jax
+        for backend in ("jax", "torch"):
+            try:
+                if backend == "jax":
+                    import jax
 
-            backend = jax.default_backend()
-            for shadow in (True, False):
-                t = taxim_maps(centres, depths, args.runs, shadow)
-                name = f"Taxim JAX ({backend})" + ("" if shadow else ", no shadows")
-                lines.append(row("height maps, GelSight Mini", "640x480", name, t, mine, "one frame per call"))
-                print(lines[-1], flush=True)
-        except ImportError as e:
-            skipped.append(f"Taxim: {e} (pip install taxim jax)")
+                    where, per_call = jax.default_backend(), "one frame per call"
+                else:
+                    import torch
+
+                    try:
+                        import torchvision  # noqa: F401  (Taxim's torch backend resizes with it)
+                    except RuntimeError as e:  # a torchvision built for another torch
+                        raise ImportError(f"torchvision does not load with torch {torch.__version__}: {e}") from e
+                    scatter = install_scatter()
+                    where = device if gpu and torch.cuda.is_available() else "cpu"
+                    per_call = f"{args.taxim_batch} frames per call; torch {torch.__version__}"
+                    if scatter == "scatter_reduce":
+                        per_call += "; torch-scatter's scatter_min by torch's scatter_reduce (bench/peers_scatter.py)"
+                for shadow in (True, False):
+                    t = taxim_maps(backend, where, centres, depths, args.runs, shadow, args.taxim_batch)
+                    label = "JAX" if backend == "jax" else "torch"
+                    name = f"Taxim {label} ({where})" + ("" if shadow else ", no shadows")
+                    lines.append(row("height maps, GelSight Mini", "640x480", name, t, mine, per_call))
+                    print(lines[-1], flush=True)
+            except ImportError as e:
+                skipped.append(f"Taxim {backend}: {e}")
     here = Path.cwd()
     shown = [
         os.path.relpath(a, here) if Path(a).is_absolute() and Path(a).is_relative_to(here) else a for a in sys.argv

@@ -127,6 +127,24 @@ def _rasterize(
 
 
 @wp.kernel
+def _take_gaps(
+    gaps: wp.array3d(dtype=float),
+    gel: wp.array2d(dtype=wp.uint8),
+    t_out: wp.array3d(dtype=float),
+    t_min: wp.array(dtype=float),
+):
+    # press_heights: given gaps as ray distances; MISS where not finite or outside the gel.
+    b, r, c = wp.tid()
+    g = gaps[b, r, c]
+    t = float(MISS)
+    if gel[r, c] != wp.uint8(0) and wp.isfinite(g):
+        t = wp.min(g, float(MISS))
+    t_out[b, r, c] = t
+    if t < MISS:
+        wp.atomic_min(t_min, b, t)
+
+
+@wp.kernel
 def _raycast(
     mesh: wp.uint64,
     c2w: wp.array(dtype=wp.mat44),
@@ -781,20 +799,19 @@ class WarpGel(Simulator):
             raise TnfError(f"press_heights: gaps must be {shape} (the sensor's pixels), got {list(g.shape)}")
         if (force is None) == (penetration is None):
             raise TnfError("press_heights: give either force or penetration")
-        t = np.where(np.isfinite(g) & s.gel_mask()[None], g, MISS).astype(np.float32)
-        c2w = np.broadcast_to(np.eye(4, dtype=np.float32), (len(t), 4, 4)).copy()
+        c2w = np.broadcast_to(np.eye(4, dtype=np.float32), (len(g), 4, 4)).copy()
         if penetration is None:
             assert force is not None
 
             def run(c: np.ndarray, f: np.ndarray, part: int, b0: int) -> TouchBatch | None:
-                return self._press(c, f, seed, True, part, b0, gaps=t[b0 : b0 + len(c)])
+                return self._press(c, f, seed, True, part, b0, gaps=g[b0 : b0 + len(c)])
 
             out = self._split(c2w, force, True, run)
         else:
-            d = np.broadcast_to(np.asarray(penetration, dtype=np.float32), (len(t),)).copy()
+            d = np.broadcast_to(np.asarray(penetration, dtype=np.float32), (len(g),)).copy()
             if not (np.isfinite(d).all() and (d >= 0).all()):
                 raise TnfError(f"press_heights: penetration must be finite and >= 0 metres, got {d.tolist()}")
-            out = self._press(c2w, np.zeros(len(t), np.float32), seed, True, 0, 0, gaps=t, depths=d)
+            out = self._press(c2w, np.zeros(len(g), np.float32), seed, True, 0, 0, gaps=g, depths=d)
         assert out is not None
         return out
 
@@ -876,8 +893,9 @@ class WarpGel(Simulator):
         point.fill_(wp.vec3(float("nan")))
 
         if gaps is not None:
-            t.assign(gaps)
-            t_min.assign(gaps.reshape(batch, -1).min(1))
+            given = self._buffer(part, "gaps", (batch, hh, ww), float)
+            given.assign(gaps)
+            wp.launch(_take_gaps, (batch, hh, ww), [given, self._gel, t, t_min], device=dev)
         else:
             assert meshes is not None
             self._cast(meshes, c2w, poses, t, t_min)
@@ -924,27 +942,31 @@ class WarpGel(Simulator):
         if not host:
             return None
 
-        # .numpy() of a CPU array is a view of the simulator's reused buffers: copy, so results outlive the call.
-        tmin = t_min.numpy().copy()
+        def host(a: wp.array) -> np.ndarray:
+            # .numpy() of a CPU array is a view of the simulator's reused buffers: copy, so results outlive the
+            # call. On a GPU it is already a new host array.
+            return a.numpy().copy() if dev.is_cpu else a.numpy()
+
+        tmin = host(t_min)
         hit = tmin < MISS
-        pen = depth.numpy().copy()
+        pen = host(depth)
         axis = -c2w[:, :3, 2] / np.linalg.norm(c2w[:, :3, 2], axis=1, keepdims=True)
         contact_c2w = c2w.astype(np.float64).copy()
         shift = np.where(hit, tmin + pen, 0.0)
         contact_c2w[:, :3, 3] += axis * shift[:, None]
-        images = image.numpy().copy()
-        ind = u.numpy().copy()
+        images = host(image)
+        ind = host(u)
         if s.decorates:
             images = s.decorate(images, ind)
         out = TouchBatch(
             images=images,
             indentation=ind,
-            contact=contact.numpy().astype(bool),
-            force=fout.numpy().copy(),
+            contact=host(contact).view(np.bool_),
+            force=host(fout),
             penetration=pen,
             hit=hit,
             advance=np.where(hit, tmin, np.inf).astype(np.float32),
-            contact_point=point.numpy().copy(),
+            contact_point=host(point),
             contact_c2w=contact_c2w,
         )
         self._phase(part, "host copy")
