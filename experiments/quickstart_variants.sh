@@ -49,6 +49,9 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v5d8) echo "$(overrides r3v5) generator.ndf=8" ;;
     r3v5dl2) echo "$(overrides r3v5) generator.d_layers=2" ;;
     r3v5d8l2) echo "$(overrides r3v5) generator.ndf=8 generator.d_layers=2" ;;
+    # round 9: half the ground-truth touches per object in the classifier's Sim set (5, was 10)
+    r3v5s5) echo "$(overrides r3v5) evaluate.classify.sim_per_object=5" ;;
+    r3v5d8s5) echo "$(overrides r3v5d8) evaluate.classify.sim_per_object=5" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
