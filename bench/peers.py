@@ -43,6 +43,8 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("WARP_CACHE_PATH", str(Path(__file__).resolve().parents[1] / ".warp-cache"))
+# JAX takes 75 % of a GPU's memory at its first use; Taxim's torch backend runs after it in this process.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import numpy as np  # noqa: E402
 from peers_scatter import install as install_scatter  # noqa: E402
