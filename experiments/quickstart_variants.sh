@@ -52,6 +52,13 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     # round 9: half the ground-truth touches per object in the classifier's Sim set (5, was 10)
     r3v5s5) echo "$(overrides r3v5) evaluate.classify.sim_per_object=5" ;;
     r3v5d8s5) echo "$(overrides r3v5d8) evaluate.classify.sim_per_object=5" ;;
+    # round 10: four validation novel objects (bottle, gear and two drawn at random: wrench, bolt)
+    r3v5s5w) echo "$(overrides r3v5s5) pair.novel_objects=[bottle,gear,wrench,bolt]" \
+      object_names=[box,can,mug,bottle,gear,wrench,bolt] ;;
+    r3v5d8s5w) echo "$(overrides r3v5d8s5) pair.novel_objects=[bottle,gear,wrench,bolt]" \
+      object_names=[box,can,mug,bottle,gear,wrench,bolt] ;;
+    r3v5d8l2s5w) echo "$(overrides r3v5d8s5w) generator.d_layers=2" ;;
+    r3v5d4s5w) echo "$(overrides r3v5d8s5w) generator.ndf=4" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
