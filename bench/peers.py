@@ -2,7 +2,7 @@
 
     nox -s peers                                   # CPU: makes TACTO's environment, then runs this script
     python bench/peers.py --tacto-python .nox/peers/bin/python --out results/sim/peers_cpu.md
-    python bench/peers.py --device cuda --maps 256 --out results/gpu/peers_cuda.md   # tnf on a GPU
+    python bench/peers.py --device cuda --maps 256 --taxim-batch 256 --out results/sim/peers_cuda_h200.md   # a GPU
 
 Two workloads, each run by every simulator that takes it:
 
@@ -207,6 +207,13 @@ def taxim_maps(
     return {"wall_ms": [1e3 * w / len(maps) for w in walls], "cpu_ms": [1e3 * c / len(maps) for c in cpus]}
 
 
+def positive(text: str) -> int:
+    """argparse type: a whole number >= 1."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return int(text)
+
+
 def row(workload: str, size: str, name: str, r: dict, ref: dict | None, note: str = "") -> str:
     best, median = min(r["wall_ms"]), statistics.median(r["wall_ms"])
     ratio = f"{min(r['wall_ms']) / min(ref['wall_ms']):.1f}x" if ref is not None else "1.0x"
@@ -227,7 +234,7 @@ def main() -> None:
         default=os.environ.get("TNF_PEERS_PYTHON"),
         help="the interpreter of TACTO's environment (nox -s peers makes it); TACTO is skipped without it",
     )
-    ap.add_argument("--taxim-batch", type=int, default=16, help="height maps per call of Taxim's torch backend")
+    ap.add_argument("--taxim-batch", type=positive, default=16, help="height maps per call of Taxim's torch backend")
     ap.add_argument("--no-taxim", action="store_true", help="skip Taxim")
     ap.add_argument("--out", type=Path, default=None, help="also write the table as markdown here")
     args = ap.parse_args()

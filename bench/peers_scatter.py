@@ -50,10 +50,11 @@ def install() -> str:
     try:
         import torch_scatter
 
+        if torch_scatter.scatter_min is scatter_min:  # installed here before
+            return "scatter_reduce"
         return f"torch-scatter {torch_scatter.__version__}"
     except ImportError:
         module = types.ModuleType("torch_scatter")
         module.scatter_min = scatter_min  # type: ignore[attr-defined]
-        module.__version__ = "substitute"  # type: ignore[attr-defined]
         sys.modules["torch_scatter"] = module
         return "scatter_reduce"
