@@ -59,6 +59,12 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
       object_names=[box,can,mug,bottle,gear,wrench,bolt] ;;
     r3v5d8l2s5w) echo "$(overrides r3v5d8s5w) generator.d_layers=2" ;;
     r3v5d4s5w) echo "$(overrides r3v5d8s5w) generator.ndf=4" ;;
+    # round 11: the simulator's image of each depth crop (pair.prior) as a fourth input, the residual added to the
+    # background (p) or to the prior (pr)
+    r3v5d8s5wp) echo "$(overrides r3v5d8s5w) pair.prior=true generator.inputs=[rgb,depth_and_slope,background,prior]" \
+      generator.skips=[background,depth_and_slope,prior] ;;
+    r3v5d8s5wpr) echo "$(overrides r3v5d8s5wp) generator.residual_on=prior" ;;
+    r3v5s5wp) echo "$(overrides r3v5d8s5wp) generator.ndf=16" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
