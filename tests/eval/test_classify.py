@@ -11,7 +11,9 @@ from tnf.eval.classify import (
     LabelledImages,
     accuracy,
     load_touch_images,
+    restart_seed,
     run_rows,
+    subset,
     train_classifier,
 )
 
@@ -61,6 +63,37 @@ def test_restarts_average_classifiers_trained_from_their_own_seeds():
     assert len(steps) == 2 * one.steps
     with pytest.raises(TnfError, match="restarts must be >= 1"):
         ClassifierConfig(restarts=0).validate()
+
+
+def test_restarts_draw_their_own_training_sets_shared_by_their_rows():
+    train, test = _separable(6, seed=4), _separable(4, seed=5)
+    cfg = ClassifierConfig(image_size=32, width=4, steps=5, batch_size=8, restarts=2)
+    seen = []
+
+    def draw(run_seed: int) -> dict[str, LabelledImages]:
+        seen.append(run_seed)
+        idx = torch.from_numpy(subset(len(train), 9, run_seed))
+        part = LabelledImages(train.images[idx], train.labels[idx])
+        return {"A": part, "B": LabelledImages.concat([part, part])}
+
+    rows = run_rows(draw, test, 3, cfg, seed=3)
+    assert seen == [3, restart_seed(3, 1)] == [3, 3 * 7919 + 1]
+    one = ClassifierConfig(image_size=32, width=4, steps=5, batch_size=8)
+    expect = {}
+    for s in list(seen):
+        for row, part in draw(s).items():
+            model = train_classifier(part.images, part.labels, 3, one, seed=s)
+            expect[row] = expect.get(row, 0.0) + accuracy(model, test.images, test.labels, 32) / 2
+    assert rows == pytest.approx(expect)
+
+
+def test_subset_is_a_seeded_sorted_draw():
+    a = subset(20, 5, seed=1)
+    assert len(a) == 5 and len(set(a.tolist())) == 5 and (np.diff(a) > 0).all() and a.max() < 20
+    assert np.array_equal(a, subset(20, 5, seed=1))
+    assert not np.array_equal(a, subset(20, 5, seed=2))
+    assert np.array_equal(subset(4, 5, seed=1), np.arange(4))
+    assert np.array_equal(subset(4, None, seed=1), np.arange(4))
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)])

@@ -55,8 +55,9 @@ class ClassifierConfig:
     from the ground truth; None draws batches uniformly from the whole set, so adding generated images also cuts
     how often each ground-truth image is seen. Sets of one kind (``Sim``, ``G only``) are drawn as with None."""
     restarts: int = FROM_YAML
-    """Classifiers trained per row, each from its own seed; the row's accuracy is their mean. On a small test set
-    a classifier's run-to-run spread can exceed the difference between rows; more restarts average it out."""
+    """Classifiers trained per row, each from its own seed and (in ``tnf evaluate``) its own draw of the Sim
+    touches; the row's accuracy is their mean. With a small test set or a few Sim touches per object, one
+    classifier's spread can exceed the difference between rows; more restarts average it out."""
 
     def validate(self) -> None:
         if self.image_size < 16:
@@ -285,8 +286,13 @@ class LabelledImages:
         return len(self.labels)
 
 
+def restart_seed(seed: int, k: int) -> int:
+    """The seed of restart ``k`` (0-based) of a row: the first restart uses ``seed`` itself."""
+    return seed if k == 0 else seed * 7919 + k
+
+
 def run_rows(
-    train_sets: Mapping[str, LabelledImages],
+    train_sets: Mapping[str, LabelledImages] | Callable[[int], Mapping[str, LabelledImages]],
     test: LabelledImages,
     num_classes: int,
     cfg: ClassifierConfig,
@@ -294,15 +300,28 @@ def run_rows(
     device: str = "cpu",
     on_step: Callable[[int], None] | None = None,
 ) -> dict[str, float]:
-    """Train ``cfg.restarts`` classifiers per row of ``train_sets`` (the same seeds and schedule for every row)
-    -> mean accuracy in percent per row. The first restart uses ``seed`` itself."""
+    """Train ``cfg.restarts`` classifiers per row (the same seeds and schedule for every row) -> mean accuracy in
+    percent per row.
 
-    def one(s: LabelledImages, k: int) -> float:
-        run_seed = seed if k == 0 else seed * 7919 + k
-        model = train_classifier(s.images, s.labels, num_classes, cfg, run_seed, device, on_step, s.generated)
-        return accuracy(model, test.images, test.labels, cfg.image_size)
+    ``train_sets`` maps each row to its training images, or is a function of a restart's seed
+    (``restart_seed``) that returns that mapping: each restart then trains on its own draw, and the rows of one
+    restart share it."""
+    totals: dict[str, float] = {}
+    for k in range(cfg.restarts):
+        run_seed = restart_seed(seed, k)
+        sets = train_sets(run_seed) if callable(train_sets) else train_sets
+        for row, s in sets.items():
+            model = train_classifier(s.images, s.labels, num_classes, cfg, run_seed, device, on_step, s.generated)
+            totals[row] = totals.get(row, 0.0) + accuracy(model, test.images, test.labels, cfg.image_size)
+    return {row: v / cfg.restarts for row, v in totals.items()}
 
-    return {row: sum(one(s, k) for k in range(cfg.restarts)) / cfg.restarts for row, s in train_sets.items()}
+
+def subset(n: int, limit: int | None, seed: int) -> np.ndarray:
+    """Indices of a random subset of ``limit`` of ``n`` items, in ascending order (all ``n`` when ``limit`` is None
+    or not below ``n``): the draw of ``load_touch_images`` and of the ``Sim`` set."""
+    if limit is None or n <= limit:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, size=limit, replace=False))
 
 
 # ---- touch-format folders (the output of `tnf touch` and `tnf generate`) -------------------------------------
@@ -337,9 +356,7 @@ def load_touch_images(
 
     folder = Path(folder)
     recs = [t for t in touch_records(folder) if splits is None or t.get("split") in splits]
-    if limit is not None and len(recs) > limit:
-        keep = np.sort(np.random.default_rng(seed).choice(len(recs), size=limit, replace=False))
-        recs = [recs[i] for i in keep]
+    recs = [recs[i] for i in subset(len(recs), limit, seed)]
     out = np.zeros((len(recs), size, size, 3), np.uint8)
     for i, t in enumerate(recs):
         path = folder / t["image"]

@@ -272,7 +272,7 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
     """Train the classifier on Sim, Sim + G and G only; accuracy (percent) on held-out ground truth."""
     import torch
 
-    from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows
+    from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows, subset
 
     ecfg, method = job.settings, job.method
     ccfg = ecfg["classify"]
@@ -301,7 +301,8 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
         def labelled(x: torch.Tensor, label: int = label) -> LabelledImages:
             return LabelledImages(x, torch.full((len(x),), label, dtype=torch.long))
 
-        sim.append(labelled(load_touch_images(folder, size, list(ccfg["sim_splits"]), ccfg["sim_per_object"], seed)))
+        # Every ground-truth touch of the Sim splits; each restart draws its own sim_per_object from them.
+        sim.append(labelled(load_touch_images(folder, size, list(ccfg["sim_splits"]), None, seed)))
         test.append(labelled(load_touch_images(folder, size, list(ccfg["test_splits"]), ccfg["test_per_object"], seed)))
         gfolder = store.path("generated", generated_run, source, obj)
         if (gfolder / "manifest.json").is_file():
@@ -315,15 +316,28 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
             f"no generated touches of run {generated_run!r} under {store.path('generated', generated_run, source)}; "
             "run `tnf generate` first, set evaluate.generated=RUN, or evaluate.classify.enabled=false"
         )
-    sim_set, gen_set, test_set = (LabelledImages.concat(s) for s in (sim, gen, test))
-    rows = {"Sim": sim_set, f"Sim + {method}": LabelledImages.concat([sim_set, gen_set])}
-    if ccfg["generated_only"]:
-        rows[f"{method} only"] = gen_set
-    task = bar.add_task("classify", total=clf.steps * clf.restarts * len(rows))
+    gen_set, test_set = LabelledImages.concat(gen), LabelledImages.concat(test)
+    limit = ccfg["sim_per_object"]
+
+    def rows(restart_seed: int) -> dict[str, LabelledImages]:
+        # The Sim set of one restart: its own draw of sim_per_object touches per object, shared by its rows, so
+        # that a row's accuracy averages over draws of the few ground-truth touches as well as over classifiers.
+        drawn = []
+        for s in sim:
+            idx = torch.from_numpy(subset(len(s), limit, restart_seed))
+            drawn.append(LabelledImages(s.images[idx], s.labels[idx]))
+        sim_set = LabelledImages.concat(drawn)
+        out = {"Sim": sim_set, f"Sim + {method}": LabelledImages.concat([sim_set, gen_set])}
+        if ccfg["generated_only"]:
+            out[f"{method} only"] = gen_set
+        return out
+
+    first = rows(seed)
+    task = bar.add_task("classify", total=clf.steps * clf.restarts * len(first))
     acc = run_rows(rows, test_set, len(objects), clf, seed, device, on_step=lambda _: bar.advance(task))
     info = {
         "classes": objects,
-        "train_images": {row: len(s) for row, s in rows.items()},
+        "train_images": {row: len(s) for row, s in first.items()},
         "test_images": len(test_set),
         "sensor": sensor,
         "generated": generated_run,
