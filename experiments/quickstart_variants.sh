@@ -65,6 +65,10 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
       generator.skips=[background,depth_and_slope,prior] ;;
     r3v5d8s5wpr) echo "$(overrides r3v5d8s5wp) generator.residual_on=prior" ;;
     r3v5s5wp) echo "$(overrides r3v5d8s5wp) generator.ndf=16" ;;
+    # round 12 (fresh seeds, each restart with its own draw of the Sim touches): round 11's, without the T-N only row
+    r3v5d8s5wn) echo "$(overrides r3v5d8s5w) evaluate.classify.generated_only=false" ;;
+    r3v5d8s5wpn) echo "$(overrides r3v5d8s5wp) evaluate.classify.generated_only=false" ;;
+    r3v5s5wpn) echo "$(overrides r3v5s5wp) evaluate.classify.generated_only=false" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
