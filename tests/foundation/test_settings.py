@@ -17,6 +17,7 @@ EXPERIMENTS = sorted(p.stem for p in (Path(__file__).resolve().parents[2] / "con
     [
         ("train.epochs=abc", "train.epochs: expected a whole number, got 'abc'"),
         ("touch.n_touches=-5", "touch.n_touches: must be >= 0, got -5"),
+        ("evaluate.classify.sim_per_object=0", "evaluate.classify.sim_per_object: must be >= 1, got 0"),
         ("touch.n_touches=1.5", "touch.n_touches: expected a whole number, got 1.5"),
         ("touch.force=nan", "touch.force: expected a finite number, got nan"),
         ("touch.random_roll=maybe", "touch.random_roll: expected true or false, got 'maybe'"),

@@ -4,6 +4,7 @@ A small CNN is trained on a set of tactile images and scored on held-out ground-
 (its Table 1b / 2b): ``Sim`` (ground-truth touches of the training objects only), ``Sim + G`` (the same plus
 images generator G made from novel poses) and ``G only``. Every row uses the same network, the same number of
 optimisation steps, the same seed and the same test set, so differences come from the training images alone.
+With several restarts (``ClassifierConfig.restarts``) each restart draws its own Sim touches, shared by its rows.
 
 Images go in as uint8 ``[N, 3, S, S]`` (the touch-format loader below makes them) and are fed to the network in
 [-1, 1]. Everything stays on the device as uint8, so a few thousand images train in seconds on a GPU.

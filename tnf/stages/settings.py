@@ -40,6 +40,8 @@ HINTS = {"generate.force": " (it redoes finished images; the force of a generate
 """What a refused setting's line adds, where a value is likely meant for another setting."""
 NAMED_SWITCHES = {"train.compile": ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")}
 """Switches that also take one of these names (``train.compile``: torch.compile's modes)."""
+AT_LEAST_ONE = ("evaluate.classify.sim_per_object",)
+"""Whole numbers that must be at least 1 (0 would leave a classifier row with no images)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -94,6 +96,8 @@ def _check(value: Any, default: Any, where: str) -> None:
     elif isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             raise TnfError(f"{where}: expected a whole number, got {value!r}")
+        if where in AT_LEAST_ONE and value < 1:
+            raise TnfError(f"{where}: must be >= 1, got {value}")
         if default >= 0 > value:
             raise TnfError(f"{where}: must be >= 0, got {value}")
     elif isinstance(default, float):
