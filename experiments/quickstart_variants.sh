@@ -69,6 +69,11 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v5d8s5wn) echo "$(overrides r3v5d8s5w) evaluate.classify.generated_only=false" ;;
     r3v5d8s5wpn) echo "$(overrides r3v5d8s5wp) evaluate.classify.generated_only=false" ;;
     r3v5s5wpn) echo "$(overrides r3v5s5wp) evaluate.classify.generated_only=false" ;;
+    # round 13 (fresh seeds): round 10's discriminator of width 16 without the T-N only row, and the crops rendered
+    # at 32 px (were 48) for time, with a discriminator of width 16 or 8
+    r3v5s5wn) echo "$(overrides r3v5s5w) evaluate.classify.generated_only=false" ;;
+    r3v5s5w32n) echo "$(overrides r3v5s5wn) pair.render_px=32" ;;
+    r3v5d8s5w32n) echo "$(overrides r3v5d8s5wn) pair.render_px=32" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
