@@ -74,6 +74,13 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v5s5wn) echo "$(overrides r3v5s5w) evaluate.classify.generated_only=false" ;;
     r3v5s5w32n) echo "$(overrides r3v5s5wn) pair.render_px=32" ;;
     r3v5d8s5w32n) echo "$(overrides r3v5d8s5wn) pair.render_px=32" ;;
+    # after round 13, a diagnosis (no pick): each novel object's margin over BG, on eight validation novel objects
+    # (round 10's four and four drawn with random.Random(14): brick, polish_tin, shampoo, sponge), without and with
+    # the prior input
+    r3v5s5w32n8) echo "$(overrides r3v5s5w32n) pair.novel_objects=[bottle,gear,wrench,bolt,brick,polish_tin,shampoo,sponge]" \
+      object_names=[box,can,mug,bottle,gear,wrench,bolt,brick,polish_tin,shampoo,sponge] ;;
+    r3v5s5w32pn8) echo "$(overrides r3v5s5w32n8) pair.prior=true generator.inputs=[rgb,depth_and_slope,background,prior]" \
+      generator.skips=[background,depth_and_slope,prior] ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
