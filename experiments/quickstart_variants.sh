@@ -81,6 +81,7 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
       object_names=[box,can,mug,bottle,gear,wrench,bolt,brick,polish_tin,shampoo,sponge] ;;
     r3v5s5w32pn8) echo "$(overrides r3v5s5w32n8) pair.prior=true generator.inputs=[rgb,depth_and_slope,background,prior]" \
       generator.skips=[background,depth_and_slope,prior] ;;
+    r3v5s5w32n8g0) echo "$(overrides r3v5s5w32n8) generator.lambda_gan=0" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
