@@ -82,6 +82,11 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v5s5w32pn8) echo "$(overrides r3v5s5w32n8) pair.prior=true generator.inputs=[rgb,depth_and_slope,background,prior]" \
       generator.skips=[background,depth_and_slope,prior] ;;
     r3v5s5w32n8g0) echo "$(overrides r3v5s5w32n8) generator.lambda_gan=0" ;;
+    # round 14: three rounded validation novel objects, like the test's three (6 classes, as the test), with the
+    # adversarial term at its weight of 1 (round 13's pick) and at 0.3
+    r3v5s5w32n3) echo "$(overrides r3v5s5w32n) pair.novel_objects=[bottle,polish_tin,shampoo]" \
+      object_names=[box,can,mug,bottle,polish_tin,shampoo] ;;
+    r3v5s5w32n3g3) echo "$(overrides r3v5s5w32n3) generator.lambda_gan=0.3" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
