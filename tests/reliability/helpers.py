@@ -101,20 +101,28 @@ def run_to_end(root: Path, *args: str, timeout: float = 300) -> subprocess.Compl
     return out
 
 
-def kill_when(root: Path, args: tuple[str, ...], ready, timeout: float = 300, poll: float = 0.002) -> bool:
+def kill_when(
+    root: Path, args: tuple[str, ...], ready, timeout: float = 300, poll: float = 0.002, pause: bool = False
+) -> bool:
     """Start ``tnf ARGS``, SIGKILL it as soon as ``ready()`` is true; False when it finished first.
 
-    Some kill points last only milliseconds (an item's temporary folder while its files are written): poll often."""
+    Some kill points last only milliseconds (an item's temporary folder while its files are written): poll often.
+    ``pause``: stop the command (SIGSTOP) while ``ready()`` runs, for conditions slower than what they watch (loading
+    a checkpoint): on a busy machine the command could otherwise finish while the condition is still reading."""
     p = subprocess.Popen(
         tnf_cmd(*args), env=tnf_env(root), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
     )
     t0 = time.monotonic()
     try:
         while p.poll() is None:
+            if pause:
+                os.killpg(p.pid, signal.SIGSTOP)
             if ready():
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
                 return True
+            if pause:
+                os.killpg(p.pid, signal.SIGCONT)
             if time.monotonic() - t0 > timeout:
                 raise TimeoutError(f"tnf {' '.join(args)} did not reach the kill point in {timeout} s")
             time.sleep(poll)

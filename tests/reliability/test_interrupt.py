@@ -154,7 +154,7 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
         except Exception:  # being written
             return False
 
-    assert kill_when(root, train, after_second_epoch, poll=0.05)
+    assert kill_when(root, train, after_second_epoch, poll=0.05, pause=True)
     assert not (run_dir / "manifest.json").exists()
     killed = _ckpt(last)
     run_to_end(root, *train)

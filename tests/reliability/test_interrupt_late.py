@@ -208,7 +208,7 @@ def test_finetune_killed_after_an_epoch_resumes_with_optimiser_and_scheduler_sta
     copy_stages(upstream, root, "pairs", "models")
     source = (root / "models" / MODEL / "best.ckpt").read_bytes()
     run = root / "models" / "ft"
-    assert kill_when(root, FINETUNE, ckpt_epoch_at_least(run / "last.ckpt", 1), poll=0.05)
+    assert kill_when(root, FINETUNE, ckpt_epoch_at_least(run / "last.ckpt", 1), poll=0.05, pause=True)
     assert not (run / "manifest.json").exists()
     killed = ckpt(run / "last.ckpt")
     run_to_end(root, *FINETUNE)
@@ -411,7 +411,8 @@ def test_pipeline_from_scratch_killed_in_every_stage_resumes(tmp_path, reference
     }
     stamps: dict = {}
     for stage, ready in kill_points.items():
-        assert kill_when(root, PIPELINE, ready, poll=0.05 if stage == "train" else 0.002), f"finished before {stage}"
+        train = stage == "train"
+        assert kill_when(root, PIPELINE, ready, poll=0.05 if train else 0.002, pause=train), f"finished before {stage}"
         # Whatever had finished before this kill is still the same files after it.
         assert_not_rewritten(stamps)
         stamps = manifest_stamps(root, "capture", "scenes", "touch", "pairs")
