@@ -9,6 +9,9 @@
 # no image metrics), and adds each run's Sim and Sim + T-N accuracy to the table. With NOVEL=1 that evaluation
 # also scores the novel_object split: give the variants validation objects of their own to hold out (never the
 # quick start's test object), and SCENE_OBJECTS=a,b,... every object the variants use, fitted once per seed.
+# CONE=1 tests the classifier on the novel_view split instead, and scores that split's images too: give the
+# variants a held-out cone of their own (touch.novel_view_axis, never the quick start's), as the test's classifier
+# is scored on touches from a cone that no Sim touch comes from.
 set -euo pipefail
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 seeds=(${SEEDS:-0 1 2})
@@ -87,9 +90,16 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r3v5s5w32n3) echo "$(overrides r3v5s5w32n) pair.novel_objects=[bottle,polish_tin,shampoo]" \
       object_names=[box,can,mug,bottle,polish_tin,shampoo] ;;
     r3v5s5w32n3g3) echo "$(overrides r3v5s5w32n3) generator.lambda_gan=0.3" ;;
+    # round 15 (with CONE=1): round 14's pick, its held-out cone of start directions about +y (the test's is about
+    # +x), with 40 (c40) or 80 (c80) generated touches per object
+    r3v5s5w32n3g3c40) echo "$(overrides r3v5s5w32n3g3) touch.novel_view_axis=[0.0,1.0,0.0]" ;;
+    r3v5s5w32n3g3c80) echo "$(overrides r3v5s5w32n3g3c40) generate.n_poses=80" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
+splits=${NOVEL:+novel_object}${CONE:+${NOVEL:+,}novel_view}
+cls_split=val
+[[ -z ${CONE:-} ]] || cls_split=novel_view
 t0=$SECONDS
 for s in "${seeds[@]}"; do
   (tnf pipeline "${dev[@]}" seed=$s data_root=$root/s$s/scenes "pipeline.stages=[capture,fit-scene]" \
@@ -111,15 +121,15 @@ for s in "${seeds[@]}"; do
         --device "${DEVICE:-cuda}" "$v" >"$out/val-$v-s$s.txt" 2>&1
       if [[ ${CLASSIFY:-0} == 1 ]]; then
         tnf pipeline "${dev[@]}" seed=$s data_root=$r "${o[@]}" train.run_name=$v "pipeline.stages=[generate,evaluate]" \
-          evaluate.name=val "evaluate.splits=[${NOVEL:+novel_object}]" "evaluate.classify.test_splits=[val]" \
+          evaluate.name=val "evaluate.splits=[${splits}]" "evaluate.classify.test_splits=[$cls_split]" \
           >"$out/cls-$v-s$s.log" 2>&1 ||
           { tail -30 "$out/cls-$v-s$s.log"; exit 1; }
         grep -E "^(Sim|Sim \+ T-N)," "$r/reports/val/table1b_accuracy.csv" >>"$out/val-$v-s$s.txt"
-        [[ -z ${NOVEL:-} ]] || grep -E "^novel_object,(T-N|BG)," "$r/reports/val/table1a_image.csv" >>"$out/val-$v-s$s.txt"
+        [[ -z $splits ]] || grep -E "^novel_(object|view),(T-N|BG)," "$r/reports/val/table1a_image.csv" >>"$out/val-$v-s$s.txt"
       fi
     ) &
   done
 done
 wait
 echo "variants: $((SECONDS - t0)) s"
-for f in "$out"/val-*.txt; do echo "== $(basename "$f" .txt)"; tail -8 "$f"; done | tee "$out/variants.txt"
+for f in "$out"/val-*.txt; do echo "== $(basename "$f" .txt)"; tail -10 "$f"; done | tee "$out/variants.txt"
