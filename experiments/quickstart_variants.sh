@@ -94,6 +94,11 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     # +x), with 40 (c40) or 80 (c80) generated touches per object
     r3v5s5w32n3g3c40) echo "$(overrides r3v5s5w32n3g3) touch.novel_view_axis=[0.0,1.0,0.0]" ;;
     r3v5s5w32n3g3c80) echo "$(overrides r3v5s5w32n3g3c40) generate.n_poses=80" ;;
+    # after round 15's test, a diagnosis (no pick): its pick with the test's novel objects (banana, lemon,
+    # paper_cup) on the +y cone (tobj), and with the validation objects on the test's +x cone (xcone)
+    tobj) echo "$(overrides r3v5s5w32n3g3c80) pair.novel_objects=[banana,lemon,paper_cup]" \
+      object_names=[box,can,mug,banana,lemon,paper_cup] ;;
+    xcone) echo "$(overrides r3v5s5w32n3g3c80) touch.novel_view_axis=[1.0,0.0,0.0]" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
