@@ -99,6 +99,13 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     tobj) echo "$(overrides r3v5s5w32n3g3c80) pair.novel_objects=[banana,lemon,paper_cup]" \
       object_names=[box,can,mug,banana,lemon,paper_cup] ;;
     xcone) echo "$(overrides r3v5s5w32n3g3c80) touch.novel_view_axis=[1.0,0.0,0.0]" ;;
+    # round 16 (with CONE=1): round 14's pick on the +y cone with three rounded validation novel objects with fine
+    # relief, like the test's (golf_ball, jar, vase), and half (0.5) or three quarters (f75) of each Sim + T-N batch
+    # from the ground truth, the latter also with the adversarial weight 1 (g1f75)
+    r16) echo "$(overrides r3v5s5w32n3g3c40) pair.novel_objects=[golf_ball,jar,vase]" \
+      object_names=[box,can,mug,golf_ball,jar,vase] ;;
+    r16f75) echo "$(overrides r16) evaluate.classifier.real_fraction=0.75" ;;
+    r16g1f75) echo "$(overrides r16f75) generator.lambda_gan=1.0" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
