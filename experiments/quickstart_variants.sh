@@ -106,6 +106,9 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
       object_names=[box,can,mug,golf_ball,jar,vase] ;;
     r16f75) echo "$(overrides r16) evaluate.classifier.real_fraction=0.75" ;;
     r16g1f75) echo "$(overrides r16f75) generator.lambda_gan=1.0" ;;
+    # after round 16, a diagnosis (no pick): a training object with fine relief (bottle: a ribbed waist, a knurled
+    # cap) in place of the mug
+    r16b) echo "$(overrides r16)" object_names=[box,can,bottle,golf_ball,jar,vase] ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
