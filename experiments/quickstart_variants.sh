@@ -109,6 +109,8 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     # after round 16, a diagnosis (no pick): a training object with fine relief (bottle: a ribbed waist, a knurled
     # cap) in place of the mug
     r16b) echo "$(overrides r16)" object_names=[box,can,bottle,golf_ball,jar,vase] ;;
+    # and the adversarial term's gradient kept within 4 px of each press (generator.gan_press_margin=4)
+    r16pm) echo "$(overrides r16) generator.gan_press_margin=4" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }

@@ -447,6 +447,39 @@ def test_tn_cgan_lambda_gan_weighs_the_adversarial_term():
         build("tn_cgan", lambda_gan=-1.0)
 
 
+def test_tn_cgan_gan_press_margin_keeps_the_adversarial_gradient_on_the_press():
+    """press_mask marks where the real image leaves the background, grown by the margin; press_only keeps the
+    image's values and passes gradient only there; a training step with a margin trains both networks."""
+    from tnf.generators.tn_cgan import PRESS_LEVELS, press_mask, press_only
+
+    bg = torch.zeros(1, 3, 32, 32)
+    real = bg.clone()
+    real[:, 1, 10:14, 20:22] = 2 * (PRESS_LEVELS + 5) / 255  # a press, in one channel
+    real[:, 0, 0:2, 0:2] = 2 * (PRESS_LEVELS - 5) / 255  # a change below the threshold: not a press
+    inside = torch.zeros(1, 1, 32, 32, dtype=torch.bool)
+    inside[..., 10:14, 20:22] = True
+    assert torch.equal(press_mask(real, bg, 0).bool(), inside)
+    grown = press_mask(real, bg, 3).bool()
+    assert grown[..., 7:17, 17:25].all() and grown.sum() == 10 * 8
+
+    fake = torch.randn(1, 3, 32, 32, requires_grad=True)
+    shaped = press_only(fake, real, bg, 3)
+    assert torch.equal(shaped, fake)
+    shaped.sum().backward()
+    assert torch.equal(fake.grad != 0, grown.expand(1, 3, 32, 32))
+
+    torch.manual_seed(0)
+    g = build("tn_cgan", image_size=32, lambda_gan=1.0, gan_press_margin=4)
+    d0 = [p.detach().clone() for p in g.net_d.parameters()]
+    out = g.training_step(make_pairs(4, 32), PlainOptimisation(g))
+    assert torch.isfinite(out["loss_g_gan"]) and out["loss_g_gan"] > 0
+    assert any(not torch.equal(a, b) for a, b in zip(d0, g.net_d.parameters()))
+    with pytest.raises(TnfError, match="gan_press_margin"):
+        build("tn_cgan", gan_press_margin=-2)
+    with pytest.raises(TnfError, match="background"):
+        build("tn_cgan", inputs=["rgb", "depth"], skips=["depth"], residual=False, gan_press_margin=2)
+
+
 def test_tn_cgan_coords_append_the_pixel_position():
     from tnf.generators.nets import conditions, coordinate_grid
 

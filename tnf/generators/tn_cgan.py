@@ -52,6 +52,26 @@ from tnf.generators.nets import (
 )
 from tnf.registry import FROM_YAML, yaml_defaults
 
+PRESS_LEVELS = 10
+"""A pixel is part of the press where the real image differs from the background by more than this (of 255)."""
+
+
+def press_mask(real: torch.Tensor, background: torch.Tensor, margin: int) -> torch.Tensor:
+    """1 where ``real`` differs from ``background`` (both ``[B, 3, H, W]`` in [-1, 1]) by more than
+    ``PRESS_LEVELS`` of 255 in any channel, grown by ``margin`` pixels; 0 elsewhere. ``[B, 1, H, W]``."""
+    diff = (real.float() - background.float()).abs().amax(1, keepdim=True) > 2 * PRESS_LEVELS / 255
+    mask = diff.float()
+    if margin > 0:
+        mask = F.max_pool2d(mask, 2 * margin + 1, stride=1, padding=margin)
+    return mask
+
+
+def press_only(fake: torch.Tensor, real: torch.Tensor, background: torch.Tensor, margin: int) -> torch.Tensor:
+    """``fake`` with its gradient kept only inside the press (``press_mask``): the same values, so the
+    discriminator sees the whole image, but what it asks of the generator changes only the pressed pixels."""
+    mask = press_mask(real, background, margin).to(fake.dtype)
+    return fake * mask + fake.detach() * (1 - mask)
+
 
 class TNcGAN(Generator):
     """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, cGAN + L1 + SSIM loss."""
@@ -62,6 +82,7 @@ class TNcGAN(Generator):
         "lambda_ssim": 0.0,
         "residual": False,
         "lambda_gan": 1.0,
+        "gan_press_margin": -1,
     }
 
     @dataclass
@@ -98,6 +119,10 @@ class TNcGAN(Generator):
         """Weight of the adversarial term in the generator's loss (the paper: 1). 0, the default, trains the
         generator as a plain regression on the L1 and SSIM terms: the discriminator then has no optimiser and is
         never run."""
+        gan_press_margin: int = FROM_YAML
+        """Where the adversarial term shapes the image. -1: every pixel (the paper). k >= 0: only pixels within k
+        pixels of the press, where the real image differs from the background by more than ``PRESS_LEVELS`` of 255
+        in any channel; elsewhere only the L1 and SSIM terms reach the generator."""
         lambda_l1: float = FROM_YAML
         """Weight lambda of the L1 loss (Eq. 2)."""
         lambda_ssim: float = FROM_YAML
@@ -177,6 +202,10 @@ class TNcGAN(Generator):
                     f"loss weights must be >= 0, got lambda_gan={self.lambda_gan}, lambda_l1={self.lambda_l1}, "
                     f"lambda_ssim={self.lambda_ssim}"
                 )
+            if self.gan_press_margin < -1:
+                raise ValueError(f"gan_press_margin must be -1 (every pixel) or >= 0, got {self.gan_press_margin}")
+            if self.gan_press_margin >= 0 and "background" not in self.inputs:
+                raise ValueError("gan_press_margin finds the press against the background: add background to inputs")
             if self.lambda_gan == self.lambda_l1 == self.lambda_ssim == 0:
                 raise ValueError("lambda_gan, lambda_l1 and lambda_ssim are all 0: the generator has no loss")
             if self.residual_on not in ("background", "prior"):
@@ -298,7 +327,9 @@ class TNcGAN(Generator):
             opts[1].step()
             # Generator: fool the (frozen) discriminator.
             self.set_requires_grad(self.net_d, False)
-            loss_g_gan = gan_loss(self.net_d(torch.cat([cond, fake], 1)), True, self.cfg.gan_mode)
+            shaped = fake if self.cfg.gan_press_margin < 0 else press_only(fake, real, batch["background"],
+                                                                             self.cfg.gan_press_margin)  # fmt: skip
+            loss_g_gan = gan_loss(self.net_d(torch.cat([cond, shaped], 1)), True, self.cfg.gan_mode)
             loss_g = loss_g + self.cfg.lambda_gan * loss_g_gan
             losses |= {
                 "loss_g_gan": loss_g_gan.detach(),
