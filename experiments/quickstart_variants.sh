@@ -111,6 +111,8 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r16b) echo "$(overrides r16)" object_names=[box,can,bottle,golf_ball,jar,vase] ;;
     # and the adversarial term's gradient kept within 4 px of each press (generator.gan_press_margin=4)
     r16pm) echo "$(overrides r16) generator.gan_press_margin=4" ;;
+    # and without the adversarial term
+    r16g0) echo "$(overrides r16) generator.lambda_gan=0" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
