@@ -474,10 +474,12 @@ def test_tn_cgan_gan_press_margin_keeps_the_adversarial_gradient_on_the_press():
     out = g.training_step(make_pairs(4, 32), PlainOptimisation(g))
     assert torch.isfinite(out["loss_g_gan"]) and out["loss_g_gan"] > 0
     assert any(not torch.equal(a, b) for a, b in zip(d0, g.net_d.parameters()))
-    with pytest.raises(TnfError, match="gan_press_margin"):
-        build("tn_cgan", gan_press_margin=-2)
-    with pytest.raises(TnfError, match="background"):
-        build("tn_cgan", inputs=["rgb", "depth"], skips=["depth"], residual=False, gan_press_margin=2)
+    with pytest.raises(TnfError, match="gan_press_margin must be -1"):
+        build("tn_cgan", lambda_gan=1.0, gan_press_margin=-2)
+    with pytest.raises(TnfError, match="finds the press against the background"):
+        build("tn_cgan", inputs=["rgb", "depth"], skips=["depth"], residual=False, lambda_gan=1.0, gan_press_margin=2)
+    with pytest.raises(TnfError, match="lambda_gan=0 turns off"):
+        build("tn_cgan", lambda_gan=0.0, gan_press_margin=2)
 
 
 def test_tn_cgan_coords_append_the_pixel_position():

@@ -206,6 +206,11 @@ class TNcGAN(Generator):
                 raise ValueError(f"gan_press_margin must be -1 (every pixel) or >= 0, got {self.gan_press_margin}")
             if self.gan_press_margin >= 0 and "background" not in self.inputs:
                 raise ValueError("gan_press_margin finds the press against the background: add background to inputs")
+            if self.gan_press_margin >= 0 and self.lambda_gan == 0:
+                raise ValueError(
+                    f"gan_press_margin={self.gan_press_margin} limits the adversarial term, which lambda_gan=0 turns "
+                    "off: set lambda_gan > 0, or gan_press_margin=-1"
+                )
             if self.lambda_gan == self.lambda_l1 == self.lambda_ssim == 0:
                 raise ValueError("lambda_gan, lambda_l1 and lambda_ssim are all 0: the generator has no loss")
             if self.residual_on not in ("background", "prior"):
@@ -327,8 +332,9 @@ class TNcGAN(Generator):
             opts[1].step()
             # Generator: fool the (frozen) discriminator.
             self.set_requires_grad(self.net_d, False)
-            shaped = fake if self.cfg.gan_press_margin < 0 else press_only(fake, real, batch["background"],
-                                                                             self.cfg.gan_press_margin)  # fmt: skip
+            shaped = fake
+            if self.cfg.gan_press_margin >= 0:
+                shaped = press_only(fake, real, batch["background"], self.cfg.gan_press_margin)
             loss_g_gan = gan_loss(self.net_d(torch.cat([cond, shaped], 1)), True, self.cfg.gan_mode)
             loss_g = loss_g + self.cfg.lambda_gan * loss_g_gan
             losses |= {
