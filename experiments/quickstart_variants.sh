@@ -113,6 +113,13 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r16pm) echo "$(overrides r16) generator.gan_press_margin=4" ;;
     # and without the adversarial term
     r16g0) echo "$(overrides r16) generator.lambda_gan=0" ;;
+    # round 17 (with EXTRA="fit.distortion_weight=W", each weight its own store): r16 on scenes fitted with the
+    # distortion loss; round 18: r17d (the weight 0.1, run with EXTRA="fit.distortion_weight=0.1"), with the
+    # adversarial gradient kept within 4 px of each press (pm), the adversarial weight 0.1 (g01), or both
+    r17d) echo "$(overrides r16)" ;;
+    r18pm) echo "$(overrides r17d) generator.gan_press_margin=4" ;;
+    r18g01) echo "$(overrides r17d) generator.lambda_gan=0.1" ;;
+    r18pmg01) echo "$(overrides r18pm) generator.lambda_gan=0.1" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
