@@ -120,6 +120,10 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     r18pm) echo "$(overrides r17d) generator.gan_press_margin=4" ;;
     r18g01) echo "$(overrides r17d) generator.lambda_gan=0.1" ;;
     r18pmg01) echo "$(overrides r18pm) generator.lambda_gan=0.1" ;;
+    # round 19 (with CONE=1): the committed quick start with ball as its validation novel object, its scenes fitted
+    # without (q19, EXTRA="fit.distortion_weight=0.0") or with the distortion loss (q19d, EXTRA="fit.distortion_weight=0.1")
+    q19) echo object_names=[box,can,mug,ball] pair.novel_objects=[ball] touch.novel_view_axis=[0.0,1.0,0.0] ;;
+    q19d) echo "$(overrides q19)" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
