@@ -124,6 +124,9 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     # without (q19, EXTRA="fit.distortion_weight=0.0") or with the distortion loss (q19d, EXTRA="fit.distortion_weight=0.1")
     q19) echo object_names=[box,can,mug,ball] pair.novel_objects=[ball] touch.novel_view_axis=[0.0,1.0,0.0] ;;
     q19d) echo "$(overrides q19)" ;;
+    # round 20 (with EXTRA="fit.distortion_weight=0.1"): q19d with round 18's generator settings (32 px crops, the
+    # adversarial weight 0.3 kept within 4 px of each press)
+    q20) echo "$(overrides q19d) pair.render_px=32 generator.lambda_gan=0.3 generator.gan_press_margin=4" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }
