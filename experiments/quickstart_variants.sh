@@ -127,6 +127,9 @@ overrides() {  # the settings of each variant, on top of experiment=quickstart
     # round 20 (with EXTRA="fit.distortion_weight=0.1"): q19d with round 18's generator settings (32 px crops, the
     # adversarial weight 0.3 kept within 4 px of each press)
     q20) echo "$(overrides q19d) pair.render_px=32 generator.lambda_gan=0.3 generator.gan_press_margin=4" ;;
+    # round 21 (with CONE=1 and EXTRA="fit.distortion_weight=0.1"): round 18's pick with every generated touch drawn
+    # inside the held-out cone (the views no Sim touch comes from)
+    r21) echo "$(overrides r18pm) generate.directions=novel_view" ;;
     *) echo "unknown variant $1" >&2; return 1 ;;
   esac
 }

@@ -88,6 +88,34 @@ def test_generate_from_a_poses_file(data_root, trained_model, tmp_path):
     assert np.allclose(item.start_poses(), poses)
 
 
+def test_generate_in_the_held_out_cone(data_root, trained_model):
+    """directions=novel_view: every pose looks from inside the touch stage's held-out cone (the views the
+    ground-truth touches lack); with directions=sphere the same seed spreads them over every direction."""
+    from tnf.stages import generate
+
+    cone = ["touch.novel_view_axis=[0.0,1.0,0.0]", "touch.novel_view_cone=20.0", "generate.n_poses=6"]
+    runs = {"cone": ["generate.directions=novel_view"], "sphere": []}
+    for name, extra in runs.items():
+        over = [*GEN, f"generate.model={trained_model}", *cone, *extra, f"generate.run_name={name}"]
+        assert generate.run(compose("generate", over))["written"] == {"ball": 6}
+    cos = {}
+    for name in runs:
+        poses = TouchItem.load(data_root / "generated" / name / "builtin" / "ball").start_poses()
+        cos[name] = poses[:, 1, 3] / np.linalg.norm(poses[:, :3, 3], axis=1)  # direction of each pose about +y
+    assert (cos["cone"] >= np.cos(np.radians(20.0)) - 1e-9).all()
+    assert (cos["sphere"] < np.cos(np.radians(20.0))).any()
+
+
+def test_generate_directions_errors(data_root, trained_model):
+    from tnf.stages import generate
+
+    base = [*GEN, f"generate.model={trained_model}", "generate.n_poses=2"]
+    with pytest.raises(TnfError, match="generate.directions must be sphere or novel_view"):
+        generate.run(compose("generate", [*base, "generate.directions=cone"]))
+    with pytest.raises(TnfError, match="needs a held-out cone"):
+        generate.run(compose("generate", [*base, "generate.directions=novel_view", "touch.novel_view_cone=0.0"]))
+
+
 def test_generate_errors(data_root, trained_model):
     from tnf.stages import generate
 

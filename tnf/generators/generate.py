@@ -100,12 +100,43 @@ def read_poses(path: str | os.PathLike[str]) -> np.ndarray:
     return poses
 
 
-def sample_poses(n: int, radius: float, up: Any, random_roll: bool, seed: int) -> np.ndarray:
-    """``n`` poses uniform on the sphere of ``radius`` metres, looking at the origin: [n, 4, 4] c2w."""
+def sample_poses(
+    n: int,
+    radius: float,
+    up: Any,
+    random_roll: bool,
+    seed: int,
+    cone: tuple[Any, float] | None = None,
+) -> np.ndarray:
+    """``n`` poses on the sphere of ``radius`` metres, looking at the origin: [n, 4, 4] c2w.
+
+    Directions are uniform on the whole sphere, or with ``cone`` = (axis, half-angle in degrees) uniform inside
+    that cone (``generate.directions=novel_view``: the touch stage's held-out cone)."""
 
     rng = np.random.default_rng(seed)
-    dirs = sphere_directions(rng, n, (0.0, 0.0, 1.0), 0.0, inside=False)
+    if cone is None:
+        dirs = sphere_directions(rng, n, (0.0, 0.0, 1.0), 0.0, inside=False)
+    else:
+        dirs = sphere_directions(rng, n, cone[0], float(cone[1]), inside=True)
     return start_poses(rng, dirs, radius, up=list(up), random_roll=random_roll)
+
+
+def pose_cone(settings: dict[str, Any]) -> tuple[Any, float] | None:
+    """The cone that sampled directions come from (``generate.directions``): None for the whole sphere."""
+    directions = settings.get("directions", "sphere")
+    if directions == "sphere":
+        return None
+    if directions != "novel_view":
+        raise TnfError(f"generate.directions must be sphere or novel_view, got {directions!r}")
+    axis, deg = settings["cone_axis"], float(settings["cone_deg"])
+    if not 0.0 < deg < 180.0:
+        raise TnfError(
+            f"generate.directions=novel_view needs a held-out cone (generate.cone_deg, from touch.novel_view_cone) "
+            f"in (0, 180) degrees, got {deg}"
+        )
+    if len(axis) != 3 or float(np.linalg.norm(np.asarray(axis, float))) == 0.0:
+        raise TnfError(f"generate.cone_axis must be a non-zero 3-vector, got {axis!r}")
+    return list(axis), deg
 
 
 def generate(job: GenerateJob) -> dict[str, Any]:
@@ -192,6 +223,7 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
     g, src = job.settings, job.source.name
     prep = _preprocessing(job, store)
     file_poses = read_poses(g["poses_file"]) if g["poses_file"] else None
+    cone = pose_cone(g)
     jobs = []
     for obj in job.names:
         scene_dir = store.path("scenes", job.scene_name, src, obj)
@@ -219,7 +251,9 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
         elif file_poses is not None:
             poses = file_poses
         else:
-            poses = sample_poses(int(g["n_poses"]), float(g["radius"]), g["up"], bool(g["random_roll"]), seed)
+            poses = sample_poses(
+                int(g["n_poses"]), float(g["radius"]), g["up"], bool(g["random_roll"]), seed, cone=cone
+            )
         config = _item_config(job, store, model, obj, framing, poses if file_poses is not None else None, own)
         if not g["force"] and store.is_done("generated", model.run_name, src, obj, config=config):
             console.print(f"generate: {model.run_name}/{src}/{obj} is up to date")
@@ -266,7 +300,10 @@ def _item_config(
             k: v
             for k, v in g.items()
             if k not in _UNHASHED
-            and not (k == "touch_force" and v is None)  # (hashes of items made before forces existed)
+            # (hashes of items made before forces and cones existed)
+            and not (k == "touch_force" and v is None)
+            and not (k in ("cone_axis", "cone_deg") and g.get("directions", "sphere") == "sphere")
+            and not (k == "directions" and v == "sphere")
         },
         "seed": job.seed,
         "prior": _prior_key(job) if model.needs_prior else None,

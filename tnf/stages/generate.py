@@ -1,7 +1,8 @@
 """``tnf generate``: tactile images from novel poses of objects with a fitted scene.
 
-For each selected object: sample ``generate.n_poses`` camera poses on a sphere around it (or read them from
-``generate.poses_file``), render RGB-D from its fitted scene, preprocess as ``tnf pair`` does (the crop and
+For each selected object: sample ``generate.n_poses`` camera poses on a sphere around it (``generate.directions``:
+every direction, or the touch stage's held-out cone) or read them from
+``generate.poses_file``, render RGB-D from its fitted scene, preprocess as ``tnf pair`` does (the crop and
 depth normalisation of the model's training dataset), run the trained generator with the sensor's background
 image as condition, and write ``<data_root>/generated/<run_name>/<source>/<object>/`` in the format of
 ``tnf touch``: ``images/00000.png`` (128 x 128 generated tactile images), ``background.png`` and a manifest
