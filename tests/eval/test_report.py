@@ -266,6 +266,28 @@ def test_tnf_evaluate_draws_a_share_of_each_mixed_batch_from_the_ground_truth(da
     assert "draw each batch uniformly from all their images" in md
 
 
+def test_the_report_says_where_the_generated_touches_came_from(data_root):
+    """The generated manifests' pose source (generate.directions) reaches the results and the report."""
+    from tnf.stages.evaluate import run
+
+    _touch_data(data_root)
+    cone = {"directions": "novel_view", "cone_axis": [1.0, 0.0, 0.0], "cone_deg": 30.0}
+    for obj in ("ball", "box"):
+        path = data_root / "generated/fake/builtin" / obj / "manifest.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "poses": cone}))
+    over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.model=fake", "evaluate.splits=[]", "seed=0"]
+    out = run(compose("evaluate", [*over, "evaluate.classifier.steps=2"]))
+    assert out["results"]["classify"]["generated_poses"] == cone
+    md = (data_root / "reports/default/report.md").read_text()
+    assert "The generated touches come from inside the held-out cone (30 degrees about [1, 0, 0]" in md
+    # one object's touches from elsewhere: the runs' rows no longer say one source
+    path = data_root / "generated/fake/builtin/box/manifest.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "poses": {"directions": "sphere"}}))
+    out = run(compose("evaluate", [*over, "evaluate.classifier.steps=2", "evaluate.force=true"]))
+    assert out["results"]["classify"]["generated_poses"] is None
+    assert "held-out cone" not in (data_root / "reports/default/report.md").read_text()
+
+
 def test_tnf_evaluate_refuses_missing_inputs(data_root):
     from tnf.errors import TnfError
     from tnf.stages.evaluate import run

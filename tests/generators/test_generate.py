@@ -104,6 +104,14 @@ def test_generate_in_the_held_out_cone(data_root, trained_model):
         cos[name] = poses[:, 1, 3] / np.linalg.norm(poses[:, :3, 3], axis=1)  # direction of each pose about +y
     assert (cos["cone"] >= np.cos(np.radians(20.0)) - 1e-9).all()
     assert (cos["sphere"] < np.cos(np.radians(20.0))).any()
+    # each manifest says where its poses came from (the evaluation's report reads it)
+    sources = {
+        n: json.loads((data_root / "generated" / n / "builtin/ball/manifest.json").read_text())["poses"] for n in runs
+    }
+    assert sources == {
+        "cone": {"directions": "novel_view", "cone_axis": [0.0, 1.0, 0.0], "cone_deg": 20.0},
+        "sphere": {"directions": "sphere"},
+    }
 
 
 def test_generate_directions_errors(data_root, trained_model):

@@ -211,6 +211,30 @@ def batch_sampling(runs: Sequence[dict[str, Any]]) -> str | None:
     return f"Rows that add generated images draw {f:.0%} of each batch from the ground-truth touches."
 
 
+def generated_poses(runs: Sequence[dict[str, Any]]) -> str | None:
+    """Where the generated touches of the classification rows came from (``generate.directions``), as their
+    manifests record it; None when no run recorded it."""
+    sources = [r["classify"].get("generated_poses") for r in runs if isinstance(r.get("classify"), dict)]
+    shown = {json.dumps(p, sort_keys=True) for p in sources if p is not None}
+    if not shown:
+        return None
+    if len(shown) > 1 or None in sources:
+        return "**The runs generated their touches from different poses**; their rows do not compare."
+    p = sources[0]
+    if p["directions"] == "novel_view":
+        axis = ", ".join(f"{a:g}" for a in p["cone_axis"])
+        return (
+            f"The generated touches come from inside the held-out cone ({p['cone_deg']:g} degrees about [{axis}], "
+            "`generate.directions=novel_view`): the views that no Sim touch comes from, which the novel-view test "
+            "touches come from."
+        )
+    return {
+        "sphere": "The generated touches come from poses uniform over every direction (`generate.directions=sphere`).",
+        "file": "The generated touches come from a file of poses (`generate.poses_file`).",
+        "sim": "The generated touches take the poses of the simulated touches.",
+    }.get(p["directions"])
+
+
 def _seconds(t: float | None) -> str:
     return "-" if t is None else (f"{t:.1f}" if t < 100 else f"{t:.0f}")
 
@@ -407,8 +431,9 @@ def render_markdown(
             lines.append(f"| {r['row']} | {fmt_stat(r['ours'], 'acc')} | {fmt_stat(r['paper'], 'acc')} | {n} |")
         lines += ["", "Test set: held-out ground-truth touches only; same classifier, schedule and test set per row."]
         lines.append("")
-        if sampling := batch_sampling(data.runs):
-            lines += [sampling, ""]
+        for line in (batch_sampling(data.runs), generated_poses(data.runs)):
+            if line:
+                lines += [line, ""]
         for caption, path in figures.get(table, []):
             lines += [f"**{caption}**", "", f"![{caption}]({path})", ""]
         cks = checks(table, data)

@@ -294,6 +294,7 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
     size = clf.image_size
     seed = job.seed
     sim, gen, test, warnings = [], [], [], []
+    poses: list[Any] = []  # each generated object's pose source (its manifest's "poses")
     load = bar.add_task("load touches", total=len(objects))
     for label, obj in enumerate(objects):
         folder = store.require("touch", sensor, source, obj, hint="run `tnf touch` first")
@@ -306,6 +307,7 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
         test.append(labelled(load_touch_images(folder, size, list(ccfg["test_splits"]), ccfg["test_per_object"], seed)))
         gfolder = store.path("generated", generated_run, source, obj)
         if (gfolder / "manifest.json").is_file():
+            poses.append(read_json(gfolder / "manifest.json", "generated manifest").get("poses"))
             x = load_touch_images(gfolder, size, None, ccfg["generated_per_object"], seed)
             gen.append(LabelledImages(x, torch.full((len(x),), label), torch.ones(len(x), dtype=torch.bool)))
         else:
@@ -342,5 +344,7 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
         "sensor": sensor,
         "generated": generated_run,
         "real_fraction": clf.real_fraction,
+        # where the generated touches' poses came from, when every object's agree (None: unrecorded or mixed)
+        "generated_poses": poses[0] if poses and all(p == poses[0] for p in poses) else None,
     }
     return acc, info, warnings

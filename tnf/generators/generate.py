@@ -121,6 +121,20 @@ def sample_poses(
     return start_poses(rng, dirs, radius, up=list(up), random_roll=random_roll)
 
 
+def pose_source(settings: dict[str, Any], sim: bool = False) -> dict[str, Any]:
+    """Where the poses of generated touches came from, for their manifest: ``{"directions": "sphere"}``,
+    ``{"directions": "novel_view", "cone_axis": [x, y, z], "cone_deg": d}``, ``{"directions": "file"}`` or
+    ``{"directions": "sim"}`` (the simulated touches' own poses)."""
+    if sim:
+        return {"directions": "sim"}
+    if settings.get("poses_file"):
+        return {"directions": "file"}
+    cone = pose_cone(settings)
+    if cone is None:
+        return {"directions": "sphere"}
+    return {"directions": "novel_view", "cone_axis": [float(a) for a in cone[0]], "cone_deg": cone[1]}
+
+
 def pose_cone(settings: dict[str, Any]) -> tuple[Any, float] | None:
     """The cone that sampled directions come from (``generate.directions``): None for the whole sphere."""
     directions = settings.get("directions", "sphere")
@@ -458,6 +472,7 @@ def _manifest(
         "counts": {str(g["split"]): len(touches), "discarded": 0},
         "generator": {"name": model.system.generator_name, "model": str(g["model"]), "checkpoint": str(model.ckpt)},
         "image_size": SIZE,
+        "poses": pose_source(g, sim=model.wanted == "sim"),
         **(
             {"force": {"unit": "N", "requested": model.wanted, "per_pose": per_pose}}
             if model.wanted is not None
