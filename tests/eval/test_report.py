@@ -284,8 +284,15 @@ def test_the_report_says_where_the_generated_touches_came_from(data_root):
     path = data_root / "generated/fake/builtin/box/manifest.json"
     path.write_text(json.dumps({**json.loads(path.read_text()), "poses": {"directions": "sphere"}}))
     out = run(compose("evaluate", [*over, "evaluate.classifier.steps=2", "evaluate.force=true"]))
+    assert out["results"]["classify"]["generated_poses"] == {"directions": "mixed"}
+    md = (data_root / "reports/default/report.md").read_text()
+    assert "held-out cone" not in md and "come from different poses" in md
+    # a manifest that does not record it (made before tnf recorded poses): the report says nothing of them
+    path.write_text(json.dumps({k: v for k, v in json.loads(path.read_text()).items() if k != "poses"}))
+    out = run(compose("evaluate", [*over, "evaluate.classifier.steps=2", "evaluate.force=true"]))
     assert out["results"]["classify"]["generated_poses"] is None
-    assert "held-out cone" not in (data_root / "reports/default/report.md").read_text()
+    md = (data_root / "reports/default/report.md").read_text()
+    assert "The generated touches come" not in md and "different poses" not in md
 
 
 def test_tnf_evaluate_refuses_missing_inputs(data_root):

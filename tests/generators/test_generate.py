@@ -122,6 +122,11 @@ def test_generate_directions_errors(data_root, trained_model):
         generate.run(compose("generate", [*base, "generate.directions=cone"]))
     with pytest.raises(TnfError, match="needs a held-out cone"):
         generate.run(compose("generate", [*base, "generate.directions=novel_view", "touch.novel_view_cone=0.0"]))
+    with pytest.raises(TnfError, match="must be a non-zero 3-vector"):
+        generate.run(compose("generate", [*base, "generate.directions=novel_view", "generate.cone_axis=[0,0,0]"]))
+    with pytest.raises(TnfError, match=r"must be in \[0, 180\) degrees"):
+        generate.run(compose("generate", [*base, "generate.directions=novel_view", "generate.cone_deg=200"]))
+    assert not (data_root / "generated" / trained_model).exists()  # refused before anything was written
 
 
 def test_generate_errors(data_root, trained_model):

@@ -213,13 +213,14 @@ def batch_sampling(runs: Sequence[dict[str, Any]]) -> str | None:
 
 def generated_poses(runs: Sequence[dict[str, Any]]) -> str | None:
     """Where the generated touches of the classification rows came from (``generate.directions``), as their
-    manifests record it; None when no run recorded it."""
+    manifests record it; None when a run does not record it."""
     sources = [r["classify"].get("generated_poses") for r in runs if isinstance(r.get("classify"), dict)]
-    shown = {json.dumps(p, sort_keys=True) for p in sources if p is not None}
-    if not shown:
+    if not sources or None in sources:
         return None
-    if len(shown) > 1 or None in sources:
-        return "**The runs generated their touches from different poses**; their rows do not compare."
+    if len({json.dumps(p, sort_keys=True) for p in sources}) > 1 or sources[0]["directions"] == "mixed":
+        return (
+            "**The generated touches come from different poses** in different runs or objects; the rows do not compare."
+        )
     p = sources[0]
     if p["directions"] == "novel_view":
         axis = ", ".join(f"{a:g}" for a in p["cone_axis"])

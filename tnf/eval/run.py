@@ -344,7 +344,14 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
         "sensor": sensor,
         "generated": generated_run,
         "real_fraction": clf.real_fraction,
-        # where the generated touches' poses came from, when every object's agree (None: unrecorded or mixed)
-        "generated_poses": poses[0] if poses and all(p == poses[0] for p in poses) else None,
+        "generated_poses": _one_pose_source(poses),
     }
     return acc, info, warnings
+
+
+def _one_pose_source(poses: list[Any]) -> dict[str, Any] | None:
+    """The generated objects' pose source (their manifests' ``poses``): the one they share, ``{"directions":
+    "mixed"}`` where they differ, None where some object's manifest does not record it."""
+    if not poses or None in poses:
+        return None
+    return poses[0] if all(p == poses[0] for p in poses) else {"directions": "mixed"}

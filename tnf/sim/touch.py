@@ -35,7 +35,11 @@ def sphere_directions(
             f"the held-out cone's half-angle (touch.novel_view_cone) must be in [0, 180) degrees, got {cone_deg}"
         )
     a = np.asarray(axis, dtype=np.float64)
-    a /= np.linalg.norm(a)
+    if a.shape != (3,) or not np.isfinite(a).all() or np.linalg.norm(a) == 0.0:
+        raise TnfError(
+            f"the held-out cone's axis (touch.novel_view_axis) must be a non-zero 3-vector, got {list(axis)}"
+        )
+    a = a / np.linalg.norm(a)
     cos_c = np.cos(np.radians(cone_deg))
     out: list[np.ndarray] = []
     while sum(len(o) for o in out) < n:
