@@ -86,6 +86,8 @@ class Simulator(ABC):
             force: target normal force, newtons (scalar or ``[B]``); give this or ``penetration``.
             seed: seed of the image noise.
             penetration: metres past first contact (scalar or ``[B]``); ``force`` then reports the force it took.
+                A penetration deeper than the sensor's ``max_penetration`` raises a TnfError (a press by
+                ``force`` stops there instead, and reports the force it reached).
 
         Returns:
             The touches, with the sensor frame as the world frame (the start pose is the identity).

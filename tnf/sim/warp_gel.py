@@ -259,7 +259,8 @@ def _force_at_depth(
     force: wp.array(dtype=float),
 ):
     # A press to a given penetration instead of a given force: the same integral as ``_solve_force``, stopped
-    # at the target depth (clamped to the deepest the histogram covers).
+    # at the target depth. ``press_heights`` refuses depths past max_penetration, the deepest the histogram
+    # covers; the clamp only absorbs rounding.
     b = wp.tid()
     depth[b] = 0.0
     force[b] = 0.0
@@ -778,7 +779,8 @@ class WarpGel(Simulator):
         """Press the sensor with a constant normal force onto B surfaces given as height fields in its own
         pixel grid, instead of a mesh: steps 2-4 of ``press`` on a ray cast that was done elsewhere.
         With ``penetration`` instead of ``force``, each press goes that deep past first contact (metres,
-        scalar or ``[B]``) and ``force`` reports the force it took.
+        scalar or ``[B]``, at most the sensor's ``max_penetration``: deeper is a TnfError) and ``force`` reports
+        the force it took.
 
         Args:
             gaps: ``[B, H, W]`` metres from each pixel's undeformed gel point (``Sensor.gel_points``) along the
@@ -808,9 +810,17 @@ class WarpGel(Simulator):
 
             out = self._split(c2w, force, True, run)
         else:
-            d = np.broadcast_to(np.asarray(penetration, dtype=np.float32), (len(g),)).copy()
+            d = np.broadcast_to(np.asarray(penetration, dtype=np.float64), (len(g),))
             if not (np.isfinite(d).all() and (d >= 0).all()):
                 raise TnfError(f"press_heights: penetration must be finite and >= 0 metres, got {d.tolist()}")
+            limit = s.cfg.max_penetration
+            if (d > limit).any():
+                i = int(np.argmax(d))
+                raise TnfError(
+                    f"press_heights: penetration {d[i] * 1e3:g} mm (touch {i}) is deeper than the sensor's "
+                    f"max_penetration {limit * 1e3:g} mm (sensor.max_penetration)"
+                )
+            d = d.astype(np.float32)
             out = self._press(c2w, np.zeros(len(g), np.float32), seed, True, 0, 0, gaps=g, depths=d)
         assert out is not None
         return out

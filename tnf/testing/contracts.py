@@ -476,7 +476,8 @@ class SimulatorContract(_ComponentContract):
     sphere (centred, off-centre, beside it) give every ``TouchBatch`` field with its shape and dtype, contact
     for the first two and none for the third (no contact point, no advance); the same seed gives the same
     images; a larger force goes deeper over a larger area; ``press_heights`` to a penetration indents that deep,
-    and to a force reaches it.
+    and to a force reaches it; a penetration past the sensor's ``max_penetration`` is a one-line TnfError naming
+    the setting.
     """
 
     registry = SIMULATORS
@@ -589,6 +590,16 @@ class SimulatorContract(_ComponentContract):
         assert np.isclose(pressed.force[0], force, rtol=0.05), (pressed.force[0], force)
         with pytest.raises(TnfError):
             simulator.press_heights(gaps[:, :-1], force=force)  # not the sensor's pixel grid
+
+    def test_press_heights_past_max_penetration_is_refused(self, simulator):
+        s = simulator.sensor
+        gaps = np.repeat(sphere_gaps(s, self.sphere_radius)[None], 2, 0)
+        limit = s.cfg.max_penetration
+        at_limit = simulator.press_heights(gaps[:1], penetration=limit)
+        assert at_limit.penetration[0] == pytest.approx(limit, rel=1e-3)
+        with pytest.raises(TnfError, match="max_penetration") as e:
+            simulator.press_heights(gaps, penetration=[0.5 * limit, 1.5 * limit])
+        assert "\n" not in str(e.value)
 
 
 # -- object sources ---------------------------------------------------------------------------------
