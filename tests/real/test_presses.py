@@ -1,6 +1,7 @@
 """Press folders: the importer of Taxim's recording, the depth/contact-radius geometry and the checks of
 ``load_presses`` on hand-made folders."""
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -13,6 +14,8 @@ from tnf.errors import TnfError
 from tnf.real.presses import (
     INDEX,
     TAXIM_BALL_RADIUS_MM,
+    at_sensor_size,
+    check_depths,
     contact_radius_from_depth,
     depth_from_contact_radius,
     import_taxim,
@@ -86,6 +89,53 @@ def test_depth_and_contact_radius_are_inverse():
         assert depth_from_contact_radius(2.0, a) == pytest.approx(depth, rel=1e-9, abs=1e-12)
     for a in (0.1, 0.6, 1.15, 1.9):
         assert contact_radius_from_depth(2.0, depth_from_contact_radius(2.0, a)) == pytest.approx(a, rel=1e-9)
+
+
+def test_geometry_refuses_a_depth_or_contact_past_the_radius():
+    with pytest.raises(TnfError, match=r"depth 2\.5 mm is outside 0 to the indenter's radius 2 mm"):
+        contact_radius_from_depth(2.0, 2.5)
+    with pytest.raises(TnfError, match=r"depth -0\.1 mm is outside"):
+        contact_radius_from_depth(2.0, -0.1)
+    with pytest.raises(TnfError, match=r"contact radius 2\.5 mm is outside 0 to the indenter's radius 2 mm"):
+        depth_from_contact_radius(2.0, 2.5)
+
+
+# -- depths against the indenter -----------------------------------------------------------------------
+
+
+def test_check_depths_passes_depths_below_the_radius():
+    d = check_depths([0.3, 1.2, 1.99], 2.0, "p/presses.json")
+    assert d.dtype == np.float64 and d.tolist() == [0.3, 1.2, 1.99]
+
+
+@pytest.mark.parametrize(
+    "bad, pattern",
+    [
+        (2.0, r"depth 2 mm is not smaller than the indenter's radius 2 mm"),
+        (2.6, r"depth 2\.6 mm is not smaller than the indenter's radius 2 mm"),
+        (float("nan"), r"depth nan mm must be a finite number > 0"),
+        (float("inf"), r"depth inf mm must be a finite number > 0"),
+        (0.0, r"depth 0 mm must be a finite number > 0"),
+        (-0.2, r"depth -0\.2 mm must be a finite number > 0"),
+    ],
+)
+def test_check_depths_names_the_file_and_the_press(bad, pattern):
+    # A depth factor of 2 on presses 5, 6, 7: press 6 goes past the ball.
+    where = "p/presses.json at depth x2"
+    with pytest.raises(TnfError, match=rf"^p/presses\.json at depth x2: press 6: {pattern}$") as e:
+        check_depths([0.4, bad, 0.8], 2.0, where, presses=[5, 6, 7])
+    assert "\n" not in str(e.value)
+
+
+def test_at_sensor_size_checks_the_depths(tmp_path):
+    from tnf.registry import SENSORS
+
+    p = load_presses(_folder(tmp_path / "p"))
+    deep = dataclasses.replace(p.presses[1], depth_mm=2.4)
+    p = dataclasses.replace(p, presses=(p.presses[0], deep, p.presses[2]))
+    sensor = SENSORS.build({"name": "digit", "width": W, "height": H})
+    with pytest.raises(TnfError, match=r"presses\.json: press 1: depth 2\.4 mm is not smaller than the indenter"):
+        at_sensor_size(p, sensor, [0, 1])
 
 
 # -- hand-made press folders ----------------------------------------------------------------------------

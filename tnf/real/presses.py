@@ -29,7 +29,8 @@ sphere's shape.
 
 :func:`import_taxim` writes such a folder from the calibration recordings that the ``taxim`` package ships
 (``taxim/calib/<sensor>/dataPack.npz``: frames in OpenCV's BGR order, a 4 mm ball). :func:`load_presses`
-reads and checks one; every problem is one line naming the file and the press.
+reads and checks one; every problem is one line naming the file and the press. :func:`check_depths` checks
+depths against the indenter's radius wherever they are scaled.
 """
 
 from __future__ import annotations
@@ -101,14 +102,41 @@ class PressSet:
 
 def depth_from_contact_radius(radius_mm: float, contact_mm: float) -> float:
     """Depth past first contact (mm) at which a sphere of ``radius_mm`` crosses the gel in a circle of
-    ``contact_mm``."""
-    return radius_mm - math.sqrt(max(radius_mm**2 - contact_mm**2, 0.0))
+    ``contact_mm`` (0 to ``radius_mm``; a TnfError outside)."""
+    if not 0 <= contact_mm <= radius_mm:
+        raise TnfError(f"contact radius {contact_mm:g} mm is outside 0 to the indenter's radius {radius_mm:g} mm")
+    return radius_mm - math.sqrt(radius_mm**2 - contact_mm**2)
 
 
 def contact_radius_from_depth(radius_mm: float, depth_mm: float) -> float:
-    """Contact radius (mm) of a sphere of ``radius_mm`` pressed ``depth_mm`` past first contact."""
-    d = min(depth_mm, radius_mm)
-    return math.sqrt(max(radius_mm**2 - (radius_mm - d) ** 2, 0.0))
+    """Contact radius (mm) of a sphere of ``radius_mm`` pressed ``depth_mm`` past first contact (0 to
+    ``radius_mm``; a TnfError outside)."""
+    if not 0 <= depth_mm <= radius_mm:
+        raise TnfError(f"depth {depth_mm:g} mm is outside 0 to the indenter's radius {radius_mm:g} mm")
+    return math.sqrt(radius_mm**2 - (radius_mm - depth_mm) ** 2)
+
+
+def check_depths(
+    depths_mm: Sequence[float] | np.ndarray, radius_mm: float, where: str, presses: Sequence[int] | None = None
+) -> np.ndarray:
+    """``depths_mm`` ``[N]`` (millimetres past first contact) as a float64 array, after checking that each is
+    finite, > 0 and smaller than the spherical indenter's ``radius_mm``.
+
+    Raises a one-line TnfError ``"<where>: press <k>: ..."``: ``where`` names the file (and any factor applied
+    to the depths), ``presses`` numbers the presses as in their folder (default ``0 .. N-1``).
+    """
+    d = np.asarray(depths_mm, dtype=np.float64).reshape(-1)
+    numbers = list(range(len(d))) if presses is None else list(presses)
+    if len(numbers) != len(d):
+        raise ValueError(f"check_depths: {len(d)} depths, {len(numbers)} press numbers")
+    for k, v in zip(numbers, d.tolist()):
+        if not (math.isfinite(v) and v > 0):
+            raise TnfError(f"{where}: press {k}: depth {v:g} mm must be a finite number > 0")
+        if v >= radius_mm:
+            raise TnfError(
+                f"{where}: press {k}: depth {v:g} mm is not smaller than the indenter's radius {radius_mm:g} mm"
+            )
+    return d
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -199,8 +227,7 @@ def load_presses(folder: str | Path) -> PressSet:
             depth = depth_from_contact_radius(radius, contact)
         else:
             depth = _number(entry["depth_mm"], f"{where}: depth_mm")
-            if depth >= radius:
-                raise TnfError(f"{where}: depth {depth:g} mm is not smaller than the indenter's radius {radius:g} mm")
+            check_depths([depth], radius, str(index), presses=[i])
             contact = contact_radius_from_depth(radius, depth)
         presses.append(Press(image=image, center=(col, row), contact_radius_mm=contact, depth_mm=depth))
     return PressSet(
@@ -283,6 +310,8 @@ def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) ->
     bad = [i for i in indices if not 0 <= i < n]
     if bad:
         raise TnfError(f"press {bad[0]} does not exist: {presses.folder} has presses 0-{n - 1}")
+    given = [presses.presses[i].depth_mm for i in indices]
+    depths_mm = check_depths(given, presses.radius_mm, str(presses.folder / INDEX), presses=indices)
     sx, sy = sensor.width / presses.width, sensor.height / presses.height
     if abs(sx / sy - 1) > 0.01:
         raise TnfError(
@@ -302,7 +331,7 @@ def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) ->
     frames = np.stack([load_background(presses.presses[i].image, sensor.width, sensor.height) for i in indices])
     centers = np.array([[(c + 0.5) * sx - 0.5 for c in presses.presses[i].center] for i in indices], dtype=float)
     radii = np.array([presses.contact_radius_px(i) * sx for i in indices], dtype=float)
-    depths = np.array([presses.presses[i].depth_mm * 1e-3 for i in indices], dtype=float)
+    depths = depths_mm * 1e-3
     return SensorPresses(bg, frames, centers.reshape(-1, 2), radii, depths, list(indices))
 
 
