@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import pickle
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +31,17 @@ import numpy as np
 from tnf.errors import TnfError
 
 FILE = "calibration.npz"
+UNREADABLE = (
+    OSError,
+    EOFError,
+    KeyError,
+    TypeError,
+    ValueError,
+    zipfile.BadZipFile,
+    pickle.UnpicklingError,
+    zlib.error,
+)
+"""What reading a truncated, corrupt or foreign ``calibration.npz`` raises."""
 
 
 @dataclass
@@ -99,13 +113,17 @@ class Calibration:
 
 
 def load_calibration(path: str | Path) -> Calibration:
-    """Read a calibration folder written by ``tnf calibrate`` (or its ``calibration.npz``)."""
+    """Read a calibration folder written by ``tnf calibrate`` (or its ``calibration.npz``). A missing, unreadable
+    or inconsistent file is a one-line TnfError naming it."""
     p = Path(path).expanduser()
     f = p / FILE if p.is_dir() else p
     if not f.is_file():
         raise TnfError(f"sensor calibration not found: {p} (run `tnf calibrate` first, or set sensor.calibration)")
     try:
-        with np.load(f) as d:
+        d = np.load(f)
+        if not isinstance(d, np.lib.npyio.NpzFile):
+            raise ValueError("a single array, not an .npz archive")
+        with d:
             cal = Calibration(
                 table=d["table"].astype(np.float32),
                 max_slope=float(d["max_slope"]),
@@ -114,8 +132,11 @@ def load_calibration(path: str | Path) -> Calibration:
                 falloff=float(d["falloff"]),
                 background=d["background"].astype(np.uint8),
             )
-    except (OSError, KeyError, ValueError) as e:
-        raise TnfError(f"sensor calibration {f} is not readable: {e}") from None
+    except UNREADABLE as e:
+        reason = (str(e).splitlines() or [""])[0] or type(e).__name__
+        raise TnfError(
+            f"sensor calibration {f} is not readable ({reason}); write it again with `tnf calibrate`"
+        ) from None
     t = cal.table
     if t.ndim != 3 or t.shape[0] != t.shape[1] or t.shape[0] < 2 or t.shape[2] != 3 or not np.isfinite(t).all():
         raise TnfError(f"sensor calibration {f}: table must be a finite [N, N, 3] array, got {list(t.shape)}")
