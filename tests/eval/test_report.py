@@ -39,9 +39,9 @@ def test_scoring_perfect_generator_and_background_row():
     assert bg["ssim"] < 1 and bg["mse"] > 0
     assert ex["generated"].shape == (4, 3, 128, 128) and ex["depth"].shape == (4, 1, 128, 128)
     # the examples are spread over the objects (the batches hold three ball touches, then three box touches)
-    assert ex["object_id"].tolist() == [0, 1, 0, 1] and torch.equal(ex["generated"], ex["real"])
+    assert ex["object_id"].tolist() == [0, 1, 0, 1] and torch.equal(ex["generated"], ex["target"])
     rows = [b["tactile"][i] for b in _batches() for i in range(3)]
-    assert torch.equal(ex["real"][1], rows[3]) and torch.equal(ex["real"][2], rows[1])
+    assert torch.equal(ex["target"][1], rows[3]) and torch.equal(ex["target"][2], rows[1])
     _, one = score_batches(_batches(), lambda batch: batch["tactile"], ["ball", "box"], keep_examples=1)
     assert one["object_id"].tolist() == [0]
     img = example_grid(ex, threshold=20, labels=["ball"] * 4)
@@ -50,6 +50,27 @@ def test_scoring_perfect_generator_and_background_row():
     arr = torch.from_numpy(np.array(img))
     last = arr[30:150, -132:-4]
     assert last.max() == 0
+
+
+def _header(word, cell):
+    """A grid column's header cell with ``word`` written as example_grid writes it."""
+    from PIL import ImageDraw, ImageFont
+
+    im = Image.new("RGB", (cell, 18), "white")
+    ImageDraw.Draw(im).text((4, 3), word, fill="black", font=ImageFont.load_default())
+    return np.array(im)
+
+
+def test_example_grid_calls_the_pairs_touch_the_target_not_real():
+    # The fourth column shows the pair's touch (the simulator's image, or a captured object's recorded frame).
+    _, ex = score_batches(_batches(), lambda batch: batch["tactile"], ["ball", "box"], keep_examples=2)
+    cell, pad = 64, 4
+    img = np.array(example_grid(ex, cell=cell))
+    for c, word in enumerate(["RGB", "depth", "generated", "target", "difference"]):
+        x0 = pad + c * (cell + pad)
+        assert np.array_equal(img[:18, x0 : x0 + cell], _header(word, cell)), word
+    x0 = pad + 3 * (cell + pad)
+    assert not np.array_equal(img[:18, x0 : x0 + cell], _header("real", cell))
 
 
 def _result(table, method, seed, ssim, mse, acc):
@@ -192,6 +213,7 @@ def test_example_caption_names_the_split_it_came_from(tmp_path):
     write_report(results, tmp_path / "rep", name="tiny")
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "**T-N, validation touches (seed 0): RGB |" in md and "novel object touches" not in md
+    assert "RGB | depth | generated | target | thresholded difference" in md and "| real |" not in md
     # results written before the split was recorded took their examples from novel_object
     write_report(results[1:], tmp_path / "rep1", name="tiny")
     assert "**T-N, novel object touches (seed 1): RGB |" in (tmp_path / "rep1" / "report.md").read_text()

@@ -273,7 +273,7 @@ def test_image_grid_layout():
     grid = image_grid(b)
     assert grid.shape == (32, 80, 3) and grid.dtype.name == "uint8"
     assert grid[:, 64:].max() == 0  # identical images: the difference column is black
-    assert (grid[:, 32:48] == grid[:, 48:64]).all()  # generated == real
+    assert (grid[:, 32:48] == grid[:, 48:64]).all()  # generated == target
 
 
 def test_loggers(tmp_path):

@@ -1,7 +1,8 @@
 """The report's figures, drawn with PIL (no plotting library needed).
 
-- ``example_grid``: the paper's Fig. 3 / 4 layout, one row per touch, columns RGB | depth | generated | real |
-  thresholded difference.
+- ``example_grid``: the paper's Fig. 3 / 4 layout, one row per touch, columns RGB | depth | generated | target |
+  thresholded difference. The target is the pair's touch: the simulator's image, or the recorded frame of a
+  captured object (``objects=captured``).
 - ``bar_plot``: SSIM per object, one bar per method (with standard-error whiskers).
 """
 
@@ -16,7 +17,7 @@ from PIL import Image, ImageDraw, ImageFont
 from tnf.eval.aggregate import Stat
 from tnf.metrics import to_uint8_scale
 
-COLUMNS = ("RGB", "depth", "generated", "real", "difference")
+COLUMNS = ("RGB", "depth", "generated", "target", "difference")
 # Colour-blind-safe palette (Okabe-Ito); BG is drawn grey.
 PALETTE = [(0, 114, 178), (230, 159, 0), (0, 158, 115), (204, 121, 167), (86, 180, 233), (213, 94, 0), (240, 228, 66)]
 GREY = (150, 150, 150)
@@ -34,12 +35,12 @@ def _hwc(x: torch.Tensor) -> np.ndarray:
     return u.permute(1, 2, 0).numpy()
 
 
-def threshold_difference(generated: torch.Tensor, real: torch.Tensor, threshold: float) -> np.ndarray:
-    """|generated - real| averaged over channels on the 0-255 scale, zero below ``threshold``; uint8 [H, W, 3].
+def threshold_difference(generated: torch.Tensor, target: torch.Tensor, threshold: float) -> np.ndarray:
+    """|generated - target| averaged over channels on the 0-255 scale, zero below ``threshold``; uint8 [H, W, 3].
 
     Inputs ``[3, H, W]`` in [-1, 1]. Thresholding removes the low-level noise so the indentation mismatch shows.
     """
-    d = (to_uint8_scale(generated[None]) - to_uint8_scale(real[None]))[0].abs().mean(0)
+    d = (to_uint8_scale(generated[None]) - to_uint8_scale(target[None]))[0].abs().mean(0)
     d = torch.where(d >= threshold, d, torch.zeros_like(d)).clamp(0, 255).byte()
     return d[..., None].expand(-1, -1, 3).numpy()
 
@@ -50,12 +51,12 @@ def example_grid(
     labels: Sequence[str] | None = None,
     cell: int = 128,
 ) -> Image.Image:
-    """One row per example: RGB | depth | generated | real | thresholded difference.
+    """One row per example: RGB | depth | generated | target | thresholded difference.
 
-    ``examples``: rgb [N,3,H,W], depth [N,1,H,W], generated [N,3,H,W], real [N,3,H,W] in [-1, 1]; ``labels``
+    ``examples``: rgb [N,3,H,W], depth [N,1,H,W], generated [N,3,H,W], target [N,3,H,W] in [-1, 1]; ``labels``
     (one per row, e.g. object names) are written at the left. ``threshold`` is on the 0-255 scale.
     """
-    n = len(examples["real"])
+    n = len(examples["target"])
     left = 90 if labels else 0
     top, pad = 18, 4
     img = Image.new("RGB", (left + len(COLUMNS) * (cell + pad) + pad, top + n * (cell + pad) + pad), "white")
@@ -68,8 +69,8 @@ def example_grid(
             _hwc(examples["rgb"][r]),
             _hwc(examples["depth"][r]),
             _hwc(examples["generated"][r]),
-            _hwc(examples["real"][r]),
-            threshold_difference(examples["generated"][r], examples["real"][r], threshold),
+            _hwc(examples["target"][r]),
+            threshold_difference(examples["generated"][r], examples["target"][r], threshold),
         ]
         y = top + pad + r * (cell + pad)
         for c, t in enumerate(tiles):

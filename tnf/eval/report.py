@@ -551,7 +551,7 @@ def write_report(
                     split = str(runs[0].get("examples_split", "novel_object"))
                     caption = (
                         f"{m}, {TEST_SET_NAMES.get(split, split).lower()} touches (seed {runs[0]['seed']}): RGB | "
-                        "depth | generated | real | thresholded difference"
+                        "depth | generated | target | thresholded difference"
                     )
                     figs.append((caption, _relpath(ex, folder)))
         figures[table] = figs

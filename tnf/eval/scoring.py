@@ -69,27 +69,27 @@ def score_batches(
 
     Returns ({"G": accumulator, "BG": accumulator}, examples) where examples holds ``keep_examples`` touches
     spread over the objects (the first touch of each of the first objects seen, then their second, ...) on the
-    CPU: rgb, depth, generated, real (all in [-1, 1]) and object_id.
+    CPU: rgb, depth, generated, target (the pair's touch; all in [-1, 1]) and object_id.
     """
     accs = {"G": MetricAccumulator(), BG: MetricAccumulator()}
     # object id -> its first keep_examples touches, for the first keep_examples objects seen
     pools: dict[int, list[dict[str, torch.Tensor]]] = {}
     with torch.no_grad():
         for batch in batches:
-            real = batch["tactile"]
+            target = batch["tactile"]
             ids = batch["object_id"].tolist()
             objs = [object_names[i] if object_names is not None else str(i) for i in ids]
-            bg = batch["background"].to(real.device)
-            accs[BG].add(objs, ssim(bg, real), mse(bg, real))
+            bg = batch["background"].to(target.device)
+            accs[BG].add(objs, ssim(bg, target), mse(bg, target))
             if generate is not None:
-                fake = generate(batch).detach().float().to(real.device)
-                accs["G"].add(objs, ssim(fake, real), mse(fake, real))
+                fake = generate(batch).detach().float().to(target.device)
+                accs["G"].add(objs, ssim(fake, target), mse(fake, target))
                 for i, oid in enumerate(ids):
                     if oid not in pools and len(pools) >= keep_examples:
                         continue
                     pool = pools.setdefault(oid, [])
                     if len(pool) < keep_examples:
-                        row = {"rgb": batch["rgb"], "depth": batch["depth"], "generated": fake, "real": real}
+                        row = {"rgb": batch["rgb"], "depth": batch["depth"], "generated": fake, "target": target}
                         pool.append(
                             {k: v[i].detach().to("cpu", copy=True) for k, v in row.items()}
                             | {"object_id": torch.tensor(oid)}

@@ -485,8 +485,9 @@ def load_generator(
 
 # -- image grids ----------------------------------------------------------------------------------------
 def image_grid(batch: Mapping[str, torch.Tensor]) -> np.ndarray:
-    """Rows of RGB | depth | generated | real | absolute difference (x4, so small errors show) as uint8
-    [rows*S, 5*S, 3]. ``batch`` holds [N, C, S, S] tensors in [-1, 1]: fake, tactile and optionally rgb, depth."""
+    """Rows of RGB | depth | generated | target (the pair's touch) | absolute difference (x4, so small errors
+    show) as uint8 [rows*S, 5*S, 3]. ``batch`` holds [N, C, S, S] tensors in [-1, 1]: fake, tactile and optionally
+    rgb, depth."""
     fake = batch["fake"].float().clamp(-1, 1)
     n, _, h, w = fake.shape
 
@@ -497,9 +498,9 @@ def image_grid(batch: Mapping[str, torch.Tensor]) -> np.ndarray:
         x = x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x
         return (x + 1) / 2
 
-    real = batch["tactile"].float().clamp(-1, 1)
-    diff = ((fake - real).abs() * 2).clamp(0, 1)  # |a - b| / 2 in [0, 1], times 4
-    cols = [col(batch.get("rgb")), col(batch.get("depth")), col(fake), col(real), diff]
+    target = batch["tactile"].float().clamp(-1, 1)
+    diff = ((fake - target).abs() * 2).clamp(0, 1)  # |a - b| / 2 in [0, 1], times 4
+    cols = [col(batch.get("rgb")), col(batch.get("depth")), col(fake), col(target), diff]
     grid = torch.cat([torch.cat(cols, 3)], 0)  # [N, 3, H, 5W]
     grid = grid.permute(0, 2, 3, 1).reshape(n * h, 5 * w, 3)
     return (grid * 255).round().clamp(0, 255).to(torch.uint8).numpy()
