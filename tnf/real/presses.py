@@ -322,10 +322,14 @@ def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) ->
     want = presses.mm_per_pixel / sx  # mm per sensor pixel
     have = 1e3 * float(np.mean(sensor.pixel_size()))
     if abs(have / want - 1) > 0.02:
+        markers = ""
+        if sensor.decorates:  # a sensor that draws markers over its images
+            setting = " (sensor.markers=false)" if hasattr(sensor.cfg, "markers") else ""
+            markers = f"; it also draws markers onto its images, which a marker-free recording lacks{setting}"
         raise TnfError(
             f"sensor {sensor.name!r} sees {have:.4f} mm per pixel, the presses {want:.4f} mm at its size "
             f"({presses.mm_per_pixel} mm at {presses.width}x{presses.height}): set sensor.fov or "
-            f"sensor.camera_distance to match"
+            f"sensor.camera_distance to match{markers}"
         )
     bg = load_background(presses.background_path, sensor.width, sensor.height)
     frames = np.stack([load_background(presses.presses[i].image, sensor.width, sensor.height) for i in indices])

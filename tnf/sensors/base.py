@@ -398,7 +398,8 @@ class Sensor:
 
     @property
     def decorates(self) -> bool:
-        """True when a subclass overrides ``decorate`` (the simulator then copies images to the host for it)."""
+        """True when a subclass overrides ``decorate`` (the simulator then copies images to the host for it). A
+        subclass whose drawing can be switched off (markers) overrides this to say whether it draws."""
         return type(self).decorate is not Sensor.decorate
 
     @property

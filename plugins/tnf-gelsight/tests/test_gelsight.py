@@ -122,3 +122,66 @@ def test_press_moves_the_markers_in_the_image(sensor):
     err = np.linalg.norm(found[:, None] - expected[None], axis=-1).min(0)
     assert err.max() < 1.0, "every marker shows where the gel carried it"
     assert np.linalg.norm(expected - rest, axis=-1).max() > 2, "the press moved markers by pixels"
+
+
+# -- a real, marker-free frame ------------------------------------------------------------------------
+
+
+def _real_frame(path):
+    """A smooth 320x240 frame without markers, as a recording's no-contact frame; saved to ``path``."""
+    from PIL import Image
+
+    rows, cols = np.mgrid[:240, :320]
+    frame = np.stack([120 + cols // 8, 140 + rows // 8, np.full_like(rows, 160)], -1).astype(np.uint8)
+    Image.fromarray(frame).save(path)
+    return frame
+
+
+def test_no_markers_over_a_real_background_by_default(tmp_path):
+    frame = _real_frame(tmp_path / "background.png")
+    sensor = SENSORS.build({"name": "gelsight", "background_image": str(tmp_path / "background.png")})
+    assert sensor.cfg.markers is None and not sensor.draws_markers and not sensor.decorates
+    assert np.array_equal(sensor.background(), frame)
+    sim = SIMULATORS.build("warp_gel", sensor=sensor, device="cpu")
+    x, y = sensor.gel_grid()
+    gaps = ((x**2 + y**2) / 0.02)[None].astype(np.float32)  # a sphere of 10 mm radius, in gap form
+    out = sim.press_heights(gaps, penetration=0.0005)
+    assert out.contact[0].any() and len(_dark_blobs(out.images[0], sensor)) == 0
+    # Asked for, the markers are drawn over the frame all the same.
+    forced = SENSORS.build({"name": "gelsight", "background_image": str(tmp_path / "background.png"), "markers": True})
+    assert forced.draws_markers and len(_dark_blobs(forced.background(), forced)) == 63
+
+
+def test_no_markers_over_a_calibration_by_default(tmp_path):
+    from tnf.sensors.calibration import Calibration
+
+    frame = _real_frame(tmp_path / "frame.png")
+    table = np.zeros((9, 9, 3), np.float32)
+    Calibration(table, 1.5, 1.0, 0.0, 0.1, frame).save(tmp_path / "cal")
+    sensor = SENSORS.build({"name": "gelsight", "calibration": str(tmp_path / "cal")})
+    assert not sensor.draws_markers
+    assert np.array_equal(sensor.background(), frame)
+    assert SENSORS.build("gelsight").draws_markers  # the procedural background keeps them
+
+
+def test_field_of_view_error_mentions_the_markers(tmp_path):
+    import json
+
+    from tnf.errors import TnfError
+    from tnf.real.presses import at_sensor_size, load_presses
+
+    _real_frame(tmp_path / "background.png")
+    _real_frame(tmp_path / "00000.png")
+    meta = {
+        "format": "tnf.presses/1",
+        "mm_per_pixel": 0.05,  # the sensor sees about 0.062 mm per pixel
+        "indenter": {"shape": "sphere", "radius_mm": 2.0},
+        "presses": [{"image": "00000.png", "center_px": [160, 120], "contact_radius_px": 20}],
+    }
+    (tmp_path / "presses.json").write_text(json.dumps(meta))
+    presses = load_presses(tmp_path)
+    with pytest.raises(TnfError, match=r"set sensor\.fov or sensor\.camera_distance to match; .*markers") as e:
+        at_sensor_size(presses, SENSORS.build("gelsight"), [0])
+    assert "sensor.markers=false" in str(e.value) and "\n" not in str(e.value)
+    with pytest.raises(TnfError, match=r"sensor\.camera_distance to match$"):
+        at_sensor_size(presses, SENSORS.build({"name": "gelsight", "markers": False}), [0])

@@ -10,6 +10,9 @@ backing, is pushed sideways out of the indent and the surface stretches around t
 away from the contact: each dot moves by ``-marker_flow * thickness * grad(indentation)``, the gradient taken
 on the indentation smoothed over ``marker_smoothing`` (an elastic layer spreads motion beyond the contact
 edge). ``decorate`` draws the moved dots onto the simulator's images.
+
+By default (``markers: null``) the markers are drawn only over the procedural background: a real frame
+(``background_image``, or a calibration's background) shows the gel as recorded, with its own markers or none.
 """
 
 from __future__ import annotations
@@ -37,8 +40,9 @@ class GelSight(Sensor):
     class Config(SensorConfig):
         """The GelSight's values: ``conf/sensor/gelsight.yaml`` in this package."""
 
-        markers: bool = FROM_YAML
-        """Draw the printed marker grid (use false with a background photo that already shows markers)."""
+        markers: bool | None = FROM_YAML
+        """Draw the printed marker grid: true or false; null draws it only over the procedural background, not
+        over a real frame (``background_image`` or a calibration's background)."""
         marker_spacing: float = FROM_YAML
         """Distance between neighbouring markers, metres (the grid is centred on the gel)."""
         marker_radius: float = FROM_YAML
@@ -75,6 +79,18 @@ class GelSight(Sensor):
         self._rest: np.ndarray | None = None
 
     # -- markers --------------------------------------------------------------------------------------
+    @property
+    def draws_markers(self) -> bool:
+        """Whether the marker grid is drawn: ``markers`` when set, else only over the procedural background."""
+        if self.cfg.markers is not None:
+            return bool(self.cfg.markers)
+        return self.cfg.calibration is None and not self.cfg.background_image
+
+    @property
+    def decorates(self) -> bool:
+        """True when the markers are drawn (the simulator then calls ``decorate``)."""
+        return self.draws_markers
+
     def marker_rest_positions(self) -> np.ndarray:
         """Rest positions of the markers ``[M, 2]`` = sensor-frame ``(x, y)``, metres, row-major from top left."""
         c = self.cfg
@@ -170,7 +186,7 @@ class GelSight(Sensor):
     def background(self, seed: int | None = None) -> np.ndarray:
         """The untouched sensor ``[H, W, 3]`` uint8: the base class's background with the markers at rest."""
         img = super().background(seed)
-        if not self.cfg.markers:
+        if not self.draws_markers:
             return img
         shade = self.marker_shading(self.marker_pixels())[0]
         return np.clip(np.rint(img * shade[..., None]), 0, 255).astype(np.uint8)
@@ -182,7 +198,7 @@ class GelSight(Sensor):
         The light the rest markers hid is added back (from the marker-free background at ``background_seed``)
         and the moved markers are drawn over it; where the gel did not move the markers stay where they were.
         """
-        if not self.cfg.markers:
+        if not self.draws_markers:
             return image
         if self._clean is None or self._rest is None:
             self._clean = Sensor.background(self, self.cfg.background_seed).astype(np.float32)
