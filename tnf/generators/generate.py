@@ -406,12 +406,7 @@ def _generate_batch(
             scene, c2w, focal, model.gel, framing, chunk=job.settings["render_chunk"], measure_contact=True,
             with_points=model.needs_points,
         )  # fmt: skip
-    bg_t = torch.from_numpy(model.background).to(device).permute(2, 0, 1).float().div(127.5).sub(1)
-    batch = {
-        "rgb": torch.from_numpy(rgb8).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1),
-        "depth": torch.from_numpy(depth01.astype(np.float32)).to(device)[:, None].mul(2).sub(1),
-        "background": bg_t.expand(b, -1, -1, -1),
-    }
+    batch = condition_batch(rgb8, depth01, model.background, device)
     if points is not None:
         batch["points"] = torch.from_numpy(points).to(device).permute(0, 3, 1, 2)
         batch["object_id"] = torch.full((b,), model.vocabulary.index(obj) if obj in model.vocabulary else -1,
@@ -422,9 +417,32 @@ def _generate_batch(
     image_force: list[float | None] = [None] * b
     if model.wanted is not None:
         batch, image_force = _at_forces(batch, forces, s, b, model.wanted == "sim")
-    tactile = model.system.generate(batch, model.mirror)
+    return tactile_images(model.system, batch, model.mirror), contact, image_force
+
+
+def condition_batch(rgb8: np.ndarray, depth01: np.ndarray, background: np.ndarray, device: Any) -> dict[str, Any]:
+    """A generator's conditions from preprocessed RGB-D crops (``render_rgbd_crops``): ``rgb8`` uint8
+    [B, S, S, 3], ``depth01`` [B, S, S] in [0, 1] and the sensor's ``background`` uint8 [S, S, 3], as float32
+    tensors in [-1, 1] on ``device``: ``rgb`` [B, 3, S, S], ``depth`` [B, 1, S, S], ``background`` [B, 3, S, S]
+    (a stride-0 view of one image)."""
+    import torch
+
+    b = len(rgb8)
+    bg_t = torch.from_numpy(np.ascontiguousarray(background)).to(device).permute(2, 0, 1).float().div(127.5).sub(1)
+    return {
+        "rgb": torch.from_numpy(np.ascontiguousarray(rgb8)).to(device).permute(0, 3, 1, 2).float().div(127.5).sub(1),
+        "depth": torch.from_numpy(np.asarray(depth01, np.float32)).to(device)[:, None].mul(2).sub(1),
+        "background": bg_t.expand(b, -1, -1, -1),
+    }
+
+
+def tactile_images(system: Any, batch: dict[str, Any], mirror: Any = None) -> np.ndarray:
+    """``system.generate(batch, mirror)`` as uint8 [B, S, S, 3] images."""
+    import torch
+
+    tactile = system.generate(batch, mirror)
     images = ((tactile.float().clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8)
-    return images.permute(0, 2, 3, 1).cpu().numpy(), contact, image_force
+    return images.permute(0, 2, 3, 1).cpu().numpy()
 
 
 def _touch_record(
