@@ -165,7 +165,7 @@ def test_press_heights_needs_force_or_penetration(sensor):
         sim.press_heights(gaps, penetration=-1e-4)
 
 
-def _hand_calibration(sensor, table):
+def _hand_calibration(sensor, table, slope_power=1.0):
     return Calibration(
         table=table.astype(np.float32),
         max_slope=1.0,
@@ -173,6 +173,7 @@ def _hand_calibration(sensor, table):
         noise_std=0.0,
         falloff=0.1,
         background=np.full((sensor.height, sensor.width, 3), 128, np.uint8),
+        slope_power=slope_power,
     )
 
 
@@ -184,9 +185,9 @@ def _tables(n=9):
     return {"linear": linear, "bumpy": bumpy}
 
 
-@pytest.mark.parametrize("kind", ["linear", "bumpy"])
-def test_calibrated_kernel_matches_host_shading(sensor, kind):
-    cal = _hand_calibration(sensor, _tables()[kind])
+@pytest.mark.parametrize("kind, power", [("linear", 1.0), ("bumpy", 1.0), ("bumpy", 0.5)])
+def test_calibrated_kernel_matches_host_shading(sensor, kind, power):
+    cal = _hand_calibration(sensor, _tables()[kind], power)
     cs = sensor.calibrated(cal, "hand-made")
     assert cs.calibration is cal
     sim = SIMULATORS.build(WARP, sensor=cs, device="cpu")
@@ -360,3 +361,64 @@ def test_calibrate_stage_then_touch_with_it(data_root, capsys):
     assert m["config"]["sensor"]["calibration_digest"] == cal.digest()
     first = np.asarray(Image.open(item / m["touches"][0]["image"]))
     assert first.shape == (240, 320, 3)
+
+
+# -- sharper optics: node spacing, refined centres, the search's edges ----------------------------------
+
+
+def test_slope_power_puts_nodes_at_small_slopes():
+    from tnf.sensors.calibration import table_cells
+
+    s = np.array([[0.0, 0.0], [0.04, -0.04], [1.0, 1.0], [3.0, -3.0]])
+    i0, j0, fy, fx = table_cells(s, 11, 1.0, 1.0)
+    assert j0.tolist() == [5, 5, 9, 9] and np.allclose(fx, [0, 0.2, 1, 1])
+    i0, j0, fy, fx = table_cells(s, 11, 1.0, 0.5)
+    # sqrt(0.04) = 0.2 of the half-width: one node past the centre, where a regular grid reaches 0.2 of a cell.
+    assert j0.tolist() == [5, 6, 9, 9] and np.allclose(fx, [0, 0.0, 1, 1], atol=1e-9)
+    assert i0.tolist() == [5, 4, 9, 0] and np.allclose(fy, [0, 0.0, 1, 0], atol=1e-9)
+
+
+def test_slope_power_round_trips_and_changes_the_digest(sensor, tmp_path):
+    cal = _hand_calibration(sensor, _tables()["bumpy"], slope_power=0.5)
+    cal.save(tmp_path / "cal")
+    back = load_calibration(tmp_path / "cal")
+    assert back.slope_power == 0.5 and back.digest() == cal.digest()
+    assert back.digest() != _hand_calibration(sensor, _tables()["bumpy"]).digest()
+
+
+def test_refined_centres_undo_a_shift_of_the_annotations(taxim_presses, sensor, tmp_path):
+    """Press 0's annotation moved 6 px (sensor size) to the right: the refinement moves it back, against the
+    others (the first fit's pattern, which the presses are matched to, takes up a third of the move)."""
+    meta = json.loads((taxim_presses.folder / "presses.json").read_text())
+    k = taxim_presses.width / sensor.width
+    for p in meta["presses"]:
+        p["image"] = str(taxim_presses.folder / p["image"])
+    meta["presses"][0]["center_px"][0] += 6 * k
+    meta["background"] = str(taxim_presses.folder / meta["background"])
+    (tmp_path / "presses.json").write_text(json.dumps(meta))
+    from tnf.real.presses import load_presses
+
+    moved = load_presses(tmp_path)
+    st = FitSettings(**{**TINY, "refine_radius": 10})
+    _, as_given = fit_calibration(taxim_presses, sensor, WARP, TRAIN, st)
+    _, shifted = fit_calibration(moved, sensor, WARP, TRAIN, st)
+    a, b = np.array(as_given["center_shifts_px"]), np.array(shifted["center_shifts_px"])
+    assert a.shape == b.shape == (3, 2) and np.abs(a).max() <= 10
+    moved_by = b - a
+    assert moved_by[0, 0] - moved_by[1:, 0].mean() == pytest.approx(-6, abs=1.5)
+    assert np.abs(moved_by[:, 1]).max() <= 1
+    assert len(shifted["search"]) == 2  # the search ran again on the refined centres
+
+
+def test_search_edges_name_the_list_to_extend():
+    from tnf.real.calibrate import search_edges, search_steps
+
+    st = FitSettings(**{**TINY, "falloffs": [0.02, 0.05, 0.1], "blurs": [0.0, 1.0, 2.0]})
+    assert search_edges(st, 0.05, 1.0, 1.0) == []  # a single depth factor is no search
+    assert search_edges(st, 0.05, 1.0, 0.0) == []  # a blur cannot go below 0
+    lines = search_edges(st, 0.02, 1.0, 2.0)
+    assert len(lines) == 2
+    assert "calibrate.fit.falloffs: the fit chose 0.02, the smallest candidate" in lines[0]
+    assert "calibrate.fit.blurs: the fit chose 2, the largest candidate" in lines[1]
+    assert search_steps(st) == 3 + 1 + 3 - 2
+    assert search_steps(FitSettings(**{**TINY, "refine_radius": 4})) == 2

@@ -100,3 +100,64 @@ def test_regions_and_summary():
     assert means == {"a": {m: 2.0 for m in realism.METRICS}, "b": {m: 0.5 for m in realism.METRICS}}
     text = realism.table(means, {"a": 0.002})
     assert text.splitlines()[2].startswith("| a | 2.000 | 2.0 |") and text.splitlines()[2].endswith(" 2.0 |")
+
+
+# -- the native-size crop: scikit-image's SSIM, MSE and the sharpness ratio ---------------------------------
+
+
+def brute_ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """SSIM with a 7 x 7 uniform window, computed window by window: sample (co)variances over each window's 49
+    pixels, the mean over every window that fits inside the image, channels averaged."""
+    c1, c2 = (K1 * L) ** 2, (K2 * L) ** 2
+    h, w = a.shape[:2]
+    out = []
+    for ch in range(3):
+        vals = []
+        for r in range(h - 6):
+            for c in range(w - 6):
+                x = a[r : r + 7, c : c + 7, ch].astype(np.float64).ravel()
+                y = b[r : r + 7, c : c + 7, ch].astype(np.float64).ravel()
+                vx, vy, cxy = np.var(x, ddof=1), np.var(y, ddof=1), np.cov(x, y)[0, 1]
+                mx, my = x.mean(), y.mean()
+                vals.append(((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2)))
+        out.append(np.mean(vals))
+    return float(np.mean(out))
+
+
+def test_ssim_uniform_matches_a_window_by_window_computation():
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 256, size=(17, 21, 3), dtype=np.uint8)
+    b = np.clip(a.astype(int) + rng.integers(-40, 41, size=a.shape), 0, 255).astype(np.uint8)
+    assert realism.ssim_uniform(a, b) == pytest.approx(brute_ssim(a, b), abs=1e-9)
+    assert realism.ssim_uniform(a, a) == pytest.approx(1.0)
+
+
+def test_crop_score_on_crops_of_four_contact_radii():
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(5)
+    real = rng.integers(0, 256, size=(2, 60, 80, 3), dtype=np.uint8)
+    soft = np.stack([gaussian_filter(f.astype(float), (2, 2, 0)) for f in real]).round().astype(np.uint8)
+    centers, radii = np.array([[40.0, 30.0], [3.0, 57.0]]), np.array([5.0, 5.0])
+    boxes = realism.crop_boxes((60, 80), centers, radii)
+    assert boxes[0] == (slice(20, 40), slice(30, 50))  # side 4 x 5 px around (column 40, row 30)
+    assert boxes[1] == (slice(47, 60), slice(0, 13))  # clipped at the frame's corner
+    same = realism.crop_score(real, real, centers, radii)
+    assert same["ssim_crop"] == pytest.approx([1, 1]) and same["mse_crop"] == [0, 0]
+    assert same["sharpness"] == pytest.approx([1, 1])
+    s = realism.crop_score(soft, real, centers, radii)
+    assert all(x < 0.6 for x in s["sharpness"])  # a blurred image is less sharp than the frame
+    box = boxes[0]
+    assert s["mse_crop"][0] == pytest.approx(((soft[0][box].astype(float) - real[0][box]) ** 2).mean())
+    with pytest.raises(ValueError, match="differ"):
+        realism.crop_score(soft[:, :50], real, centers, radii)
+
+
+def test_upsample_is_pil_bilinear_and_keeps_full_size_frames():
+    from PIL import Image
+
+    f = np.random.default_rng(1).integers(0, 256, size=(1, 6, 8, 3), dtype=np.uint8)
+    big = realism.upsample(f, 16, 12)
+    expected = np.asarray(Image.fromarray(f[0]).resize((16, 12), Image.Resampling.BILINEAR))
+    assert big.shape == (1, 12, 16, 3) and np.array_equal(big[0], expected)
+    assert realism.upsample(big, 16, 12) is big

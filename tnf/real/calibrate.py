@@ -36,7 +36,7 @@ from tnf.real import realism
 from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, disk_masks, sphere_gaps
 from tnf.registry import FROM_YAML, SIMULATORS, yaml_defaults
 from tnf.sensors.base import Sensor
-from tnf.sensors.calibration import Calibration
+from tnf.sensors.calibration import Calibration, table_cells
 
 
 @dataclass
@@ -48,6 +48,8 @@ class FitSettings:
     """Table nodes per slope axis."""
     max_slope: float = FROM_YAML
     """Half-width of the table's slope grid (dimensionless); steeper slopes read the edge."""
+    slope_power: float = FROM_YAML
+    """Node spacing along each slope axis: regular in ``sign(s) |s / max_slope|^slope_power`` (1: regular)."""
     falloffs: list[float] = FROM_YAML
     """Candidate gel fall-off lengths, multiples of the sensor's gel thickness."""
     depth_scales: list[float] = FROM_YAML
@@ -62,14 +64,21 @@ class FitSettings:
     """Pixels within this multiple of a press's contact radius enter the fit."""
     region_scale: float = FROM_YAML
     """The contact region, scored in the search and in the realism report: this multiple of the contact radius."""
+    refine_radius: int = FROM_YAML
+    """Training presses move up to this many pixels (sensor size) to where the first fit's pattern best matches
+    their frames, and the search runs again; 0 keeps the annotated centres. Held-out presses never move."""
 
     def validate(self) -> None:
+        if not (math.isfinite(self.slope_power) and 0 < self.slope_power <= 1):
+            raise ValueError(f"slope_power must be in (0, 1], got {self.slope_power}")
         if self.table_size < 3:
             raise ValueError(f"table_size must be >= 3, got {self.table_size}")
         for name in ("max_slope", "smoothness", "fit_scale", "region_scale"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {v}")
+        if isinstance(self.refine_radius, bool) or not isinstance(self.refine_radius, int) or self.refine_radius < 0:
+            raise ValueError(f"refine_radius must be a whole number of pixels >= 0, got {self.refine_radius}")
         if not (math.isfinite(self.ridge) and self.ridge >= 0):
             raise ValueError(f"ridge must be a finite number >= 0, got {self.ridge}")
         if not self.falloffs or not all(math.isfinite(f) and f > 0 for f in self.falloffs):
@@ -86,12 +95,9 @@ def press_surfaces(sensor: Sensor, simulator: dict[str, Any], sp: SensorPresses,
     return sim.press_heights(sphere_gaps(sensor, sp.centers, radius_m), penetration=sp.depths).indentation
 
 
-def _bilinear(slopes: np.ndarray, n: int, max_slope: float) -> tuple[np.ndarray, np.ndarray]:
+def _bilinear(slopes: np.ndarray, n: int, max_slope: float, power: float) -> tuple[np.ndarray, np.ndarray]:
     """Table node indices ``[P, 4]`` and weights ``[P, 4]`` of slopes ``[P, 2]`` (as ``Calibration.shade``)."""
-    f = (np.clip(slopes, -max_slope, max_slope) + max_slope) / (2 * max_slope) * (n - 1)
-    j0 = np.clip(np.floor(f[:, 0]).astype(int), 0, n - 2)
-    i0 = np.clip(np.floor(f[:, 1]).astype(int), 0, n - 2)
-    ax, ay = f[:, 0] - j0, f[:, 1] - i0
+    i0, j0, ay, ax = table_cells(slopes, n, max_slope, power)
     idx = np.stack([i0 * n + j0, i0 * n + j0 + 1, (i0 + 1) * n + j0, (i0 + 1) * n + j0 + 1], 1)
     w = np.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], 1)
     return idx, w
@@ -123,6 +129,7 @@ class _Design:
         s0 = sensor.surface_slopes(h0)
         slopes = sensor.surface_slopes(h0[None] - u)
         self.crops: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.bounds: list[tuple[int, int, int, int]] = []
         hh, ww = h0.shape
         for b in range(len(u)):
             col, row = sp.centers[b]
@@ -130,10 +137,11 @@ class _Design:
             r0, r1 = max(0, int(row) - half), min(hh, int(row) + half + 1)
             c0, c1 = max(0, int(col) - half), min(ww, int(col) + half + 1)
             crop_h, crop_w = r1 - r0, c1 - c0
+            self.bounds.append((r0, r1, c0, c1))
             w = np.zeros((crop_h * crop_w, k), np.float32)
             rows = np.arange(crop_h * crop_w)
             for sl, sign in ((slopes[b, r0:r1, c0:c1], 1.0), (s0[r0:r1, c0:c1], -1.0)):
-                idx, wt = _bilinear(sl.reshape(-1, 2), n, st.max_slope)
+                idx, wt = _bilinear(sl.reshape(-1, 2), n, st.max_slope, st.slope_power)
                 for q in range(4):
                     np.add.at(w, (rows, idx[:, q]), sign * wt[:, q])
             target = sp.frames[b, r0:r1, c0:c1].astype(np.float32) - sp.background[r0:r1, c0:c1]
@@ -164,6 +172,31 @@ class _Design:
             err += float((res**2).sum())
             count += res.size
         return x.reshape(st.table_size, st.table_size, 3).astype(np.float32), err / max(count, 1)
+
+    def shifts(self, table: np.ndarray, blur: float, sp: SensorPresses, radius: int) -> np.ndarray:
+        """Per press, the whole-pixel shift ``[N, 2]`` ``(columns, rows)`` of the frame's change (real minus
+        background) within ``radius`` that best matches the fitted pattern, by squared error over the crop."""
+        from scipy.ndimage import gaussian_filter1d
+
+        x = table.reshape(-1, 3)
+        change = sp.frames.astype(np.float32) - sp.background
+        hh, ww = change.shape[1:3]
+        out = np.zeros((len(self.crops), 2))
+        for b, ((w, _, _), (r0, r1, c0, c1)) in enumerate(zip(self.crops, self.bounds)):
+            wb = w
+            if blur > 0:
+                wb = gaussian_filter1d(gaussian_filter1d(w, blur, axis=0, mode="nearest"), blur, axis=1, mode="nearest")
+            pred = (wb.reshape(-1, x.shape[0]) @ x).reshape(r1 - r0, c1 - c0, 3)
+            best = (math.inf, 0, 0)
+            for dr in range(-radius, radius + 1):
+                for dc in range(-radius, radius + 1):
+                    if r0 + dr < 0 or c0 + dc < 0 or r1 + dr > hh or c1 + dc > ww:
+                        continue
+                    err = float(((change[b, r0 + dr : r1 + dr, c0 + dc : c1 + dc] - pred) ** 2).mean())
+                    if err < best[0]:
+                        best = (err, dc, dr)
+            out[b] = best[1:]
+        return out
 
 
 def fit_calibration(
@@ -216,13 +249,29 @@ def fit_calibration(
                 on_step(f"falloff {falloff:g}, depth x{scale:g}, blur {blur:g}: MSE {err:.1f}")
         return results[key][1]
 
-    falloff = min(settings.falloffs, key=lambda f: trial(f, settings.depth_scales[0], mid_blur))
-    scale = min(settings.depth_scales, key=lambda d: trial(falloff, d, mid_blur))
-    blur = min(sorted(settings.blurs, key=lambda b: b != mid_blur), key=lambda b: trial(falloff, scale, b))
+    def search() -> tuple[float, float, float]:
+        f = min(settings.falloffs, key=lambda f: trial(f, settings.depth_scales[0], mid_blur))
+        d = min(settings.depth_scales, key=lambda d: trial(f, d, mid_blur))
+        b = min(sorted(settings.blurs, key=lambda b: b != mid_blur), key=lambda b: trial(f, d, b))
+        return f, d, b
+
+    falloff, scale, blur = search()
+    moved = np.zeros((len(train), 2))
+    if settings.refine_radius > 0:
+        design = designs.get((falloff, scale)) or _Design(
+            sensor, sp, press_surfaces(sensor, {**simulator, "falloff": float(falloff)},
+                                       dataclasses.replace(sp, depths=sp.depths * scale), radius), settings
+        )  # fmt: skip
+        moved = design.shifts(results[falloff, scale, blur][0], blur, sp, settings.refine_radius)
+        sp = dataclasses.replace(sp, centers=sp.centers + moved)
+        designs.clear()
+        results.clear()
+        falloff, scale, blur = search()
     table, err = results[falloff, scale, blur]
     cal = Calibration(
         table=table,
         max_slope=float(settings.max_slope),
+        slope_power=float(settings.slope_power),
         blur_sigma=float(blur),
         noise_std=0.0,  # the background is a real frame and carries the sensor's own noise
         falloff=float(falloff),
@@ -234,12 +283,40 @@ def fit_calibration(
         "blur_sigma": float(blur),
         "depth_scale": float(scale),
         "search": tried,
+        "edges": search_edges(settings, falloff, scale, blur),
+        "center_shifts_px": moved.tolist(),
         "train_region_mse": float(err),
         "frame_noise_std": frame_noise(sp),
         "settings": dataclasses.asdict(settings),
         "seconds": round(time.perf_counter() - t0, 2),
     }
     return cal, info
+
+
+def search_steps(settings: FitSettings) -> int:
+    """How many candidates the search scores (a progress bar's total)."""
+    one = len(settings.falloffs) + len(settings.depth_scales) + len(settings.blurs) - 2
+    return 2 * one if settings.refine_radius > 0 else one
+
+
+def search_edges(settings: FitSettings, falloff: float, scale: float, blur: float) -> list[str]:
+    """One line for each searched value that landed on the edge of its candidate list: the best value may lie
+    beyond it. Blur 0 is no edge (a blur cannot be negative)."""
+    lines = []
+    for name, value, cands in (
+        ("falloffs", falloff, settings.falloffs),
+        ("depth_scales", scale, settings.depth_scales),
+        ("blurs", blur, settings.blurs),
+    ):
+        if len(cands) < 2 or (name == "blurs" and value == 0):
+            continue
+        if value in (min(cands), max(cands)):
+            side = "smallest" if value == min(cands) else "largest"
+            lines.append(
+                f"calibrate.fit.{name}: the fit chose {value:g}, the {side} candidate; the best value may lie "
+                f"beyond it: extend the list and calibrate again"
+            )
+    return lines
 
 
 def frame_noise(sp: SensorPresses) -> float:

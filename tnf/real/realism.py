@@ -127,3 +127,84 @@ def grid(
             img.paste(tile, (k * (cell + pad), top + i * (cell + pad)))
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     img.save(path)
+
+
+CROP_METRICS = ("ssim_crop", "mse_crop", "sharpness")
+
+
+def ssim_uniform(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean SSIM of two ``[H, W, 3]`` uint8 images with scikit-image's defaults.
+
+    A 7 x 7 uniform window, sample covariances, K1 = 0.01, K2 = 0.03, data range 255, borders of 3 pixels left
+    out of the mean, channels averaged: ``skimage.metrics.structural_similarity(a, b, channel_axis=-1)``.
+    """
+    from scipy.ndimage import uniform_filter
+
+    win, pad = 7, 3
+    c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+    norm = win * win / (win * win - 1.0)
+    out = []
+    for ch in range(a.shape[-1]):
+        x, y = a[..., ch].astype(np.float64), b[..., ch].astype(np.float64)
+        mx, my = uniform_filter(x, win), uniform_filter(y, win)
+        vx = norm * (uniform_filter(x * x, win) - mx * mx)
+        vy = norm * (uniform_filter(y * y, win) - my * my)
+        cxy = norm * (uniform_filter(x * y, win) - mx * my)
+        s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+        out.append(s[pad:-pad, pad:-pad].mean())
+    return float(np.mean(out))
+
+
+def sharpness(img: np.ndarray) -> float:
+    """Mean Sobel gradient magnitude of ``[H, W, 3]`` uint8 (8-bit units per pixel, channels averaged)."""
+    from scipy.ndimage import sobel
+
+    f = img.astype(np.float64)
+    return float(np.hypot(sobel(f, axis=0), sobel(f, axis=1)).mean())
+
+
+def crop_boxes(shape: tuple[int, int], centers: np.ndarray, radii: np.ndarray, scale: float = 4.0) -> list[tuple]:
+    """Square crops of side ``scale`` x each contact radius around each centre ``(column, row)``, clipped to
+    ``shape`` ``(H, W)``: ``[(rows slice, cols slice)]``."""
+    h, w = shape
+    boxes = []
+    for (col, row), r in zip(np.asarray(centers, float).reshape(-1, 2), np.asarray(radii, float).reshape(-1)):
+        half = max(4, int(round(scale * r / 2)))
+        r0, c0 = int(round(row)) - half, int(round(col)) - half
+        boxes.append((slice(max(0, r0), min(h, r0 + 2 * half)), slice(max(0, c0), min(w, c0 + 2 * half))))
+    return boxes
+
+
+def crop_score(
+    pred: np.ndarray, real: np.ndarray, centers: np.ndarray, radii: np.ndarray, scale: float = 4.0
+) -> dict[str, list[float]]:
+    """Realism on a square crop of side ``scale`` x the contact radius around each contact, per press.
+
+    ``pred`` and ``real`` are ``[N, H, W, 3]`` uint8 at one size (the recording's own, for the native figure);
+    ``centers`` ``[N, 2]`` ``(column, row)`` and ``radii`` ``[N]`` are pixels at that size. Returns
+    ``{"ssim_crop", "mse_crop", "sharpness"}`` -> ``[N]``: SSIM as :func:`ssim_uniform`, MSE on the 0-255
+    scale, and sharpness as :func:`sharpness` of ``pred`` over that of ``real``.
+    """
+    if pred.shape != real.shape:
+        raise ValueError(f"pred {pred.shape} and real {real.shape} differ")
+    out: dict[str, list[float]] = {m: [] for m in CROP_METRICS}
+    for i, box in enumerate(crop_boxes(real.shape[1:3], centers, radii, scale)):
+        p, t = pred[i][box], real[i][box]
+        out["ssim_crop"].append(ssim_uniform(p, t))
+        out["mse_crop"].append(float(((p.astype(np.float64) - t) ** 2).mean()))
+        out["sharpness"].append(sharpness(p) / max(sharpness(t), 1e-9))
+    return out
+
+
+def upsample(images: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``[N, h, w, 3]`` uint8 resized to ``width x height`` with PIL's bilinear filter."""
+    from PIL import Image
+
+    if images.shape[1:3] == (height, width):
+        return images
+    return np.stack(
+        [
+            np.asarray(Image.fromarray(np.ascontiguousarray(f)).resize((width, height), Image.Resampling.BILINEAR))
+            for f in images
+        ]
+    )

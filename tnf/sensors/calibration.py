@@ -4,7 +4,9 @@ A calibration replaces the sensor's hand-set optics with measured ones:
 
 * ``table``: the colour change ``[N, N, 3]`` (8-bit units) of a gel pixel as a function of the deformed surface's
   slope ``(sx, sy) = (dh/dx, dh/dy)`` (``h`` the outward height, ``x`` right, ``y`` up, dimensionless), sampled
-  on a regular grid over ``[-max_slope, max_slope]^2`` and read bilinearly (slopes beyond the grid are clamped).
+  on a grid over ``[-max_slope, max_slope]^2`` and read bilinearly (slopes beyond the grid are clamped). The grid
+  is regular in ``sign(s) |s / max_slope|^slope_power`` per axis: a power below 1 puts more nodes at small
+  slopes, where a real gel's colour changes fastest.
   The image change of a pixel is ``table(slope) - table(undeformed slope)``: the role of the lights, ``contrast``
   and the Phong model. It is the data-driven shading of Taxim's polynomial table, indexed by slope instead of by
   gradient magnitude and direction.
@@ -60,6 +62,8 @@ class Calibration:
     """Gel fall-off length around a contact, multiples of the gel thickness."""
     background: np.ndarray
     """``[H, W, 3]`` uint8 no-contact frame."""
+    slope_power: float = 1.0
+    """Spacing of the table's nodes along each slope axis: regular in ``sign(s) |s / max_slope|^slope_power``."""
 
     @property
     def size(self) -> tuple[int, int]:
@@ -71,7 +75,10 @@ class Calibration:
         h = hashlib.sha256()
         for a in (self.table.astype(np.float32), self.background.astype(np.uint8)):
             h.update(np.ascontiguousarray(a).tobytes())
-        h.update(json.dumps([self.max_slope, self.blur_sigma, self.noise_std, self.falloff]).encode())
+        numbers = [self.max_slope, self.blur_sigma, self.noise_std, self.falloff]
+        if self.slope_power != 1.0:
+            numbers.append(self.slope_power)
+        h.update(json.dumps(numbers).encode())
         return h.hexdigest()[:16]
 
     def shade(self, slopes: np.ndarray) -> np.ndarray:
@@ -80,11 +87,8 @@ class Calibration:
         The simulator's kernel (``warp_gel``) reads the table the same way on the device.
         """
         n = self.table.shape[0]
-        f = (np.clip(slopes, -self.max_slope, self.max_slope) + self.max_slope) / (2 * self.max_slope) * (n - 1)
-        j0 = np.clip(np.floor(f[..., 0]).astype(int), 0, n - 2)
-        i0 = np.clip(np.floor(f[..., 1]).astype(int), 0, n - 2)
-        fx = (f[..., 0] - j0)[..., None]
-        fy = (f[..., 1] - i0)[..., None]
+        i0, j0, fy, fx = table_cells(slopes, n, self.max_slope, self.slope_power)
+        fx, fy = fx[..., None], fy[..., None]
         t = self.table
         out = (
             t[i0, j0] * (1 - fx) * (1 - fy)
@@ -108,8 +112,23 @@ class Calibration:
             noise_std=self.noise_std,
             falloff=self.falloff,
             background=self.background.astype(np.uint8),
+            slope_power=self.slope_power,
         )
         Image.fromarray(self.background.astype(np.uint8)).save(folder / "background.png")
+
+
+def table_cells(
+    slopes: np.ndarray, n: int, max_slope: float, power: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where slopes ``[..., 2]`` ``(sx, sy)`` fall in an ``n x n`` table: the cell's first row and column
+    ``[...]`` int and the fractions ``[...]`` along rows (sy) and columns (sx), clamped to the grid."""
+    s = np.clip(slopes, -max_slope, max_slope) / max_slope
+    if power != 1.0:
+        s = np.sign(s) * np.abs(s) ** power
+    f = (s + 1.0) / 2.0 * (n - 1)
+    j0 = np.clip(np.floor(f[..., 0]).astype(int), 0, n - 2)
+    i0 = np.clip(np.floor(f[..., 1]).astype(int), 0, n - 2)
+    return i0, j0, f[..., 1] - i0, f[..., 0] - j0
 
 
 def load_calibration(path: str | Path) -> Calibration:
@@ -131,6 +150,7 @@ def load_calibration(path: str | Path) -> Calibration:
                 noise_std=float(d["noise_std"]),
                 falloff=float(d["falloff"]),
                 background=d["background"].astype(np.uint8),
+                slope_power=float(d["slope_power"]) if "slope_power" in d.files else 1.0,
             )
     except UNREADABLE as e:
         reason = (str(e).splitlines() or [""])[0] or type(e).__name__
@@ -142,4 +162,6 @@ def load_calibration(path: str | Path) -> Calibration:
         raise TnfError(f"sensor calibration {f}: table must be a finite [N, N, 3] array, got {list(t.shape)}")
     if not (cal.max_slope > 0 and cal.blur_sigma >= 0 and cal.noise_std >= 0 and cal.falloff > 0):
         raise TnfError(f"sensor calibration {f}: max_slope and falloff must be > 0, blur_sigma and noise_std >= 0")
+    if not 0 < cal.slope_power <= 1:
+        raise TnfError(f"sensor calibration {f}: slope_power must be in (0, 1], got {cal.slope_power}")
     return cal

@@ -512,12 +512,21 @@ def _shade(
 
 
 @wp.func
-def _table(table: wp.array2d(dtype=wp.vec3), sx: float, sy: float, max_slope: float) -> wp.vec3:
+def _table_axis(s: float, max_slope: float, power: float) -> float:
+    # A slope's place along a table axis, in [-1, 1] (``tnf.sensors.calibration.table_cells``).
+    t = wp.clamp(s, -max_slope, max_slope) / max_slope
+    if power != 1.0:
+        t = wp.sign(t) * wp.pow(wp.abs(t), power)
+    return t
+
+
+@wp.func
+def _table(table: wp.array2d(dtype=wp.vec3), sx: float, sy: float, max_slope: float, power: float) -> wp.vec3:
     # Bilinear read of a calibration's shading table at slope (sx, sy), clamped to the grid (as
     # ``Calibration.shade`` reads it on the host).
     n = table.shape[0]
-    fx = (wp.clamp(sx, -max_slope, max_slope) + max_slope) / (2.0 * max_slope) * float(n - 1)
-    fy = (wp.clamp(sy, -max_slope, max_slope) + max_slope) / (2.0 * max_slope) * float(n - 1)
+    fx = (_table_axis(sx, max_slope, power) + 1.0) / 2.0 * float(n - 1)
+    fy = (_table_axis(sy, max_slope, power) + 1.0) / 2.0 * float(n - 1)
     j0 = wp.clamp(int(wp.floor(fx)), 0, n - 2)
     i0 = wp.clamp(int(wp.floor(fy)), 0, n - 2)
     ax = fx - float(j0)
@@ -535,6 +544,7 @@ def _shade_table(
     table: wp.array2d(dtype=wp.vec3),
     base: wp.array2d(dtype=wp.vec3),
     max_slope: float,
+    power: float,
     dx: float,
     dy: float,
     span: int,
@@ -550,7 +560,7 @@ def _shade_table(
             diff[b, r, c] = wp.vec3(0.0)
         else:
             sl = _slope(h0, u, b, r, c, dx, dy)
-            diff[b, r, c] = _table(table, sl[0], sl[1], max_slope) - base[r, c]
+            diff[b, r, c] = _table(table, sl[0], sl[1], max_slope, power) - base[r, c]
 
 
 @wp.kernel
@@ -930,7 +940,19 @@ class WarpGel(Simulator):
         if self._table is not None:
             cal = self.calibration
             assert cal is not None
-            args = [u, self._h0, self._gel, self._table, self._table_base, cal.max_slope, dx, dy, span, diff]
+            args = [
+                u,
+                self._h0,
+                self._gel,
+                self._table,
+                self._table_base,
+                cal.max_slope,
+                cal.slope_power,
+                dx,
+                dy,
+                span,
+                diff,
+            ]
             wp.launch(_shade_table, rows, args, device=dev)
         elif s.custom_shading:
             diff = self._shade_on_host(u)
