@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
 from tnf.sensors.base import Sensor, load_background
 
@@ -284,6 +285,17 @@ def import_taxim(sensor: str, out: str | Path) -> PressSet:
     }
     (out / INDEX).write_text(json.dumps(meta, indent=2) + "\n")
     return load_presses(out)
+
+
+def resolve_presses(source: str, data_root: str | Path | None = None) -> PressSet:
+    """A checked press folder from a setting: a folder path, or ``taxim:SENSOR`` for the recording the ``taxim``
+    package ships, imported once into ``<data_root>/presses/taxim_SENSOR/``."""
+    source = str(source)
+    if source.startswith("taxim:"):
+        recording = source.split(":", 1)[1]
+        folder = ArtifactStore(data_root).path("presses", f"taxim_{recording}")
+        return load_presses(folder) if (folder / INDEX).is_file() else import_taxim(recording, folder)
+    return load_presses(Path(source))
 
 
 @dataclass

@@ -12,8 +12,8 @@ from typing import Any
 
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
-from tnf.real.calibrate import FitSettings, calibrate_sensor
-from tnf.real.presses import INDEX, import_taxim, load_presses
+from tnf.real.calibrate import FitSettings, calibrate_sensor, search_steps
+from tnf.real.presses import INDEX, resolve_presses
 from tnf.real.realism import table
 from tnf.registry import SENSORS, from_dict, split_spec
 from tnf.runtime import progress
@@ -22,7 +22,6 @@ from tnf.sim.base import simulator_key
 
 def run(cfg: Any) -> dict[str, Any] | None:
     import hashlib
-    from pathlib import Path
 
     from omegaconf import OmegaConf
     from rich.console import Console
@@ -30,13 +29,7 @@ def run(cfg: Any) -> dict[str, Any] | None:
     console = Console(highlight=False)
     c = cfg.calibrate
     store = ArtifactStore(cfg.data_root)
-    source = str(c.presses)
-    if source.startswith("taxim:"):
-        recording = source.split(":", 1)[1]
-        folder = store.path("presses", f"taxim_{recording}")
-        presses = load_presses(folder) if (folder / INDEX).is_file() else import_taxim(recording, folder)
-    else:
-        presses = load_presses(Path(source))
+    presses = resolve_presses(str(c.presses), cfg.data_root)
     # The sensor as it is before calibration: an experiment may already point sensor.calibration at this output.
     sensor_name, sensor_spec = split_spec(cfg.sensor, "sensor")
     sensor = SENSORS.build({"name": sensor_name, **sensor_spec, "calibration": None})
@@ -64,7 +57,7 @@ def run(cfg: Any) -> dict[str, Any] | None:
     if store.is_done(*item, config=config):
         console.print(f"calibrate {sensor.name}/{name}: done, skipped ({where})")
         return None
-    steps = len(settings.falloffs) + len(settings.depth_scales) + len(settings.blurs) - 2
+    steps = search_steps(settings)
     with progress(cfg.progress) as bar:
         task = bar.add_task(f"calibrate {sensor.name}", total=steps)
         with store.writing(*item, config=config) as tmp:
@@ -73,6 +66,8 @@ def run(cfg: Any) -> dict[str, Any] | None:
                 grid_presses=int(c.grid_presses), on_step=lambda _: bar.advance(task),
             )  # fmt: skip
 
+    for line in record["fit"]["edges"]:
+        console.print(f"[yellow]warning:[/] {line}")
     console.print(table(record["mean"], record["seconds_per_frame"]))
     console.print(f"calibration: {where}\nuse it with: sensor={sensor.name} sensor.calibration={where}")
     return record

@@ -6,6 +6,12 @@ freezes some of its parameters (``finetune.freeze``), and trains on the new data
 sensor's background image as a condition. Without ``finetune.checkpoint`` the same command trains
 ``cfg.generator`` from scratch on that data: the baseline of the transfer experiment. Writes
 ``<data_root>/models/<run_name>/`` like ``tnf train``; the source checkpoint is never modified.
+
+With ``finetune.presses`` (``transfer=real``, ``real_fs``, ``real_plus``) the data are real indenter presses
+instead: a press folder or ``taxim:SENSOR``, as ``tnf calibrate`` takes it. The stage writes the press pairs of
+``finetune.press_train`` (and ``press_val``) to ``<data_root>/pairs/presses-<folder>-<sensor>/``
+(``tnf.real.finetune.write_press_pairs``), trains on them, and scores the held-out presses ``press_test``
+against their real frames (``press_realism.md`` and ``press_realism.json`` in the run folder).
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ def run(cfg: Any) -> dict[str, Any]:
     f = cfg.finetune
     store = ArtifactStore(cfg.data_root)
     datasets = dataset_names(cfg)
+    real = _press_settings(cfg) if f.presses else None
     hp: dict[str, Any] = {
         "epochs": int(f.epochs),
         "decay_epochs": int(f.decay_epochs),
@@ -54,27 +61,33 @@ def run(cfg: Any) -> dict[str, Any]:
     }
     overrides = {"lr": float(f.lr)} if f.lr is not None else {}
     source: dict[str, Any] = {}
+    ckpt: Path | None = None
     if f.checkpoint:
         ckpt = resolve_checkpoint(str(f.checkpoint), cfg.data_root)
         system = GeneratorSystem.from_checkpoint(ckpt, "cpu", generator_overrides=overrides, **hp)
         source = {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": _file_hash(ckpt)}
-        default_name = finetune_run_name(ckpt.parent.name, "", datasets)
     else:
         generator = cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True))
         system = GeneratorSystem({**generator, **overrides}, **hp)
+    extra: dict[str, Any] = {}
+    if real is not None:
+        datasets, extra["presses"] = _press_dataset(cfg, store, real, ckpt, datasets, console)
+    if ckpt is not None:
+        default_name = finetune_run_name(ckpt.parent.name, "", datasets)
+    else:
         default_name = finetune_run_name(None, system.hparams["generator"]["name"], datasets)
     spec = dict(system.hparams["generator"])
     frozen = system.generator.freeze([str(x) for x in f.freeze]) if f.freeze else []
     run_name = str(f.run_name or default_name)
     run_dir = store.path("models", run_name)
-    config = run_config(cfg, "finetune", ("checkpoint",), generator=spec, source=source)
+    config = run_config(cfg, "finetune", ("checkpoint",), generator=spec, source=source, **extra)
     if not f.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true)")
         return {"run_dir": str(run_dir), "skipped": True}
 
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)
-    if source and getattr(system.generator, "field", None) is not None:
+    if ckpt is not None and getattr(system.generator, "field", None) is not None:
         # A surface field (tnf.generators.field) knows objects by their ids in the source model's training data.
         trained = (store.manifest("models", ckpt.parent.name) or {}).get("object_names")
         if trained is not None and list(trained) != list(dm.object_names):
@@ -102,7 +115,113 @@ def run(cfg: Any) -> dict[str, Any]:
         f"val SSIM {last.get('val_ssim', float('nan')):.4f}, "
         f"val MSE {last.get('val_mse', float('nan')):.1f}"
     )
+    if real is not None and real["test"]:
+        summary["press_realism"] = _score_presses(cfg, real, run_dir, console)["mean"]
     return {"run_dir": str(run_dir), **summary}
+
+
+def _press_settings(cfg: Any) -> dict[str, Any]:
+    """The checked ``finetune.press*`` settings, the press folder and the sensor (one-line errors first)."""
+    from omegaconf import OmegaConf
+
+    from tnf.real.finetune import check_split
+    from tnf.real.generated import REFERENCES, press_indices
+    from tnf.real.presses import resolve_presses
+    from tnf.registry import SENSORS, split_spec
+
+    f = cfg.finetune
+    split = {}
+    for key in ("press_train", "press_val", "press_test"):
+        value = OmegaConf.to_container(f[key], resolve=True) if OmegaConf.is_list(f[key]) else f[key]
+        split[key] = press_indices(value, f"finetune.{key}")
+    check_split(split["press_train"], split["press_val"], split["press_test"], "finetune")
+    if str(f.press_reference) not in REFERENCES:
+        raise TnfError(f"finetune.press_reference must be one of {', '.join(REFERENCES)}, got {f.press_reference!r}")
+    if not float(f.press_depth_scale) > 0:
+        raise TnfError(f"finetune.press_depth_scale must be > 0, got {f.press_depth_scale}")
+    if cfg.data.per_object is not None:
+        raise TnfError(
+            "data.per_object subsamples the touches of each object; with finetune.presses every training press "
+            "is used: set data.per_object=null (finetune.press_train chooses the presses)"
+        )
+    presses = resolve_presses(str(f.presses), cfg.data_root)
+    name, spec = split_spec(cfg.sensor, "sensor")
+    sensor = SENSORS.build({"name": name, **spec})
+    return {
+        "presses": presses,
+        "sensor": sensor,
+        "train": split["press_train"],
+        "val": split["press_val"],
+        "test": split["press_test"],
+        "depth_scale": float(f.press_depth_scale),
+        "reference": str(f.press_reference),
+        "sim_pairs": int(f.press_sim_pairs),
+    }
+
+
+def _press_dataset(
+    cfg: Any, store: ArtifactStore, real: dict[str, Any], ckpt: Path | None, datasets: list[str], console: Any
+) -> tuple[list[str], dict[str, Any]]:
+    """Write (or find up to date) the press pairs under ``pairs/``; returns ``[their name]`` for the data
+    module and what identifies them for the run's config. Framed as the source checkpoint's training data, or
+    from scratch as the simulated dataset of this config where it exists."""
+    import dataclasses
+
+    from tnf.data.datamodule import resolve_dataset
+    from tnf.real.finetune import presses_digest, write_press_pairs
+    from tnf.real.generated import checkpoint_framing, dataset_framing
+
+    presses, sensor = real["presses"], real["sensor"]
+    sim = None
+    if real["sim_pairs"] or ckpt is None:
+        try:
+            sim = resolve_dataset(datasets[0], cfg.data_root)
+        except TnfError:
+            if real["sim_pairs"]:
+                raise
+    framing = (checkpoint_framing(ckpt) if ckpt is not None else dataset_framing(sim)).with_sensor(sensor)
+    real["framing"] = framing
+    key = {
+        "presses": str(presses.folder),
+        "digest": presses_digest(presses),
+        "sensor": sensor.describe(),
+        "train": real["train"],
+        "val": real["val"],
+        "depth_scale": real["depth_scale"],
+        "reference": real["reference"],
+        "framing": dataclasses.asdict(framing),
+        "sim": {"dataset": str(sim), "pairs": real["sim_pairs"], "seed": int(cfg.seed)} if real["sim_pairs"] else None,
+    }
+    name = f"presses-{presses.folder.name}-{sensor.name}"
+    if store.is_done("pairs", name, config=key):
+        console.print(f"press pairs {store.path('pairs', name)} are up to date")
+    else:
+        with store.writing("pairs", name, config=key) as tmp:
+            info = write_press_pairs(
+                presses, sensor, real["train"], tmp, val=real["val"], depth_scale=real["depth_scale"],
+                framing=framing, reference=real["reference"], sim=sim, sim_pairs=real["sim_pairs"],
+                seed=int(cfg.seed), device="cpu",
+            )  # fmt: skip
+        console.print(
+            f"press pairs: {info['counts']['train']} training, {info['counts']['val']} validation pairs of "
+            f"{presses.folder} -> {store.path('pairs', name)}"
+        )
+    return [name], {"name": name, "config_hash": (store.manifest("pairs", name) or {}).get("config_hash")}
+
+
+def _score_presses(cfg: Any, real: dict[str, Any], run_dir: Path, console: Any) -> dict[str, Any]:
+    """Generate the test presses with the run's last checkpoint and score them against the real frames."""
+    from tnf.real.finetune import write_press_realism
+    from tnf.real.generated import score_table
+
+    record = write_press_realism(
+        run_dir / "last.ckpt", real["presses"], real["sensor"], real["test"], run_dir,
+        framing=real["framing"], depth_scale=real["depth_scale"], reference=real["reference"],
+        seed=int(cfg.seed), label=run_dir.name,
+    )  # fmt: skip
+    console.print(score_table({run_dir.name: record["mean"]}))
+    console.print(f"held-out presses {real['test']} scored: {run_dir / 'press_realism.md'}")
+    return record
 
 
 def _file_hash(path: Path) -> str:
