@@ -317,16 +317,25 @@ def test_calibrate_stage_then_touch_with_it(data_root, capsys):
         assert (out / name).is_file(), name
     assert (data_root / "presses" / "taxim_gelsight_mini" / "presses.json").is_file()
     record = json.loads((out / "realism.json").read_text())
-    assert set(record["mean"]) == {"calibrated", "uncalibrated"}
-    for label in ("calibrated", "uncalibrated"):
+    small, native = "tnf calibrated, 320x240", "tnf calibrated, 640x480"
+    rows = ["no contact (f0)", "tnf uncalibrated", small, native]
+    assert list(record["mean"]) == rows
+    for label in rows:
         m = record["mean"][label]
-        assert set(m) == set(realism.METRICS)
+        assert set(m) == set(realism.METRICS) | set(realism.CROP_METRICS)
         assert all(math.isfinite(v) for v in m.values())
-        assert -1 <= m["ssim_region"] <= 1 and m["mse_region"] >= 0
-        assert len(record["per_press"][label]["ssim_region"]) == 2
+        assert -1 <= m["ssim_region"] <= 1 and m["mse_region"] >= 0 and m["sharpness"] > 0
+        assert len(record["per_press"][label]["ssim_region"]) == len(record["per_press"][label]["ssim_crop"]) == 2
     assert record["test"] == [16, 17] and record["fit"]["train"] == [0, 1, 2]
-    # The calibration is closer to the real held-out presses than the hand-set lights.
-    assert record["mean"]["calibrated"]["mse_region"] < record["mean"]["uncalibrated"]["mse_region"]
+    mean = record["mean"]
+    # The calibration is closer to the real held-out presses than the hand-set lights and the bare background.
+    for other in ("no contact (f0)", "tnf uncalibrated"):
+        assert mean[small]["mse_region"] < mean[other]["mse_region"]
+        assert mean[native]["mse_crop"] < mean[other]["mse_crop"]
+    # Rendered at the recording's size over its own background, the contact is sharper than upsampled.
+    assert mean[native]["sharpness"] > mean[small]["sharpness"]
+    text = (out / "realism.md").read_text()
+    assert all(f"| {label} |" in text for label in rows) and "sharpness" in text
     cal = load_calibration(out)
     assert cal.table.shape == (9, 9, 3) and cal.size == (320, 240)
     assert Image.open(out / "realism.png").size[0] > 0
@@ -422,3 +431,14 @@ def test_search_edges_name_the_list_to_extend():
     assert "calibrate.fit.blurs: the fit chose 2, the largest candidate" in lines[1]
     assert search_steps(st) == 3 + 1 + 3 - 2
     assert search_steps(FitSettings(**{**TINY, "refine_radius": 4})) == 2
+
+
+def test_resized_calibration_keeps_the_optics_in_gel_units(sensor):
+    cal = _hand_calibration(sensor, _tables()["bumpy"])
+    cal.blur_sigma = 1.5
+    big = cal.resized(np.zeros((480, 640, 3), np.uint8))
+    assert big.size == (640, 480) and big.blur_sigma == 3.0
+    assert np.array_equal(big.table, cal.table) and (big.falloff, big.max_slope) == (cal.falloff, cal.max_slope)
+    assert cal.size == (320, 240)  # the original is left alone
+    with pytest.raises(TnfError, match="aspect ratios differ"):
+        cal.resized(np.zeros((480, 480, 3), np.uint8))

@@ -30,9 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from tnf.artifacts import write_json
 from tnf.errors import TnfError
-from tnf.real import realism
+from tnf.real import realism, report
 from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, disk_masks, sphere_gaps
 from tnf.registry import FROM_YAML, SIMULATORS, yaml_defaults
 from tnf.sensors.base import Sensor
@@ -293,6 +292,12 @@ def fit_calibration(
     return cal, info
 
 
+NO_CONTACT = "no contact (f0)"
+UNCALIBRATED = "tnf uncalibrated"
+CALIBRATED = "tnf calibrated"
+"""Row names of the realism report (``tnf.real.report``)."""
+
+
 def search_steps(settings: FitSettings) -> int:
     """How many candidates the search scores (a progress bar's total)."""
     one = len(settings.falloffs) + len(settings.depth_scales) + len(settings.blurs) - 2
@@ -343,8 +348,9 @@ def calibrate_sensor(
     """Fit ``sensor``'s optics on presses ``train``, write the calibration into ``out`` and score realism on
     presses ``test``, before (the sensor's hand-set optics over the real background) and after calibration.
 
-    Writes ``calibration.npz``, ``background.png``, ``realism.json`` (per press and mean), ``realism.md`` and
-    ``realism.png`` (real | uncalibrated | calibrated | differences). Returns the record of the fit and scores.
+    Writes ``calibration.npz``, ``background.png`` and the realism report (:mod:`tnf.real.report`: the
+    no-contact frame, uncalibrated, calibrated at the sensor's size and at the recording's). Returns the report's
+    record, the fit's under ``"fit"``.
     """
     overlap = sorted(set(train) & set(test))
     if overlap:
@@ -360,36 +366,32 @@ def calibrate_sensor(
     calibrated = plain.calibrated(cal, str(out))
     sp = at_sensor_size(presses, plain, test)
     radius = presses.radius_mm * 1e-3
-    region = realism.regions(sp, settings.region_scale)
-    images, seconds, scores = {}, {}, {}
-    for label, s, scale in (("uncalibrated", plain, 1.0), ("calibrated", calibrated, info["depth_scale"])):
-        images[label], seconds[label] = realism.render(s, simulator, sp, radius, depth_scale=scale)
-        scores[label] = realism.score(images[label], sp.frames, region)
-    means = realism.summary(scores)
-    k = min(grid_presses, len(test))
-    realism.grid(sp.frames[:k], {n: v[:k] for n, v in images.items()}, sp.centers[:k], out / "realism.png")
-    record = {
-        "fit": info,
-        "test": list(test),
-        "per_press": scores,
-        "mean": means,
-        "seconds_per_frame": seconds,
-        "presses": str(presses.folder),
-    }
-    write_json(out / "realism.json", record)
-    lines = [
-        f"# Realism of sensor {sensor.name!r} on held-out presses {list(test)}",
-        "",
+    size = f"{sensor.width}x{sensor.height}"
+    rows = [report.Row(NO_CONTACT, np.stack([presses.background()] * len(test)))]
+    rows.append(report.Row(UNCALIBRATED, *realism.render(plain, simulator, sp, radius)))
+    rows.append(
+        report.Row(f"{CALIBRATED}, {size}", *realism.render(calibrated, simulator, sp, radius, info["depth_scale"]))
+    )
+    native = realism.render_native(calibrated, simulator, presses, test, info["depth_scale"])
+    rows.append(report.Row(f"{CALIBRATED}, {presses.width}x{presses.height}", *native))
+    intro = [
         f"Presses: {presses.folder}; fitted on presses {list(train)} in {info['seconds']:.1f} s: fall-off "
-        f"{info['falloff']:g} x thickness, depth x{info['depth_scale']:g}, blur {info['blur_sigma']:g} px "
-        f"(frame noise {info['frame_noise_std']:.2f}).",
-        f"Contact region: {settings.region_scale:g} x each press's contact radius. Both rows use the real "
-        "background; uncalibrated is the sensor's hand-set lights.",
-        "",
-        realism.table(means, seconds),
-        "",
-        "![real | uncalibrated | calibrated | differences](realism.png)",
-        "",
+        f"{info['falloff']:g} x thickness, depth x{info['depth_scale']:g}, blur {info['blur_sigma']:g} px at "
+        f"{size}, table {settings.table_size}x{settings.table_size} (slope power {settings.slope_power:g}); "
+        f"frame noise {info['frame_noise_std']:.2f}.",
+        "Every row uses the real background; uncalibrated is the sensor's hand-set lights. Held-out presses sit "
+        "at their annotated centres.",
+        *(f"Warning: {line}" for line in info["edges"]),
     ]
-    (out / "realism.md").write_text("\n".join(lines))
+    record = report.write_report(
+        out,
+        f"Realism of sensor {sensor.name!r} on held-out presses {list(test)}",
+        intro,
+        rows,
+        presses,
+        sp,
+        grid_presses=grid_presses,
+        region_scale=settings.region_scale,
+        extra={"fit": info},
+    )
     return record

@@ -9,13 +9,14 @@ its per-pixel map averaged over the frame or the region; MSE is on the 0-255 sca
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from tnf.real.presses import SensorPresses, disk_masks, sphere_gaps
+from tnf.errors import TnfError
+from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, disk_masks, sphere_gaps
 from tnf.registry import SIMULATORS
 from tnf.sensors.base import Sensor
 
@@ -68,6 +69,36 @@ def render(
     return out.images, (time.perf_counter() - t0) / len(gaps)
 
 
+def render_native(
+    sensor: Sensor,
+    simulator: Mapping[str, Any],
+    presses: PressSet,
+    indices: Sequence[int],
+    depth_scale: float = 1.0,
+) -> tuple[np.ndarray, float]:
+    """The calibrated ``sensor``'s presses rendered at the recording's own size (``presses.width x height``):
+    ``[N, H, W, 3]`` uint8 and the seconds per frame. The calibration is :meth:`Calibration.resized` to the
+    recording's background; the sensor keeps its field of view, so its pixels are the recording's."""
+    cal = sensor.calibration
+    if cal is None:
+        raise TnfError(f"sensor {sensor.name!r} has no calibration to render at the recording's size")
+    big = type(sensor)(
+        dataclasses.replace(sensor.cfg, width=presses.width, height=presses.height, calibration=None, noise_std=0.0)
+    )
+    big = big.calibrated(cal.resized(presses.background()), f"{sensor.cfg.calibration} at the recording's size")
+    sp = at_sensor_size(presses, big, indices)
+    return render(big, simulator, sp, presses.radius_mm * 1e-3, depth_scale)
+
+
+def native_score(images: np.ndarray, presses: PressSet, indices: Sequence[int], scale: float = 4.0) -> dict:
+    """:func:`crop_score` of ``images`` ``[N, h, w, 3]`` uint8 (upsampled bilinearly to the recording's size when
+    smaller) against the recording's frames ``indices``, at the annotated centres and contact radii."""
+    real = np.stack([presses.frame(i) for i in indices])
+    centers = np.array([presses.presses[i].center for i in indices], dtype=float)
+    radii = np.array([presses.contact_radius_px(i) for i in indices], dtype=float)
+    return crop_score(upsample(images, presses.width, presses.height), real, centers, radii, scale)
+
+
 def summary(per_frame: Mapping[str, Mapping[str, list[float]]]) -> dict[str, dict[str, float]]:
     """``{simulator: {metric: mean over frames}}`` of ``{simulator: score(...)}``."""
     return {name: {m: float(np.mean(v[m])) for m in METRICS} for name, v in per_frame.items()}
@@ -97,9 +128,11 @@ def grid(
     path: str | Path,
     crop: int = 96,
     gain: float = 3.0,
+    zoom: int = 2,
+    diffs: bool = True,
 ) -> None:
-    """Save a PNG: one row per press, columns real | each simulator | each simulator's |difference| x ``gain``,
-    cropped to ``crop`` pixels around the contact and enlarged 2x."""
+    """Save a PNG: one row per press, columns real | each simulator | (with ``diffs``) each simulator's
+    |difference| x ``gain``, cropped to ``crop`` pixels around the contact and enlarged ``zoom`` times."""
     from PIL import Image, ImageDraw
 
     names = list(simulated)
@@ -111,12 +144,12 @@ def grid(
         r = int(np.clip(round(centers[i][1]), half, h - half))
         box = (slice(r - half, r + half), slice(c - half, c + half))
         row = [real[i][box]] + [simulated[n][i][box] for n in names]
-        for n in names:
+        for n in names if diffs else []:
             d = np.abs(simulated[n][i][box].astype(np.float32) - real[i][box].astype(np.float32))
             row.append(np.clip(d * gain, 0, 255).astype(np.uint8))
         tiles.append(row)
-    labels = ["real"] + names + [f"|{n} - real| x{gain:g}" for n in names]
-    cell, pad, top = 2 * crop, 4, 18
+    labels = ["real"] + names + ([f"|{n} - real| x{gain:g}" for n in names] if diffs else [])
+    cell, pad, top = zoom * crop, 4, 18
     img = Image.new("RGB", (len(labels) * (cell + pad), top + len(tiles) * (cell + pad)), (255, 255, 255))
     draw = ImageDraw.Draw(img)
     for k, lab in enumerate(labels):

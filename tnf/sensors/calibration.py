@@ -70,6 +70,19 @@ class Calibration:
         """``(width, height)`` in pixels of the images this calibration describes."""
         return self.background.shape[1], self.background.shape[0]
 
+    def resized(self, background: np.ndarray) -> Calibration:
+        """The same optics for images of ``background``'s size ``[H, W, 3]`` uint8 (the same aspect ratio): the
+        table and fall-off are independent of the image size; the blur is rescaled to the new pixels."""
+        import dataclasses
+
+        k = background.shape[1] / self.background.shape[1]
+        if abs(background.shape[0] / self.background.shape[0] / k - 1) > 0.01:
+            raise TnfError(
+                f"calibration for {self.size[0]}x{self.size[1]} images cannot be resized to "
+                f"{background.shape[1]}x{background.shape[0]}: the aspect ratios differ"
+            )
+        return dataclasses.replace(self, blur_sigma=self.blur_sigma * k, background=background.astype(np.uint8))
+
     def digest(self) -> str:
         """A short hash of the calibration's content (what decides whether touches made with it are stale)."""
         h = hashlib.sha256()

@@ -14,7 +14,7 @@ from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
 from tnf.real.calibrate import FitSettings, calibrate_sensor, search_steps
 from tnf.real.presses import INDEX, resolve_presses
-from tnf.real.realism import table
+from tnf.real.report import table
 from tnf.registry import SENSORS, from_dict, split_spec
 from tnf.runtime import progress
 from tnf.sim.base import simulator_key
