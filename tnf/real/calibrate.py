@@ -334,6 +334,52 @@ def frame_noise(sp: SensorPresses) -> float:
     return float(1.4826 * mad / math.sqrt(2))
 
 
+def calibration_rows(
+    presses: PressSet,
+    sensor: Sensor,
+    cal: Calibration,
+    info: dict[str, Any],
+    simulator: dict[str, Any],
+    test: Sequence[int],
+    where: str,
+) -> tuple[list[report.Row], SensorPresses]:
+    """The realism report's rows of a calibration, on presses ``test``: the no-contact frame, the sensor's hand-set
+    lights, the calibration at the sensor's size and rendered at the recording's. Also the presses at the
+    sensor's size. Each simulator is placed at the annotated centres, without pixel noise, over the real
+    background; ``info`` is :func:`fit_calibration`'s record (its depth factor)."""
+    plain = type(sensor)(
+        dataclasses.replace(sensor.cfg, calibration=None, background_image=str(presses.background_path))
+    )
+    calibrated = plain.calibrated(cal, where)
+    sp = at_sensor_size(presses, plain, test)
+    radius = presses.radius_mm * 1e-3
+    scale = info["depth_scale"]
+    rows = [report.Row(NO_CONTACT, np.stack([presses.background()] * len(test)))]
+    rows.append(report.Row(UNCALIBRATED, *realism.render(plain, simulator, sp, radius)))
+    rows.append(
+        report.Row(
+            f"{CALIBRATED}, {sensor.width}x{sensor.height}", *realism.render(calibrated, simulator, sp, radius, scale)
+        )
+    )
+    native = realism.render_native(calibrated, simulator, presses, test, scale)
+    rows.append(report.Row(f"{CALIBRATED}, {presses.width}x{presses.height}", *native))
+    return rows, sp
+
+
+def fit_summary(info: dict[str, Any], settings: FitSettings, size: str) -> list[str]:
+    """Lines for a report: what the fit chose, in how long, and its warnings."""
+    return [
+        f"Fitted on presses {info['train']} in {info['seconds']:.1f} s: fall-off {info['falloff']:g} x thickness, "
+        f"depth x{info['depth_scale']:g}, blur {info['blur_sigma']:g} px at {size}, table "
+        f"{settings.table_size}x{settings.table_size} (slope power {settings.slope_power:g}), training centres "
+        f"moved by {float(np.abs(info['center_shifts_px']).mean()):.1f} px on average; frame noise "
+        f"{info['frame_noise_std']:.2f}.",
+        "Every row uses the real background; uncalibrated is the sensor's hand-set lights. Held-out presses sit "
+        "at their annotated centres.",
+        *(f"Warning: {line}" for line in info["edges"]),
+    ]
+
+
 def calibrate_sensor(
     presses: PressSet,
     sensor: Sensor,
@@ -360,29 +406,9 @@ def calibrate_sensor(
     out = Path(out)
     cal, info = fit_calibration(presses, sensor, simulator, train, settings, on_step)
     cal.save(out)
-    plain = type(sensor)(
-        dataclasses.replace(sensor.cfg, calibration=None, background_image=str(presses.background_path))
-    )
-    calibrated = plain.calibrated(cal, str(out))
-    sp = at_sensor_size(presses, plain, test)
-    radius = presses.radius_mm * 1e-3
+    rows, sp = calibration_rows(presses, sensor, cal, info, simulator, test, str(out))
     size = f"{sensor.width}x{sensor.height}"
-    rows = [report.Row(NO_CONTACT, np.stack([presses.background()] * len(test)))]
-    rows.append(report.Row(UNCALIBRATED, *realism.render(plain, simulator, sp, radius)))
-    rows.append(
-        report.Row(f"{CALIBRATED}, {size}", *realism.render(calibrated, simulator, sp, radius, info["depth_scale"]))
-    )
-    native = realism.render_native(calibrated, simulator, presses, test, info["depth_scale"])
-    rows.append(report.Row(f"{CALIBRATED}, {presses.width}x{presses.height}", *native))
-    intro = [
-        f"Presses: {presses.folder}; fitted on presses {list(train)} in {info['seconds']:.1f} s: fall-off "
-        f"{info['falloff']:g} x thickness, depth x{info['depth_scale']:g}, blur {info['blur_sigma']:g} px at "
-        f"{size}, table {settings.table_size}x{settings.table_size} (slope power {settings.slope_power:g}); "
-        f"frame noise {info['frame_noise_std']:.2f}.",
-        "Every row uses the real background; uncalibrated is the sensor's hand-set lights. Held-out presses sit "
-        "at their annotated centres.",
-        *(f"Warning: {line}" for line in info["edges"]),
-    ]
+    intro = [f"Presses: {presses.folder}.", *fit_summary(info, settings, size)]
     record = report.write_report(
         out,
         f"Realism of sensor {sensor.name!r} on held-out presses {list(test)}",
