@@ -13,6 +13,9 @@ the highest wins, and of candidates within 0.002 of it the fewest batches. As in
 same network from scratch) and T-N + sim (T-N with 16 training pairs of the pipeline's simulated dataset in the
 mix) train with T-N's chosen setting. Each is then trained on presses 0-15 and scored once on presses 16-23.
 Every run: the depth measured from the pressed gel (``reference=gel``), the calibration's depth factor, seed 0.
+
+A supplementary row, fixed before any FS run: FS with its own choice by the same rule (``select-fs``), among the
+same learning rates and 25 to 800 batches, since a network from scratch may need more batches than T-N.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ import argparse
 import json
 import time
 from pathlib import Path
+
+import numpy as np
 
 from tnf.artifacts import read_json
 from tnf.real import realism
@@ -32,6 +37,7 @@ from tnf.registry import SENSORS
 FIT, CHOOSE = list(range(12)), [12, 13, 14, 15]
 TRAIN, TEST = list(range(16)), list(range(16, 24))
 STEPS = (25, 50, 100, 200)
+FS_STEPS = (25, 50, 100, 200, 400, 800)
 BATCH = 16
 LR_FACTORS = (1.0, 0.25)
 TIE = 0.002
@@ -88,19 +94,22 @@ def score(s: dict, ckpt: Path, presses: list[int], reference: str = "gel") -> di
     return score_presses(images, s["presses"], sp)
 
 
-def select(s: dict, out: Path) -> dict:
+def select(s: dict, out: Path, method: str = "T-N", grid: tuple[int, ...] = STEPS) -> dict:
     rows = []
+    tag = "" if method == "T-N" else "_fs"
     for factor in LR_FACTORS:
-        for steps in STEPS:
-            ckpt, seconds = train(s, "T-N", FIT, out / "select" / f"lr{factor:g}_s{steps}", steps, factor)
+        for steps in grid:
+            ckpt, seconds = train(s, method, FIT, out / f"select{tag}" / f"lr{factor:g}_s{steps}", steps, factor)
             m = score(s, ckpt, CHOOSE)["mean"]
             rows.append({"lr_factor": factor, "steps": steps, "seconds": seconds, **m})
-            print(f"T-N lr x{factor:g} {steps} batches: crop SSIM {m['ssim_crop']:.4f}, {seconds:.0f} s", flush=True)
+            print(
+                f"{method} lr x{factor:g} {steps} batches: crop SSIM {m['ssim_crop']:.4f}, {seconds:.0f} s", flush=True
+            )
     best = max(r["ssim_crop"] for r in rows)
     pick = min((r for r in rows if r["ssim_crop"] >= best - TIE), key=lambda r: (r["steps"], -r["ssim_crop"]))
     record = {"candidates": rows, "choice": {"steps": pick["steps"], "lr_factor": pick["lr_factor"]}}
-    print(f"chose {pick['steps']} batches at lr x{pick['lr_factor']:g}")
-    (out / "select.json").write_text(json.dumps(record, indent=2))
+    print(f"{method}: chose {pick['steps']} batches at lr x{pick['lr_factor']:g}")
+    (out / f"select{tag}.json").write_text(json.dumps(record, indent=2))
     return record
 
 
@@ -112,6 +121,9 @@ def final(s: dict, out: Path) -> None:
         s["sensor"], {"name": "warp_gel"}, sp, s["presses"].radius_mm * 1e-3, s["depth_scale"]
     )
     means["calibrated simulator"] = score_presses(simulated, s["presses"], sp)["mean"]
+    means["background (no contact)"] = score_presses(np.repeat(sp.background[None], len(TEST), 0), s["presses"], sp)[
+        "mean"
+    ]
     t0 = time.perf_counter()
     means["T-N (simulator only)"] = score(s, s["ckpt"], TEST)["mean"]
     seconds["T-N (simulator only)"] = time.perf_counter() - t0
@@ -123,13 +135,19 @@ def final(s: dict, out: Path) -> None:
         label = f"{method} ({c['steps']} batches, lr x{c['lr_factor']:g})"
         result = score(s, ckpt, TEST)
         means[label], seconds[label], record[label] = result["mean"], secs, result
+    if (out / "select_fs.json").is_file():
+        c = json.loads((out / "select_fs.json").read_text())["choice"]
+        ckpt, secs = train(s, "FS", TRAIN, out / "final" / "FS_own", int(c["steps"]), float(c["lr_factor"]))
+        label = f"FS, its own choice ({c['steps']} batches, lr x{c['lr_factor']:g})"
+        result = score(s, ckpt, TEST)
+        means[label], seconds[label], record[label] = result["mean"], secs, result
     (out / "final.json").write_text(json.dumps({"mean": means, "seconds": seconds, "runs": record}, indent=2))
     print(score_table(means, seconds))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("phase", choices=("select", "final"))
+    ap.add_argument("phase", choices=("select", "select-fs", "final"))
     ap.add_argument("--data-root", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--model", default="tn_cgan-gelsight_mini-hashgrid-seed0")
@@ -137,7 +155,12 @@ def main() -> None:
     a = ap.parse_args()
     s = setup(a.data_root, a.model, a.calibration)
     a.out.mkdir(parents=True, exist_ok=True)
-    (select if a.phase == "select" else final)(s, a.out)
+    if a.phase == "select":
+        select(s, a.out)
+    elif a.phase == "select-fs":
+        select(s, a.out, "FS", FS_STEPS)
+    else:
+        final(s, a.out)
 
 
 if __name__ == "__main__":
