@@ -129,3 +129,21 @@ def test_finetune_stage_refuses_bad_press_settings_in_one_line(root, taxim_press
     assert main(["finetune", *args, *setting]) == 1
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and line in err[0], err
+
+
+@pytest.mark.parametrize("variant", ["real", "real_fs", "real_plus"])
+def test_the_real_transfers_start_from_the_model_the_pipeline_names(variant):
+    """transfer=real and real_plus fine-tune the T-N model `tnf pipeline experiment=sim_gelsight_mini` trains with
+    the same seed; real_fs trains that network from scratch; all train on the calibration's training presses."""
+    from tnf.stages.pipeline import model_run_name
+    from tnf.stages.settings import check_settings
+    from tnf.testing import compose
+
+    mini = model_run_name(compose("pipeline", ["experiment=sim_gelsight_mini", "seed=1"]))
+    cfg = compose("finetune", ["experiment=sim_gelsight_mini", f"transfer={variant}", "seed=1"])
+    check_settings(cfg)
+    assert cfg.finetune.checkpoint == (None if variant == "real_fs" else mini)
+    assert cfg.finetune.presses == "taxim:gelsight_mini" and cfg.data.per_object is None
+    assert list(cfg.finetune.press_train) == list(cfg.calibrate.train) == list(range(16))
+    assert list(cfg.finetune.press_test) == list(range(16, 24))
+    assert cfg.finetune.press_sim_pairs == (16 if variant == "real_plus" else 0)
