@@ -33,7 +33,7 @@ from tnf import metrics
 from tnf.data import PairDataset, collate_pairs, sensor_mirror, training_order
 from tnf.errors import TnfError
 from tnf.generators import load_generator
-from tnf.generators.nets import NoiseDropout
+from tnf.generators.nets.gan import NoiseDropout
 from tnf.generators.system import AVERAGE_PREFIX, read_checkpoint
 
 

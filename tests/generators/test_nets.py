@@ -10,7 +10,8 @@ from tests.generators.synthetic import make_pairs
 from tnf import metrics
 from tnf.errors import TnfError
 from tnf.generators import PlainOptimisation
-from tnf.generators.nets import ImagePool, NoiseDropout
+from tnf.generators.nets.gan import NoiseDropout
+from tnf.generators.nets.resnet import ImagePool
 from tnf.registry import GENERATORS
 
 TINY = {
@@ -66,7 +67,7 @@ def test_tn_cgan_default_architecture():
 
 @pytest.mark.parametrize("skips", [["background"], ["background", "depth_and_slope"]])
 def test_tn_cgan_skips_come_from_the_named_encoders(skips):
-    from tnf.generators.nets import conditions
+    from tnf.generators.nets.conditioning import conditions
 
     torch.manual_seed(0)
     g = build("tn_cgan", image_size=32, skips=skips).eval()
@@ -103,7 +104,7 @@ def test_tn_cgan_inputs_are_configurable():
 
 
 def test_depth_slope_is_the_scaled_clipped_gradient():
-    from tnf.generators.nets import SLOPE_GAIN, conditions, depth_slope
+    from tnf.generators.nets.conditioning import SLOPE_GAIN, conditions, depth_slope
 
     cols = torch.arange(16, dtype=torch.float32)
     ramp = (0.002 * cols).expand(1, 1, 16, 16).clone()  # depth rising 0.002 per column, flat down the rows
@@ -121,7 +122,7 @@ def test_depth_slope_is_the_scaled_clipped_gradient():
 
 def test_depth_slope_equals_the_padded_central_difference():
     """The one-buffer derivation gives exactly what padding, differencing and concatenating give."""
-    from tnf.generators.nets import SLOPE_GAIN, depth_and_slope, depth_slope
+    from tnf.generators.nets.conditioning import SLOPE_GAIN, depth_and_slope, depth_slope
 
     torch.manual_seed(0)
     depth = torch.rand(3, 1, 16, 24) * 0.03 - 0.5  # rough relief, non-square ...
@@ -138,7 +139,7 @@ def test_depth_slope_equals_the_padded_central_difference():
 def test_depth_slopes_are_differentiable_and_reject_other_shapes():
     """Gradients reach the depth image through the slopes, as through the padded form; a batch that is not
     [B, 1, H, W] with H, W >= 2 gets a clear error, not an unpacking or narrowing one."""
-    from tnf.generators.nets import depth_and_slope, depth_slope
+    from tnf.generators.nets.conditioning import depth_and_slope, depth_slope
 
     torch.manual_seed(0)
     depth = (torch.rand(2, 1, 8, 8) * 0.01).requires_grad_(True)
@@ -212,7 +213,7 @@ def test_lee_architecture():
 
 
 def test_cyclegan_architecture():
-    from tnf.generators.nets import ResnetBlock
+    from tnf.generators.nets.resnet import ResnetBlock
 
     g = GENERATORS.build({"name": "cyclegan"})
     assert sum(isinstance(m, ResnetBlock) for m in g.net_g.modules()) == 6
@@ -326,7 +327,7 @@ def test_tn_cgan_overfits_a_handful_of_pairs(residual):
 @pytest.mark.parametrize("norm", ["batch", "none"])
 @pytest.mark.parametrize("training", [True, False])
 def test_tn_cgan_full_res_head_sees_the_skip_images(norm, training):
-    from tnf.generators.nets import conditions
+    from tnf.generators.nets.conditioning import conditions
 
     torch.manual_seed(0)
     g = build("tn_cgan", image_size=32, full_res_head=True, norm=norm).train(training)
@@ -398,7 +399,7 @@ def test_tn_cgan_ssim_loss_term():
 def test_tn_cgan_reports_d_outputs_on_its_loss_scale():
     """d_real / d_fake (what the discriminator watch reads) are on the scale the loss drives to 1 and 0: sigmoid
     probabilities for the vanilla loss, the raw outputs for LSGAN (whose sigmoid would never pass 0.73)."""
-    from tnf.generators.nets import d_output
+    from tnf.generators.nets.gan import d_output
     from tnf.generators.system import discriminator_saturated
 
     won_real, won_fake = torch.full((2, 1, 4, 4), 1.0), torch.full((2, 1, 4, 4), 0.0)
@@ -483,7 +484,7 @@ def test_tn_cgan_gan_press_margin_keeps_the_adversarial_gradient_on_the_press():
 
 
 def test_tn_cgan_coords_append_the_pixel_position():
-    from tnf.generators.nets import conditions, coordinate_grid
+    from tnf.generators.nets.conditioning import conditions, coordinate_grid
 
     grid = coordinate_grid(4)
     assert grid.shape == (1, 2, 4, 4)

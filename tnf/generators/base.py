@@ -51,7 +51,7 @@ class Generator(nn.Module):
     Subclasses declare a nested ``Config`` dataclass, take it in ``__init__`` and implement ``generate``,
     ``training_step`` and ``configure_optimizers``. ``inputs`` names the conditions ``generate`` takes: batch keys,
     or ``depth_slope`` / ``depth_and_slope``, which tn_cgan and lee derive from ``depth``
-    (``tnf.generators.nets.conditions``).
+    (``tnf.generators.nets.conditioning.conditions``).
     """
 
     #: Conditions the generator takes when generating (set per instance from the config where configurable).

@@ -14,7 +14,8 @@ import torch
 import torch.nn.functional as F
 
 from tnf.generators.base import Generator, Optimisation
-from tnf.generators.nets import ImagePool, PatchDiscriminator, ResnetGenerator, gan_loss, init_weights
+from tnf.generators.nets.gan import PatchDiscriminator, gan_loss, init_weights
+from tnf.generators.nets.resnet import ImagePool, ResnetGenerator
 from tnf.registry import FROM_YAML, yaml_defaults
 
 

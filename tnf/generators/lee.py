@@ -16,16 +16,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from tnf.generators.base import Generator, Optimisation
-from tnf.generators.nets import (
-    CHANNELS,
-    MultiEncoderUNet,
-    NoiseDropout,
-    conditions,
-    gan_loss,
-    init_weights,
-    needed_keys,
-    norm_layer,
-)
+from tnf.generators.nets.conditioning import CHANNELS, conditions, needed_keys
+from tnf.generators.nets.gan import NoiseDropout, gan_loss, init_weights, norm_layer
+from tnf.generators.nets.unet import MultiEncoderUNet
 from tnf.registry import FROM_YAML, yaml_defaults
 
 

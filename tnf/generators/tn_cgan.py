@@ -36,20 +36,9 @@ import torch.nn.functional as F
 from tnf import metrics
 from tnf.generators.base import Generator, Optimisation
 from tnf.generators.field import SurfaceField
-from tnf.generators.nets import (
-    CHANNELS,
-    FORCE_MODES,
-    MultiEncoderUNet,
-    NoiseDropout,
-    PatchDiscriminator,
-    conditions,
-    d_output,
-    force_input,
-    force_plane,
-    gan_loss,
-    init_weights,
-    needed_keys,
-)
+from tnf.generators.nets.conditioning import CHANNELS, FORCE_MODES, conditions, force_input, force_plane, needed_keys
+from tnf.generators.nets.gan import NoiseDropout, PatchDiscriminator, d_output, gan_loss, init_weights
+from tnf.generators.nets.unet import MultiEncoderUNet
 from tnf.registry import FROM_YAML, yaml_defaults
 
 PRESS_LEVELS = 10

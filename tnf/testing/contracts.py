@@ -315,7 +315,7 @@ class GeneratorContract(_ComponentContract):
         from tnf.generators import Generator
 
         assert isinstance(generator, Generator)
-        from tnf.generators.nets import CHANNELS
+        from tnf.generators.nets.conditioning import CHANNELS
 
         # Batch keys tnf serves, or conditions derived from them (depth_slope, depth_and_slope).
         assert generator.inputs and set(generator.inputs) <= set(CHANNELS)
