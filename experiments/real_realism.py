@@ -1,36 +1,48 @@
-"""Realism against real GelSight Mini frames: tnf uncalibrated, tnf calibrated and Taxim, on the same held-out presses.
+"""Realism against real GelSight Mini frames: every way tnf makes a press, and Taxim, in one table.
 
-Fits tnf's calibration on presses 0-15 of the GelSight Mini recording that the ``taxim`` package ships, then
-renders presses 16-23 with tnf (its hand-set optics, and calibrated) and with Taxim (its JAX backend, its own
-calibration of this sensor, with and without its shadows), scores all three against the real frames with the same code
-(``tnf.real.realism.score``, at tnf's 320x240), and times each simulator per frame on this machine. Taxim renders
-at its native 640x480; its frames are resized to 320x240 as the real ones are. For a like-for-like time, tnf is
-also timed at 640x480 (the same table, blur doubled, over the full-size background).
+On the GelSight Mini recording that the ``taxim`` package ships (presses 0-15 train, 16-23 held out, the split
+of ``conf/calibrate/default.yaml``), all on the CPU:
 
-Each press is placed at its annotated centre. Taxim presses to the depth at which the ball crosses the gel in
-the annotated circle, as its calibration defines it; tnf to that depth times its fitted ``depth_scale``.
+1. tnf's calibration fitted on presses 0-15 at 320x240 (``tnf calibrate``'s defaults): the no-contact frame,
+   the hand-set optics, the calibration at 320x240 and rendered at the recording's 640x480.
+2. Taxim (its JAX backend, its own calibration of this sensor, with its shadows) at its native 640x480.
+3. T-N: ``tnf pipeline experiment=sim_gelsight_mini`` up to training (the Mini calibrated at 160x120 with the
+   same settings, four objects, T-N trained on the calibrated simulator's pairs), then the indenter rendered as
+   RGB-D at each held-out press's pose with the mesh scene and fed to that generator.
+4. T-N fine-tuned on the real frames of presses 0-15 (``transfer=real``'s settings), the same network from
+   scratch on those frames (FS), and T-N+ (simulated pairs kept in the mix).
 
-    python experiments/real_realism.py --out results/real/gelsight_mini      # ~2 min on 2 CPU cores
+Each held-out press sits at its annotated centre. Scores: :mod:`tnf.real.report` (the native 4r crop with
+the sharpness ratio, and the contact region at 320x240).
 
-Prints the table; writes ``report.md`` and ``realism.png`` (real | tnf uncalibrated | tnf calibrated | Taxim |
-differences) into ``--out``, and the per-press figures to ``--raw`` (kept out of git).
+    python experiments/real_realism.py --out results/real/gelsight_mini
+
+Writes ``report.md``, ``realism.png`` and ``realism.json`` into ``--out``; the pipeline's data and the
+fine-tuned runs go to ``--data-root`` (default: a temporary folder; pass one to reuse its runs).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
+import os
 import platform
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+PIPELINE = "[calibrate,capture,fit-scene,touch,pair,train]"
+
 
 def taxim_frames(presses, indices, with_shadow: bool = True) -> tuple[np.ndarray, float]:
-    """Taxim's frames ``[N, 480, 640, 3]`` uint8 of the presses, and its warm seconds per frame."""
+    """Taxim's frames ``[N, 480, 640, 3]`` uint8 of the presses, and its warm seconds per frame.
+
+    Taxim presses to the depth at which the ball crosses the gel in the annotated circle, as its calibration
+    defines it."""
     from taxim import CALIB_GELSIGHT_MINI, Taxim
 
     sim = Taxim(calib_folder=CALIB_GELSIGHT_MINI, backend="jax")
@@ -55,139 +67,135 @@ def taxim_frames(presses, indices, with_shadow: bool = True) -> tuple[np.ndarray
     return np.stack(out), spent / len(indices)
 
 
-def resize(frames: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Resize ``[N, H, W, 3]`` uint8 as ``tnf.sensors.load_background`` resizes image files (PIL bilinear)."""
-    from PIL import Image
-
-    return np.stack([np.asarray(Image.fromarray(f).resize((width, height), Image.Resampling.BILINEAR)) for f in frames])
-
-
-def tnf_full_size_seconds(sensor, cal, presses, indices, depth_scale: float) -> float:
-    """tnf's calibrated simulator per frame at the recording's 640x480 (same table, blur in full-size pixels)."""
-    from tnf.real.calibrate import at_sensor_size
-    from tnf.real.realism import render
-    from tnf.sensors.base import load_background
-
-    k = presses.width / sensor.width
-    big = type(sensor)(
-        dataclasses.replace(sensor.cfg, width=presses.width, height=presses.height, calibration=None, noise_std=0.0)
-    )
-    big_cal = dataclasses.replace(
-        cal,
-        blur_sigma=cal.blur_sigma * k,
-        background=load_background(presses.background_path, presses.width, presses.height),
-    )
-    big = big.calibrated(big_cal, "full-size timing")
-    sp = at_sensor_size(presses, big, indices)
-    return render(big, {"name": "warp_gel"}, sp, presses.radius_mm * 1e-3, depth_scale)[1]
+def run_pipeline(root: Path, seed: int) -> float:
+    """``tnf pipeline experiment=sim_gelsight_mini`` up to training into ``root``; its wall seconds."""
+    cmd = [
+        sys.executable, "-m", "tnf.cli", "pipeline", "experiment=sim_gelsight_mini", f"data_root={root}",
+        f"seed={seed}", "progress=false", f"pipeline.stages={PIPELINE}",
+    ]  # fmt: skip
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, env={**os.environ, "TNF_DATA": str(root)})
+    return time.perf_counter() - t0
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="results/real/gelsight_mini", help="report.md and realism.png go here")
-    ap.add_argument("--raw", default=None, help="per-press JSON and the calibration (default: a temporary folder)")
-    ap.add_argument("--train", default="0-15")
-    ap.add_argument("--test", default="16-23")
+    ap.add_argument("--data-root", default=None, help="the pipeline's and fine-tuning's data (default: temporary)")
+    ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    from tnf.real import realism
-    from tnf.real.calibrate import FitSettings, at_sensor_size, fit_calibration
-    from tnf.real.presses import import_taxim
-    from tnf.registry import SENSORS
+    from omegaconf import OmegaConf
+
+    from tnf.real import report
+    from tnf.real.calibrate import FitSettings, calibration_rows, fit_calibration, fit_summary
+    from tnf.real.finetune import finetune_on_presses
+    from tnf.real.generated import checkpoint_framing, generate_presses
+    from tnf.real.presses import at_sensor_size, resolve_presses
+    from tnf.registry import SENSORS, from_dict
     from tnf.runtime import environment
 
-    def span(text: str) -> list[int]:
-        a, b = (int(x) for x in text.split("-"))
-        return list(range(a, b + 1))
-
-    train, test = span(args.train), span(args.test)
-    raw = Path(args.raw or tempfile.mkdtemp(prefix="tnf-realism-"))
+    started = time.perf_counter()
+    root = Path(args.data_root or tempfile.mkdtemp(prefix="tnf-realism-"))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    presses = import_taxim("gelsight_mini", raw / "presses")
-    sensor = SENSORS.build("gelsight_mini")
-    settings = FitSettings()
-    t0 = time.perf_counter()
-    cal, info = fit_calibration(presses, sensor, {"name": "warp_gel"}, train, settings)
-    fit_s = time.perf_counter() - t0
-    cal.save(raw / "calibration")
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    cal_cfg = OmegaConf.load(conf / "calibrate" / "default.yaml")
+    train, test = list(cal_cfg.train), list(cal_cfg.test)
+    settings = from_dict(FitSettings, OmegaConf.to_container(cal_cfg.fit), where="calibrate.fit")
+    presses = resolve_presses("taxim:gelsight_mini", root)
+    wall: dict[str, float] = {}
 
-    plain = type(sensor)(dataclasses.replace(sensor.cfg, background_image=str(presses.background_path)))
-    calibrated = plain.calibrated(cal, str(raw / "calibration"))
-    sp = at_sensor_size(presses, plain, test)
-    region = realism.regions(sp, settings.region_scale)
+    # 1. tnf's calibration at 320x240.
+    t0 = time.perf_counter()
+    sensor = SENSORS.build("gelsight_mini")
+    warp = {"name": "warp_gel"}
+    cal, info = fit_calibration(presses, sensor, warp, train, settings)
+    cal.save(root / "calibration_320x240")
+    rows, sp = calibration_rows(presses, sensor, cal, info, warp, test, str(root / "calibration_320x240"))
+    wall["calibration (fit and renders)"] = time.perf_counter() - t0
+    print(f"calibration: {wall['calibration (fit and renders)']:.0f} s", flush=True)
+
+    # 2. Taxim.
+    t0 = time.perf_counter()
+    taxim, taxim_s = taxim_frames(presses, test)
+    rows.append(report.Row("Taxim", taxim, taxim_s))
+    wall["Taxim"] = time.perf_counter() - t0
+    print(f"Taxim: {wall['Taxim']:.0f} s", flush=True)
+
+    # 3. T-N trained on the calibrated simulator's pairs.
+    from tnf.generators.names import model_run_name
+
+    run = model_run_name("tn_cgan", "gelsight_mini-hashgrid", args.seed)
+    ckpt = root / "models" / run / "best.ckpt"
+    wall["pipeline to T-N"] = 0.0 if ckpt.is_file() else run_pipeline(root, args.seed)
+    small_cal = root / "calibration" / "gelsight_mini" / "mini_160x120"
+    small = SENSORS.build({"name": "gelsight_mini", "width": 160, "height": 120, "calibration": str(small_cal)})
+    small_info = json.loads((small_cal / "realism.json").read_text())["fit"]
+    depth_scale = float(small_info["depth_scale"])
+    framing = checkpoint_framing(ckpt)
+    small_sp = at_sensor_size(presses, small, test)
     radius = presses.radius_mm * 1e-3
-    images, seconds = {}, {}
-    images["tnf uncalibrated"], seconds["tnf uncalibrated"] = realism.render(plain, {"name": "warp_gel"}, sp, radius)
-    images["tnf calibrated"], seconds["tnf calibrated"] = realism.render(
-        calibrated, {"name": "warp_gel"}, sp, radius, info["depth_scale"]
-    )
-    taxim_full, taxim_s = taxim_frames(presses, test)
-    images["Taxim"] = resize(taxim_full, sensor.width, sensor.height)
-    seconds["Taxim"] = taxim_s
-    plain_full, seconds["Taxim, no shadows"] = taxim_frames(presses, test, with_shadow=False)
-    images["Taxim, no shadows"] = resize(plain_full, sensor.width, sensor.height)
-    full_s = tnf_full_size_seconds(sensor, cal, presses, test, info["depth_scale"])
-    scores = {n: realism.score(v, sp.frames, region) for n, v in images.items()}
-    means = realism.summary(scores)
-    shown = ("tnf uncalibrated", "tnf calibrated", "Taxim")
-    realism.grid(sp.frames[:4], {n: images[n][:4] for n in shown}, sp.centers[:4], out / "realism.png")
-    (raw / "realism.json").write_text(json.dumps({"per_press": scores, "mean": means, "fit": info}, indent=1))
+
+    def generated(checkpoint: Path) -> tuple[np.ndarray, float]:
+        t = time.perf_counter()
+        images = generate_presses(checkpoint, small, small_sp, radius, depth_scale, framing=framing)
+        return images, (time.perf_counter() - t) / len(test)
+
+    rows.append(report.Row("T-N (simulator only)", *generated(ckpt)))
+
+    # 4. Few-shot on the real frames of the training presses.
+    import torch
+
+    ft = OmegaConf.load(conf / "transfer" / "real.yaml").finetune
+    batch = 16
+    steps = int(ft.epochs) * -(-len(train) // batch)  # the presses' batches per epoch, times its epochs
+    spec = torch.load(ckpt, weights_only=False, map_location="cpu")["tnf"]["generator"]
+    lr = float(ft.lr) if ft.lr is not None else None
+    runs = {"T-N fine-tuned": ("T-N", ckpt, 0), "FS (real presses only)": ("FS", None, 0)}
+    runs["T-N+ (fine-tuned, simulated pairs kept)"] = ("T-N+", ckpt, 16)
+    sim_pairs = root / "pairs" / json.loads((root / "models" / run / "manifest.json").read_text())["datasets"][0]
+    for label, (short, source, n_sim) in runs.items():
+        t0 = time.perf_counter()
+        tuned = finetune_on_presses(
+            source, presses, small, train, root / "real_finetune" / short, steps, batch_size=batch,
+            lr=lr, generator=dict(spec), framing=framing, depth_scale=depth_scale,
+            sim=sim_pairs if n_sim else None, sim_pairs=n_sim, seed=args.seed,
+        )  # fmt: skip
+        wall[f"{label}: training"] = time.perf_counter() - t0
+        rows.append(report.Row(label, *generated(tuned)))
+        print(f"{label}: {wall[f'{label}: training']:.0f} s", flush=True)
 
     env = environment("cpu")
-    wins = [
-        m
-        for m, better in (("ssim_region", max), ("mse_region", min))
-        if better(means["tnf calibrated"][m], means["Taxim"][m]) == means["tnf calibrated"][m]
+    total = time.perf_counter() - started
+    intro = [
+        f"Held-out presses {test[0]}-{test[-1]} of the GelSight Mini recording in the `taxim` package. "
+        f"tnf's calibration at 320x240: {fit_summary(info, settings, '320x240')[0]}",
+        f"T-N: `tnf pipeline experiment=sim_gelsight_mini` (seed {args.seed}), the Mini calibrated at 160x120 with "
+        "the same settings; its touches of the indenter (a sphere of the recorded radius, the mesh scene) at each "
+        "held-out press, 160x120, upsampled. Fine-tuned and FS: "
+        f"{steps} batches at the generator's own learning rate on the real frames of presses "
+        f"{train[0]}-{train[-1]} (`transfer=real`). T-N+ keeps 16 of the pipeline's simulated pairs in the mix.",
+        "Taxim: its JAX backend and its own calibration of this sensor (made from all 24 frames, the held-out "
+        "ones included), with its shadows, at 640x480. Every source sits at the annotated centres.",
+        "",
+        "Wall time on this machine: "
+        + ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
+        + f"; {total:.0f} s in all.",
+        "",
+        f"Machine: {env['accelerator']} ({env['cpu_cores']} cores), Python {platform.python_version()}, "
+        f"warp {env['warp']}, tnf commit {env['commit']}. Reproduce: "
+        "`pip install -e '.[real]' && python experiments/real_realism.py --out results/real/gelsight_mini`.",
     ]
-    per_press = [
-        "| press | " + " | ".join(f"{n} SSIM / MSE" for n in images) + " |",
-        "|---|" + "---|" * len(images),
-    ]
-    for k, i in enumerate(test):
-        cells = [f"{scores[n]['ssim_region'][k]:.3f} / {scores[n]['mse_region'][k]:.0f}" for n in images]
-        per_press.append(f"| {i} | " + " | ".join(cells) + " |")
-    lines = [
-        "# Realism against real GelSight Mini frames",
-        "",
-        f"Held-out presses {test[0]}-{test[-1]} of the GelSight Mini recording in the `taxim` package; "
-        "tnf's calibration "
-        f"fitted on presses {train[0]}-{train[-1]} in {fit_s:.1f} s on this machine's CPU. Contact region: "
-        f"{settings.region_scale:g} x each press's annotated contact radius, at 320x240.",
-        "",
-        realism.table(means, seconds),
-        "",
-        f"tnf calibrated at Taxim's 640x480: {1e3 * full_s:.1f} ms per frame "
-        f"({taxim_s / full_s:.1f}x faster than Taxim's {1e3 * taxim_s:.0f} ms).",
-        "",
-        "Against Taxim (with its shadows, its default) on the contact region: tnf calibrated is "
-        + (
-            "ahead in both SSIM and MSE."
-            if len(wins) == 2
-            else f"ahead in {wins[0].split('_')[0].upper()} only."
-            if wins
-            else "behind in SSIM and in MSE."
-        ),
-        "",
-        f"Fit: fall-off {info['falloff']:g} x thickness, depth x{info['depth_scale']:g}, "
-        f"blur {info['blur_sigma']:g} px, "
-        f"table {settings.table_size}x{settings.table_size} over slopes +-{settings.max_slope:g}; "
-        f"measured frame noise {info['frame_noise_std']:.2f} (8-bit).",
-        "",
-        "Contact-region SSIM / MSE per held-out press:",
-        "",
-        *per_press,
-        "",
-        "![real | tnf uncalibrated | tnf calibrated | Taxim | differences](realism.png)",
-        "",
-        f"Machine: {env['accelerator']} ({env['cpu_cores']} cores), Python "
-        f"{platform.python_version()}, warp {env['warp']}, tnf commit {env['commit']}, Taxim's JAX backend. Reproduce: "
-        "`python experiments/real_realism.py --out results/real/gelsight_mini`.",
-        "",
-    ]
-    (out / "report.md").write_text("\n".join(lines))
-    print(realism.table(means, seconds))
-    print(f"tnf calibrated at 640x480: {1e3 * full_s:.1f} ms/frame; report: {out / 'report.md'}")
+    grid = [r.name for r in rows if r.name.endswith("640x480")]
+    grid += ["T-N (simulator only)", "T-N fine-tuned", "Taxim"]
+    record = report.write_report(
+        out, "Realism against real GelSight Mini frames", intro, rows, presses, sp, grid_rows=grid,
+        region_scale=settings.region_scale, extra={"fit": info, "wall_s": wall, "total_s": total},
+    )  # fmt: skip
+    (out / "realism.md").rename(out / "report.md")
+    print(report.table(record["mean"], record["seconds_per_frame"]))
+    print(f"{total:.0f} s in all; report: {out / 'report.md'}")
 
 
 if __name__ == "__main__":
