@@ -16,7 +16,7 @@ from tnf.real.presses import at_sensor_size, contact_radius_from_depth, disk_mas
 from tnf.registry import SENSORS, SIMULATORS
 from tnf.sensors.calibration import FILE, Calibration, load_calibration
 
-TINY = dict(falloffs=[0.05], depth_scales=[1.0], blurs=[2.0], table_size=9)
+TINY = dict(falloffs=[0.05], depth_scales=[1.0], blurs=[2.0], table_size=9, refine_radius=0)
 TRAIN = [0, 1, 2]
 WARP = {"name": "warp_gel"}
 
