@@ -260,7 +260,7 @@ def finetune_on_presses(
         framing = checkpoint_framing(ckpt) if ckpt is not None else Framing()
     n_train = len(train) + int(sim_pairs)
     epochs = max(1, math.ceil(steps / math.ceil(n_train / batch_size)))
-    hp = {
+    hp: dict[str, Any] = {
         "epochs": epochs,
         "decay_epochs": epochs // 2,
         "grid_rows": 4,
