@@ -59,7 +59,7 @@ class PressRGBD:
 
 def indenter_scene(radius_m: float, device: str = "cpu", subdivisions: int = 5) -> Any:
     """A ``mesh`` scene of a sphere of ``radius_m`` metres centred at the origin (an icosphere, steel grey)."""
-    from tnf.objects.builtin import paint, sphere
+    from tnf.objects.modelling import paint, sphere
     from tnf.registry import SCENES
 
     if not (math.isfinite(radius_m) and radius_m > 0):
