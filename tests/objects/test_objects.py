@@ -25,7 +25,8 @@ def test_builtin_object_is_a_valid_solid(name):
     mesh = Builtin().load(name)
     assert mesh.is_watertight, name
     assert mesh.volume > 0
-    assert 0.05 <= mesh.extents.max() <= 0.2501, mesh.extents
+    smallest = 0.005 if name == "bearing_ball" else 0.05  # the round indenter; every other object 5-25 cm
+    assert smallest <= mesh.extents.max() <= 0.2501, mesh.extents
     assert np.allclose((mesh.vertices.min(0) + mesh.vertices.max(0)) / 2, 0, atol=1e-6)
     assert len(mesh.faces) <= 60_000
     assert mesh.visual.kind == "vertex"

@@ -1,8 +1,9 @@
 """``builtin``: a procedural library of rigid household-like objects, made by code with trimesh.
 
-Every object is deterministic, 5-25 cm in size, in metres, z up, coloured per vertex, and carries surface
-detail at the scale a fingertip sensor feels (2-20 mm): ridges, knurling, threads, grooves, dimples, raised
-marks, holes, and both sharp and rounded edges, so that touches of different objects look different.
+Every object is deterministic, 5-25 cm in size (the 5 mm bearing ball apart), in metres, z up, coloured per
+vertex, and carries surface detail at the scale a fingertip sensor feels (2-20 mm): ridges, knurling, threads,
+grooves, dimples, raised marks, holes, and both sharp and rounded edges, so that touches of different objects
+look different.
 Meshes are closed (watertight) and kept to a moderate triangle count so that ray casting and rendering stay
 fast. Each object is generated once per process and copied on every ``load``. The building blocks (revolved
 profiles, extrusions, booleans, displacements, colours) are in ``tnf.objects.modelling``.
@@ -267,6 +268,12 @@ def banana():
         [np.round(np.clip(col + speckle(m.vertices, 0.05)[:, None], 0, 1) * 255), np.full((len(col), 1), 255)], 1
     ).astype(np.uint8)
     return m
+
+
+def bearing_ball():
+    """A 5 mm steel bearing ball: a round indenter, like the balls that calibration presses use."""
+    m = sphere(0.0025, 3)
+    return paint(m, lambda v: rgb("#b4b8bd") + speckle(v / 0.01, 0.04)[:, None])
 
 
 def golf_ball():
@@ -693,6 +700,7 @@ MAKERS: dict[str, Callable[[], Any]] = {
     "apple": apple,
     "ball": ball,
     "banana": banana,
+    "bearing_ball": bearing_ball,
     "bolt": bolt,
     "bottle": bottle,
     "bowl": bowl,
