@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from tnf.artifacts import read_json
-from tnf.real import realism
+from tnf.real import realism, report
 from tnf.real.finetune import finetune_on_presses
-from tnf.real.generated import checkpoint_framing, generate_presses, score_presses, score_table
+from tnf.real.generated import checkpoint_framing, generate_presses
 from tnf.real.presses import at_sensor_size, resolve_presses
 from tnf.registry import SENSORS
 
@@ -91,7 +91,13 @@ def score(s: dict, ckpt: Path, presses: list[int], reference: str = "gel") -> di
     sp = at_sensor_size(s["presses"], s["sensor"], presses)
     images = generate_presses(ckpt, s["sensor"], sp, s["presses"].radius_mm * 1e-3, s["depth_scale"],
                               framing=s["framing"], reference=reference)  # fmt: skip
-    return score_presses(images, s["presses"], sp)
+    return scored(images, s["presses"], sp)
+
+
+def scored(images: np.ndarray, presses, sp) -> dict:
+    """``{"per_press": {metric: [N]}, "mean": {metric: float}}`` of ``images`` against the real frames."""
+    per = report.score_rows([report.Row("images", images)], presses, sp)
+    return {"per_press": per["images"], "mean": report.mean_scores(per)["images"]}
 
 
 def select(s: dict, out: Path, method: str = "T-N", grid: tuple[int, ...] = STEPS) -> dict:
@@ -120,10 +126,9 @@ def final(s: dict, out: Path) -> None:
     simulated, _ = realism.render(
         s["sensor"], {"name": "warp_gel"}, sp, s["presses"].radius_mm * 1e-3, s["depth_scale"]
     )
-    means["calibrated simulator"] = score_presses(simulated, s["presses"], sp)["mean"]
-    means["background (no contact)"] = score_presses(np.repeat(sp.background[None], len(TEST), 0), s["presses"], sp)[
-        "mean"
-    ]
+    means["calibrated simulator"] = scored(simulated, s["presses"], sp)["mean"]
+    background = np.repeat(sp.background[None], len(TEST), 0)
+    means["background (no contact)"] = scored(background, s["presses"], sp)["mean"]
     t0 = time.perf_counter()
     means["T-N (simulator only)"] = score(s, s["ckpt"], TEST)["mean"]
     seconds["T-N (simulator only)"] = time.perf_counter() - t0
@@ -142,7 +147,8 @@ def final(s: dict, out: Path) -> None:
         result = score(s, ckpt, TEST)
         means[label], seconds[label], record[label] = result["mean"], secs, result
     (out / "final.json").write_text(json.dumps({"mean": means, "seconds": seconds, "runs": record}, indent=2))
-    print(score_table(means, seconds))
+    print(report.table(means))
+    print("training seconds: " + ", ".join(f"{k} {v:.0f}" for k, v in seconds.items()))
 
 
 def main() -> None:

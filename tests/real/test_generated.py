@@ -9,13 +9,12 @@ import pytest
 from tests.real.tiny_generator import train_tiny_generator
 from tnf.data.render import Framing
 from tnf.errors import TnfError
+from tnf.real import report
 from tnf.real.generated import (
-    SCORES,
     checkpoint_framing,
     crop_pixels,
     generate_presses,
     press_rgbd,
-    score_presses,
 )
 from tnf.real.presses import at_sensor_size
 from tnf.registry import SENSORS
@@ -101,10 +100,10 @@ def test_generate_presses_with_a_trained_generator(checkpoint, sensor, sp, radiu
     assert all(np.abs(images[i].astype(int) - images[j]).max() >= 3 for i in range(4) for j in range(i))
     again = generate_presses(checkpoint, sensor, spread, radius)
     assert np.array_equal(images, again)  # the seed fixes the generator's dropout noise
-    scores = score_presses(images, taxim_presses, spread, region_scale=1.5)
-    assert set(scores["mean"]) == set(SCORES) and scores["presses"] == PRESSES
-    assert all(len(v) == 4 and np.all(np.isfinite(v)) for v in scores["per_press"].values())
-    assert all(-1 <= s <= 1 for s in scores["per_press"]["ssim_crop"])
+    scores = report.score_rows([report.Row("T-N", images)], taxim_presses, spread, region_scale=1.5)["T-N"]
+    assert set(scores) == set(report.ALL_METRICS)
+    assert all(len(v) == 4 and np.all(np.isfinite(v)) for v in scores.values())
+    assert all(-1 <= s <= 1 for s in scores["ssim_crop"])
 
 
 def test_generate_presses_names_a_missing_checkpoint(tmp_path, sensor, sp, radius):

@@ -10,6 +10,7 @@ import torch
 from tests.real.tiny_generator import TINY, train_tiny_generator
 from tnf.data import open_pairs, resize_uint8
 from tnf.errors import TnfError
+from tnf.real import report
 from tnf.real.finetune import finetune_on_presses, write_press_pairs
 from tnf.real.generated import generate_presses
 from tnf.real.presses import at_sensor_size
@@ -101,9 +102,11 @@ def test_finetune_stage_on_a_press_folder(checkpoint, root, taxim_presses, capsy
     ]  # fmt: skip
     out = finetune.run(compose("finetune", real))
     run_dir = root / "models" / "real"
-    record = json.loads((run_dir / "press_realism.json").read_text())
-    assert record["test"] == [20, 21] and set(out["press_realism"]) == set(record["mean"])
-    assert (run_dir / "press_realism.md").is_file() and "crop SSIM" in capsys.readouterr().out
+    record = json.loads((run_dir / "realism.json").read_text())
+    assert record["test"] == [20, 21] and out["press_realism"] == record["mean"][run_dir.name]
+    assert set(out["press_realism"]) == set(report.ALL_METRICS)
+    assert (run_dir / "realism.md").is_file() and (run_dir / "realism.png").is_file()
+    assert "crop SSIM" in capsys.readouterr().out
     pairs = open_pairs(root / "pairs" / f"presses-{taxim_presses.folder.name}-gelsight_mini")
     assert pairs.manifest["counts"]["train"] == 3 and list(pairs.touch_index) == [0, 1, 2, 0, 1, 2]
     # The same settings again: skipped; from scratch: its own run.

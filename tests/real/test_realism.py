@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from tnf.real import realism
+from tnf.real import realism, report
 from tnf.real.presses import SensorPresses, disk_masks
 
 SIGMA, K1, K2, L = 1.5, 0.01, 0.03, 255.0
@@ -96,10 +96,16 @@ def test_regions_and_summary():
     assert np.array_equal(reg[0], (cols - 10) ** 2 + (rows - 5) ** 2 <= 3.0**2)
     assert np.array_equal(reg[1], (cols - 29) ** 2 + (rows - 19) ** 2 <= 4.5**2)
     assert reg[0].sum() == 29  # the lattice points within a radius-3 disk
-    means = realism.summary({"a": {m: [1.0, 3.0] for m in realism.METRICS}, "b": {m: [0.5] for m in realism.METRICS}})
-    assert means == {"a": {m: 2.0 for m in realism.METRICS}, "b": {m: 0.5 for m in realism.METRICS}}
-    text = realism.table(means, {"a": 0.002})
-    assert text.splitlines()[2].startswith("| a | 2.000 | 2.0 |") and text.splitlines()[2].endswith(" 2.0 |")
+
+
+def test_report_means_and_table():
+    per = {"a": {m: [1.0, 3.0] for m in report.ALL_METRICS}, "b": {m: [0.5] for m in report.ALL_METRICS}}
+    means = report.mean_scores(per)
+    assert means == {"a": {m: 2.0 for m in report.ALL_METRICS}, "b": {m: 0.5 for m in report.ALL_METRICS}}
+    lines = report.table(means, {"a": 0.002}).splitlines()
+    assert lines[2] == "| a | 2.000 | 2 | 2.00 | 2.000 | 2 | 2.0 |"  # milliseconds per frame last
+    assert lines[3] == "| b | 0.500 | 0 | 0.50 | 0.500 | 0 |  |"
+    assert report.table(means).splitlines()[3] == lines[3]
 
 
 # -- the native-size crop: scikit-image's SSIM, MSE and the sharpness ratio ---------------------------------

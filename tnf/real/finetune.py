@@ -22,19 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from tnf.artifacts import write_json
 from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.data.render import Framing
 from tnf.data.splits import SPLITS
 from tnf.data.store import PairWriter, open_pairs, write_manifest
 from tnf.errors import TnfError
+from tnf.real import report
 from tnf.real.generated import (
     REFERENCES,
     checkpoint_framing,
     generate_presses,
     press_rgbd,
-    score_presses,
-    score_table,
 )
 from tnf.real.presses import INDEX, PressSet, at_sensor_size
 from tnf.sensors.base import Sensor
@@ -341,45 +339,26 @@ def write_press_realism(
     seed: int = 0,
     label: str = "generated",
 ) -> dict[str, Any]:
-    """Generate the presses ``test`` with ``checkpoint`` (``generate_presses``), score them against their real
-    frames (``score_presses``) and write ``out/press_realism.json`` and ``out/press_realism.md``; returns the
-    record (``per_press``, ``mean``, the settings and the seconds it took)."""
-    t0 = time.perf_counter()
+    """Generate the presses ``test`` with ``checkpoint`` (``generate_presses``) and write the realism report of
+    those images against the real frames (:func:`tnf.real.report.write_report`: ``out/realism.md``, ``.json``,
+    ``.png``). Returns its record (``per_press``, ``mean``, seconds per frame) with the settings added."""
     if not test:
         raise TnfError("no test presses to score")
     sp = at_sensor_size(presses, sensor, list(test))
-    radius = presses.radius_mm * 1e-3
+    t0 = time.perf_counter()
     images = generate_presses(
-        checkpoint, sensor, sp, radius, depth_scale, framing=framing, reference=reference, seed=seed
+        checkpoint, sensor, sp, presses.radius_mm * 1e-3, depth_scale, framing=framing, reference=reference, seed=seed
     )
-    scores = score_presses(images, presses, sp, region_scale=region_scale, crop_scale=crop_scale)
-    record = {
-        "checkpoint": str(checkpoint),
-        "presses": str(presses.folder),
-        "test": list(test),
-        "depth_scale": float(depth_scale),
-        "reference": reference,
-        "region_scale": region_scale,
-        "crop_scale": crop_scale,
-        **scores,
-        "seconds": round(time.perf_counter() - t0, 2),
-    }
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "press_realism.json", record)
-    lines = [
-        f"# Generated presses against real frames: presses {list(test)}",
-        "",
-        f"Checkpoint {checkpoint}; presses {presses.folder}. Crop: {crop_scale:g} x each annotated contact radius "
-        f"at the recording's {presses.width}x{presses.height} (the images upsampled), SSIM with scikit-image's "
-        f"defaults; region: {region_scale:g} x the contact radius at the sensor's {sensor.width}x{sensor.height}, "
-        "tnf's SSIM. Sharpness: the images' mean gradient over the real frames'.",
-        "",
-        score_table({label: scores["mean"]}),
-        "",
+    row = report.Row(label, images, (time.perf_counter() - t0) / len(test))
+    intro = [
+        f"Checkpoint {checkpoint}: its touches of the indenter at each held-out press, {sensor.width}x"
+        f"{sensor.height}, against the real frames of presses {list(test)}."
     ]
-    (out / "press_realism.md").write_text("\n".join(lines))
-    return record
+    settings = {"checkpoint": str(checkpoint), "depth_scale": float(depth_scale), "reference": reference}
+    return report.write_report(
+        out, "Generated presses against real frames", intro, [row], presses, sp,
+        crop_scale=crop_scale, region_scale=region_scale, extra=settings,
+    )  # fmt: skip
 
 
 def file_hash(path: str | Path) -> str:

@@ -20,7 +20,7 @@ How the press's depth reaches the generator (``reference``):
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,7 @@ from tnf.artifacts import MANIFEST, read_json
 from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
 from tnf.data.render import Framing, render_rgbd_crops
 from tnf.errors import TnfError
-from tnf.real.presses import PressSet, SensorPresses
+from tnf.real.presses import SensorPresses
 from tnf.sensors.base import Sensor
 
 REFERENCES = ("gel", "contact")
@@ -271,62 +271,6 @@ def generate_presses(
             out.append(tactile_images(system, cond, channels))
     images = np.concatenate(out) if out else np.empty((0, SIZE, SIZE, 3), np.uint8)
     return to_sensor_size(images, sensor.width, sensor.height)
-
-
-SCORES = ("ssim_crop", "mse_crop", "sharpness", "ssim_region", "mse_region", "ssim_frame", "mse_frame")
-"""What ``score_presses`` reports per press."""
-
-
-def score_presses(
-    images: np.ndarray,
-    presses: PressSet,
-    sp: SensorPresses,
-    region_scale: float = 1.5,
-    crop_scale: float = 4.0,
-) -> dict[str, Any]:
-    """Realism of generated images ``[N, H, W, 3]`` uint8 (sensor size) of the presses ``sp.indices``.
-
-    Two views: at the recording's own size (the images upsampled to it, ``realism.upsample``), a square crop
-    of ``crop_scale`` times each annotated contact radius around the annotated centre (``realism.crop_score``:
-    ``ssim_crop``, ``mse_crop``, ``sharpness``); and at the sensor's size, ``realism.score`` on the frame and
-    on the disk of ``region_scale`` times the contact radius (``ssim_region``, ``mse_region``,
-    ``ssim_frame``, ``mse_frame``). Returns ``{"presses": [...], "per_press": {metric: [N]}, "mean": {metric:
-    float}}``.
-    """
-    from tnf.real import realism
-
-    idx = list(sp.indices)
-    if len(images) != len(idx):
-        raise TnfError(f"{len(images)} images for {len(idx)} presses")
-    real = np.stack([presses.frame(i) for i in idx])
-    up = realism.upsample(images, presses.width, presses.height)
-    centers = np.array([presses.presses[i].center for i in idx], dtype=float)
-    radii = np.array([presses.contact_radius_px(i) for i in idx], dtype=float)
-    per = dict(realism.crop_score(up, real, centers, radii, scale=crop_scale))
-    per.update(realism.score(images, sp.frames, realism.regions(sp, region_scale)))
-    return {
-        "presses": idx,
-        "per_press": {m: [float(v) for v in per[m]] for m in SCORES},
-        "mean": {m: float(np.mean(per[m])) for m in SCORES},
-    }
-
-
-def score_table(means: Mapping[str, Mapping[str, float]], seconds: Mapping[str, float] | None = None) -> str:
-    """A markdown table of ``score_presses`` means, one row per model (and its seconds where given)."""
-    head = "| model | crop SSIM | crop MSE | sharpness | region SSIM | region MSE |"
-    rule = "|---|---|---|---|---|---|"
-    if seconds is not None:
-        head += " seconds |"
-        rule += "---|"
-    lines = [head, rule]
-    for name, m in means.items():
-        cells = [f"{m['ssim_crop']:.3f}", f"{m['mse_crop']:.1f}", f"{m['sharpness']:.2f}"]
-        cells += [f"{m['ssim_region']:.3f}", f"{m['mse_region']:.1f}"]
-        row = f"| {name} | " + " | ".join(cells) + " |"
-        if seconds is not None:
-            row += f" {seconds[name]:.0f} |" if name in seconds else " |"
-        lines.append(row)
-    return "\n".join(lines)
 
 
 def press_indices(value: Any, where: str) -> list[int]:

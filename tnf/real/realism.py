@@ -99,28 +99,6 @@ def native_score(images: np.ndarray, presses: PressSet, indices: Sequence[int], 
     return crop_score(upsample(images, presses.width, presses.height), real, centers, radii, scale)
 
 
-def summary(per_frame: Mapping[str, Mapping[str, list[float]]]) -> dict[str, dict[str, float]]:
-    """``{simulator: {metric: mean over frames}}`` of ``{simulator: score(...)}``."""
-    return {name: {m: float(np.mean(v[m])) for m in METRICS} for name, v in per_frame.items()}
-
-
-def table(means: Mapping[str, Mapping[str, float]], seconds: Mapping[str, float] | None = None) -> str:
-    """A markdown table of :func:`summary`'s means (and seconds per frame where given)."""
-    head = "| simulator | contact SSIM | contact MSE | frame SSIM | frame MSE |"
-    rule = "|---|---|---|---|---|"
-    if seconds is not None:
-        head += " ms per frame |"
-        rule += "---|"
-    lines = [head, rule]
-    for name, m in means.items():
-        cells = (f"{m['ssim_region']:.3f}", f"{m['mse_region']:.1f}", f"{m['ssim_frame']:.4f}", f"{m['mse_frame']:.2f}")
-        row = f"| {name} | " + " | ".join(cells) + " |"
-        if seconds is not None:
-            row += f" {1e3 * seconds[name]:.1f} |" if name in seconds else " |"
-        lines.append(row)
-    return "\n".join(lines)
-
-
 def grid(
     real: np.ndarray,
     simulated: Mapping[str, np.ndarray],

@@ -62,14 +62,20 @@ def score_rows(
     return out
 
 
-def table(means: Mapping[str, Mapping[str, float]], seconds: Mapping[str, float | None]) -> str:
-    """Markdown: one line per row, the native crop's three figures, then the contact region's two."""
+def mean_scores(scores: Mapping[str, Mapping[str, list[float]]]) -> dict[str, dict[str, float]]:
+    """``{row: {metric: mean over presses}}`` of :func:`score_rows`' output."""
+    return {n: {m: float(np.mean(v[m])) for m in ALL_METRICS} for n, v in scores.items()}
+
+
+def table(means: Mapping[str, Mapping[str, float]], seconds: Mapping[str, float | None] | None = None) -> str:
+    """Markdown: one line per row, the native crop's three figures, the contact region's two, and milliseconds
+    per frame where ``seconds`` (per frame) gives them."""
     lines = [
         "| | crop SSIM | crop MSE | sharpness | region SSIM | region MSE | ms per frame |",
         "|---|---|---|---|---|---|---|",
     ]
     for name, m in means.items():
-        ms = seconds.get(name)
+        ms = (seconds or {}).get(name)
         cells = [
             f"{m['ssim_crop']:.3f}",
             f"{m['mse_crop']:.0f}",
@@ -113,7 +119,7 @@ def write_report(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scores = score_rows(rows, presses, sp, crop_scale, region_scale)
-    means = {n: {m: float(np.mean(v[m])) for m in ALL_METRICS} for n, v in scores.items()}
+    means = mean_scores(scores)
     seconds = {r.name: r.seconds for r in rows}
     shown = list(grid_rows) if grid_rows is not None else [r.name for r in rows]
     k = min(grid_presses, len(sp.indices))

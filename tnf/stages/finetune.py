@@ -11,7 +11,7 @@ With ``finetune.presses`` (``transfer=real``, ``real_fs``, ``real_plus``) the da
 instead: a press folder or ``taxim:SENSOR``, as ``tnf calibrate`` takes it. The stage writes the press pairs of
 ``finetune.press_train`` (and ``press_val``) to ``<data_root>/pairs/presses-<folder>-<sensor>/``
 (``tnf.real.finetune.write_press_pairs``), trains on them, and scores the held-out presses ``press_test``
-against their real frames (``press_realism.md`` and ``press_realism.json`` in the run folder).
+against their real frames (``realism.md``, ``realism.json`` and ``realism.png`` in the run folder).
 """
 
 from __future__ import annotations
@@ -116,7 +116,7 @@ def run(cfg: Any) -> dict[str, Any]:
         f"val MSE {last.get('val_mse', float('nan')):.1f}"
     )
     if real is not None and real["test"]:
-        summary["press_realism"] = _score_presses(cfg, real, run_dir, console)["mean"]
+        summary["press_realism"] = _score_presses(cfg, real, run_dir, console)["mean"][run_dir.name]
     return {"run_dir": str(run_dir), **summary}
 
 
@@ -212,15 +212,15 @@ def _press_dataset(
 def _score_presses(cfg: Any, real: dict[str, Any], run_dir: Path, console: Any) -> dict[str, Any]:
     """Generate the test presses with the run's last checkpoint and score them against the real frames."""
     from tnf.real.finetune import write_press_realism
-    from tnf.real.generated import score_table
+    from tnf.real.report import table
 
     record = write_press_realism(
         run_dir / "last.ckpt", real["presses"], real["sensor"], real["test"], run_dir,
         framing=real["framing"], depth_scale=real["depth_scale"], reference=real["reference"],
         seed=int(cfg.seed), label=run_dir.name,
     )  # fmt: skip
-    console.print(score_table({run_dir.name: record["mean"]}))
-    console.print(f"held-out presses {real['test']} scored: {run_dir / 'press_realism.md'}")
+    console.print(table(record["mean"], record["seconds_per_frame"]))
+    console.print(f"held-out presses {real['test']} scored: {run_dir / 'realism.md'}")
     return record
 
 
