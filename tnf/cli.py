@@ -1,7 +1,7 @@
 """The ``tnf`` command: ``tnf STAGE [hydra overrides...]``.
 
 Each stage is a Hydra app; all compose the one primary config ``conf/tnf.yaml`` (``tnf pipeline`` adds
-``experiment=quickstart`` unless told otherwise: ``tnf.env.STAGE_DEFAULTS``), so ``--help``, ``--cfg job``,
+``experiment=quickstart`` unless told otherwise: ``conf/stage_choices.yaml``), so ``--help``, ``--cfg job``,
 ``-m`` sweeps and ``key=value`` overrides work for every stage. The stage's code is
 ``tnf.stages.<stage>.run(cfg)``.
 """
@@ -102,8 +102,8 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
 
 def _hydra_args(stage: str, args: Sequence[str]) -> list[str]:
     """The command line Hydra gets: ``args`` with the stage's job name (it names the run folder
-    ``logs/stage/<name>/`` and the log file) and its ``STAGE_DEFAULTS``, placed next to the user's overrides
-    (Hydra's parser takes a single run of overrides: not after ``-m`` when overrides follow it)."""
+    ``logs/stage/<name>/`` and the log file) and its group choices (``conf/stage_choices.yaml``), placed next to
+    the user's overrides (Hydra's parser takes a single run of overrides: not after ``-m`` when overrides follow it)."""
 
     overrides = [a for a in args if not a.startswith("-") and ("=" in a or a.startswith("~"))]
     own = [f"hydra.job.name={stage.replace('-', '_')}", *stage_choices(stage, overrides)]

@@ -31,15 +31,24 @@ def conf_dir() -> str:
 PRIMARY_CONFIG = "tnf"
 """The primary config that every stage composes (``conf/tnf.yaml``)."""
 
-STAGE_DEFAULTS: dict[str, dict[str, str]] = {"pipeline": {"experiment": "quickstart"}}
-"""Config group choices a stage makes unless the command line makes them (``tnf pipeline`` runs the quick start)."""
+STAGE_CHOICES = "stage_choices.yaml"
+"""The file in ``conf_dir()`` of the config group choices each stage makes unless the command line makes them:
+``{stage: {group: option}}`` (``conf/stage_choices.yaml``)."""
+
+
+def stage_defaults(stage: str) -> dict[str, str]:
+    """The config group choices ``stage`` makes unless the command line makes them (``STAGE_CHOICES``)."""
+    import yaml
+
+    with open(os.path.join(conf_dir(), STAGE_CHOICES)) as f:
+        choices = yaml.safe_load(f) or {}
+    return {str(group): str(option) for group, option in (choices.get(stage.replace("-", "_")) or {}).items()}
 
 
 def stage_choices(stage: str, overrides: Sequence[str]) -> list[str]:
-    """The stage's own group choices (``STAGE_DEFAULTS``) for the groups ``overrides`` leave alone."""
+    """The stage's own group choices (``stage_defaults``) for the groups ``overrides`` leave alone."""
     chosen = {o.lstrip("+~").split("=")[0] for o in overrides if not o.startswith("-")}
-    own = STAGE_DEFAULTS.get(stage.replace("-", "_"), {})
-    return [f"{group}={option}" for group, option in own.items() if group not in chosen]
+    return [f"{group}={option}" for group, option in stage_defaults(stage).items() if group not in chosen]
 
 
 def stage_overrides(stage: str, overrides: Sequence[str]) -> list[str]:

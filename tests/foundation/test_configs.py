@@ -21,9 +21,9 @@ def test_every_stage_composes(stage):
 
 
 def test_one_primary_config_and_the_pipeline_runs_the_quickstart():
-    from tnf.env import PRIMARY_CONFIG
+    from tnf.env import PRIMARY_CONFIG, STAGE_CHOICES
 
-    assert sorted(p.name for p in CONF.glob("*.yaml")) == ["base.yaml", f"{PRIMARY_CONFIG}.yaml"]
+    assert sorted(p.name for p in CONF.glob("*.yaml")) == sorted(["base.yaml", f"{PRIMARY_CONFIG}.yaml", STAGE_CHOICES])
     assert compose("pipeline") == compose("touch", ["experiment=quickstart"]) != compose("touch")
     assert compose("pipeline", ["experiment=sim_digit"]) == compose("train", ["experiment=sim_digit"])
     assert compose("pipeline", ["~experiment"]) == compose("touch")

@@ -6,22 +6,10 @@ the tactile image, with skip connections from the background and depth encoders 
 scale. A PatchGAN discriminator judges (condition, tactile) pairs; the generator minimises the cGAN loss plus
 lambda_L1 times the L1 distance to the real image, plus lambda_SSIM times (1 - SSIM).
 
-Seven defaults depart from the paper's figure, chosen on the validation split of ``sim_digit`` (seed 0, 30
-epochs, docs/decisions/): the paper's layout (skips from the background encoder only,
-dropout 0.5 as the noise z, kept on when generating) scored SSIM 0.920 / MSE 195; depth skips 0.926 / 168;
-depth skips without dropout 0.942 / 125. With contact-framed inputs that last layout scored 0.946 / 110, a
-full-resolution head 0.952 / 97, both with an SSIM loss term of weight 60 0.959 / 94. A residual output (the
-network draws the change to the background image) then scored 0.962 / 90 against 0.956 / 102 on one machine's
-data; three more seeds on another machine scored 0.954-0.962. Without the adversarial term
-(``lambda_gan=0``, the default: the discriminator is built but neither run nor trained) one seed scored
-0.970 / 64 against 0.961 / 90 with it, and two more seeds led every run with it at matched epochs. The term
-does carry object-specific detail: a classifier trained on the generated images alone scored 41 % on
-validation touches without it, 55 % with it and 50 % at ``lambda_gan=0.1`` (SSIM 0.968; one seed each), so
-generated data meant to train a model is better made with the term. Last, the depth encoder sees the depth
-image with its slopes (``depth_and_slope``): at sim_digit's full schedule (45 epochs, three seeds) validation
-MSE fell from 56.9 to 53.1 and the generated images alone trained a classifier to 48.5 % instead of 45.3 %.
-The paper's layout is ``inputs=[rgb,depth,background] skips=[background] dropout=0.5 lambda_ssim=0
-full_res_head=false residual=false lambda_gan=1``.
+The defaults depart from the paper's figure in seven settings (depth skips, no dropout, a full-resolution head,
+an SSIM term, a residual output, no adversarial term, depth with its slopes); the paper's layout is
+``inputs=[rgb,depth,background] skips=[background] dropout=0.5 lambda_ssim=0 full_res_head=false residual=false
+lambda_gan=1``. Why: docs/decisions/tn_cgan_defaults.md.
 """
 
 from __future__ import annotations

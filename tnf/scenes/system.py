@@ -66,14 +66,11 @@ class FitSettings:
     distortion_weight: float = FROM_YAML
     """Weight of the distortion loss (Mip-NeRF 360) that gathers each ray's weights on one surface; scenes
     that report it (hashgrid) only. The colour loss alone leaves the density profile behind an opaque
-    surface free, and a spread-out profile biases the expected depth away from the camera. On an H100 at
-    128 px, 0.1 took the median depth error of the box from 2.1 % to 0.91 % and of the mug from 3.2 % to
-    0.94 % of their size, for 1.8 and 0.1 dB of PSNR (results/scenes/distortion_weight.md)."""
+    surface free, and a spread-out profile biases the expected depth away from the camera
+    (docs/decisions/fit_distortion.md)."""
     distortion_start: float = FROM_YAML
     """Fraction of the steps fitted by colour alone before the distortion loss starts: it gathers each ray's
-    weights on the surface the colour has formed by then, rather than on a guess of the first steps. On
-    sim_digit's 27 objects (H100, 1500 steps) starting at 0.3 rather than 0 took the lowest held-out PSNR from
-    27.6 to 30.7 dB and the objects over 1 % median depth error from 6 to 2 (results/scenes/distortion_start.md)."""
+    weights on the surface the colour has formed by then, rather than on a guess of the first steps."""
 
     def validate(self) -> None:
         for k in ("steps", "batch_rays"):
