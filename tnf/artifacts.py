@@ -31,6 +31,11 @@ from tnf.errors import TnfError
 MANIFEST = "manifest.json"
 DEFAULT_ROOT = "./tnf-data"
 
+CACHE_VERSION = 2
+"""The version of everything tnf writes to the artifact store: items, paired datasets, model checkpoints. It is
+part of every artifact's key (``config_hash``), so raising it makes each stage redo what an earlier version wrote;
+a checkpoint or dataset of another version is refused in one line."""
+
 
 def data_root(configured: str | os.PathLike[str] | None = None) -> Path:
     """The artifact root: the config's value if given, else ``$TNF_DATA``, else ``./tnf-data``."""
@@ -41,7 +46,8 @@ def data_root(configured: str | os.PathLike[str] | None = None) -> Path:
 
 def config_hash(config: Mapping[str, Any]) -> str:
     """A stable hash of a JSON-able config (key order does not matter)."""
-    blob = json.dumps(_jsonable(config), sort_keys=True, separators=(",", ":"))
+    keyed = {"cache_version": CACHE_VERSION, "config": _jsonable(config)}
+    blob = json.dumps(keyed, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -267,6 +273,7 @@ class ArtifactStore:
                 "config_hash": config_hash(config),
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
                 "tnf_version": _version(),
+                "cache_version": CACHE_VERSION,
             }
             write_json(tmp / MANIFEST, manifest)
             _replace_dir(tmp, final)
@@ -314,7 +321,7 @@ def _writer_tag() -> str:
 def _writer_alive(temporary: Path) -> bool:
     """Whether the process that created the temporary folder or file ``temporary`` may still be writing it."""
     m = _TEMPORARY.search(temporary.name)
-    if m is None:  # no writer recorded (made by an older tnf): left by a run that is over
+    if m is None:  # no writer in its name: not a write in progress
         return False
     pid, host = int(m[1]), m[2]
     if host != _host() or pid == os.getpid():

@@ -173,15 +173,16 @@ def test_sensor_extent_crops_are_pixel_aligned_with_the_tactile_image(extent):
         assert error_px > 10
 
 
-def test_framing_settings_and_older_datasets():
+def test_framing_settings():
     f = Framing.from_settings(
         {"crop_distance": "contact", "crop_px": None, "depth_norm": "contact"}, footprint_distance=0.1
     )
     assert f.per_view and f.crop_margin == 1.5
     assert Framing.from_settings({"crop_distance": "contact", "crop_px": 40}).per_view is False
-    # A dataset manifest from before per-view crops: a fixed crop.
-    old = Framing.from_settings({"footprint_distance": 0.1, "depth_norm": "center", "depth_window": 0.04})
-    assert old.crop_distance == "fixed" and old.fixed_crop((100.0, 100.0), (0.02, 0.03)) == 45
+    fixed = Framing.from_settings(
+        {"crop_distance": "fixed", "footprint_distance": 0.1, "depth_norm": "center", "depth_window": 0.04}
+    )
+    assert fixed.crop_distance == "fixed" and fixed.fixed_crop((100.0, 100.0), (0.02, 0.03)) == 45
     with pytest.raises(TnfError, match="crop_distance"):
         Framing(crop_distance="median")
     with pytest.raises(TnfError, match="footprint distance"):

@@ -214,11 +214,8 @@ class Framing:
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any], **override: Any) -> Framing:
-        """From a ``pair`` config section or a dataset manifest's ``preprocess`` (datasets written before
-        ``crop_distance`` existed used the fixed crop and centre-pixel depth)."""
+        """From a ``pair`` config section or a dataset manifest's ``preprocess``."""
         keys = {f: settings[f] for f in cls.__dataclass_fields__ if settings.get(f) is not None}
-        if "crop_distance" not in settings:  # a dataset written before per-view crops
-            keys["crop_distance"] = "fixed"
         keys.update({k: v for k, v in override.items() if v is not None})
         for k in ("footprint_distance", "crop_margin", "depth_window"):
             if k in keys:

@@ -32,12 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from tnf.artifacts import MANIFEST, read_json, write_json
+from tnf.artifacts import CACHE_VERSION, MANIFEST, read_json, write_json
 from tnf.data.preprocess import SIZE
 from tnf.data.splits import SPLITS
 from tnf.errors import TnfError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = CACHE_VERSION
+"""The version a dataset's manifest records (``format_version``); a dataset of another one is refused."""
 
 # name -> (dtype, shape after N)
 PAIR_ARRAYS: dict[str, tuple[str, tuple[int, ...]]] = {

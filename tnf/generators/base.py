@@ -59,9 +59,6 @@ class Generator(nn.Module):
     #: Names of the optimisers ``configure_optimizers`` returns, in order (used for learning-rate logging); a
     #: generator may return only the first ones (tn_cgan without its adversarial term: the generator's alone).
     optimizer_names: ClassVar[tuple[str, ...]] = ("g", "d")
-    #: Config fields added after checkpoints were first written, with the values that rebuild the network an
-    #: older checkpoint (one whose saved config lacks the field) holds. Loading fills them in.
-    added_fields: ClassVar[dict[str, Any]] = {}
 
     def __init__(self) -> None:
         super().__init__()

@@ -33,13 +33,15 @@ import numpy as np
 import torch
 
 from tnf import __version__, metrics
+from tnf.artifacts import CACHE_VERSION
 from tnf.data.dataset import mirror_batch, unmirror_channels
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.base import Generator
 from tnf.registry import GENERATORS, config_to_dict, split_spec
 
-#: Version of the checkpoint layout written by ``GeneratorSystem``; loading another one is an error.
-CHECKPOINT_FORMAT = 1
+#: Version of the checkpoints ``GeneratorSystem`` writes (``tnf.artifacts.CACHE_VERSION``); loading another one is
+#: an error.
+CHECKPOINT_FORMAT = CACHE_VERSION
 
 #: Prefix of the averaged generator's weights in a checkpoint's state dict (``ema_decay``).
 AVERAGE_PREFIX = "generator_ema."
@@ -407,8 +409,7 @@ class GeneratorSystem(L.LightningModule):
         ckpt = read_checkpoint(path)
         meta = ckpt["tnf"]
         saved = dict(meta["generator"])
-        known = GENERATORS.get(saved["name"]) if saved.get("name") in GENERATORS else None
-        spec = {**getattr(known, "added_fields", {}), **saved, **dict(generator_overrides or {})}
+        spec = {**saved, **dict(generator_overrides or {})}
         if expected is not None and spec.get("name") != expected:
             raise TnfError(f"checkpoint {path} holds generator {spec.get('name')!r}, expected {expected!r}")
         hp = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k != "generator"}

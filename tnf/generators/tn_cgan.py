@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -52,15 +52,6 @@ def press_only(fake: torch.Tensor, real: torch.Tensor, background: torch.Tensor,
 
 class TNcGAN(Generator):
     """Touch-NeRF cGAN: separate RGB / depth / background encoders, U-Net decoder, PatchGAN, cGAN + L1 + SSIM loss."""
-
-    # Checkpoints written before these options existed hold the network without the head, trained without SSIM.
-    added_fields: ClassVar[dict[str, Any]] = {
-        "full_res_head": False,
-        "lambda_ssim": 0.0,
-        "residual": False,
-        "lambda_gan": 1.0,
-        "gan_press_margin": -1,
-    }
 
     @dataclass
     @yaml_defaults("generator/tn_cgan")
