@@ -119,7 +119,7 @@ def run_one(args: argparse.Namespace, devices: int) -> None:
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
     system = SyntheticSystem(
-        {"name": args.generator}, epochs=1, decay_epochs=0, grid_dir=None, batch=args.batch, compile_nets=args.compile
+        {"name": args.generator}, epochs=1, decay_epochs=0, batch=args.batch, compile_nets=args.compile
     )
     clock = Clock(args.warmup, args.warmup + args.steps)
     strategy: Any = "auto"

@@ -399,16 +399,18 @@ def test_tn_cgan_ssim_loss_term():
 def test_tn_cgan_reports_d_outputs_on_its_loss_scale():
     """d_real / d_fake (what the discriminator watch reads) are on the scale the loss drives to 1 and 0: sigmoid
     probabilities for the vanilla loss, the raw outputs for LSGAN (whose sigmoid would never pass 0.73)."""
+    from tnf.generators.callbacks import DiscriminatorWatch, discriminator_saturated
     from tnf.generators.nets.gan import d_output
-    from tnf.generators.system import discriminator_saturated
+
+    t = DiscriminatorWatch.Config().threshold
 
     won_real, won_fake = torch.full((2, 1, 4, 4), 1.0), torch.full((2, 1, 4, 4), 0.0)
     assert d_output(won_real, "lsgan").item() == pytest.approx(1.0)
-    assert discriminator_saturated(d_output(won_real, "lsgan").item(), d_output(won_fake, "lsgan").item())
+    assert discriminator_saturated(d_output(won_real, "lsgan").item(), d_output(won_fake, "lsgan").item(), t)
     assert d_output(torch.full((2, 1, 4, 4), 6.0), "vanilla").item() == pytest.approx(
         torch.sigmoid(torch.tensor(6.0)).item()
     )
-    assert not discriminator_saturated(d_output(won_real, "vanilla").item(), d_output(won_fake, "vanilla").item())
+    assert not discriminator_saturated(d_output(won_real, "vanilla").item(), d_output(won_fake, "vanilla").item(), t)
     # One real training step reports them under either loss.
     torch.manual_seed(0)
     for mode in ("vanilla", "lsgan"):

@@ -1,4 +1,5 @@
-"""GeneratorSystem with Lightning: a tiny training run, checkpoints, loading, resume, NaN guard, fine-tuning."""
+"""GeneratorSystem with Lightning and its callbacks: a tiny training run, checkpoints, loading, resume, NaN
+guard, weight average, discriminator watch, image grids, fine-tuning."""
 
 import csv
 import hashlib
@@ -9,9 +10,17 @@ import torch
 
 from tests.generators.synthetic import SyntheticPairs, make_pairs
 from tnf.data import mirror_batch
-from tnf.errors import TnfError
+from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators import GeneratorSystem, load_generator
-from tnf.generators.system import NonFiniteLoss, generator_config, generator_spec, image_grid
+from tnf.generators.callbacks import (
+    DiscriminatorWatch,
+    ImageGrids,
+    WeightAverage,
+    build_callbacks,
+    discriminator_saturated,
+    image_grid,
+)
+from tnf.generators.system import generator_config, generator_spec
 from tnf.generators.training import fit, merge_metrics_parts
 
 # With the adversarial term (not the default), so that both players' optimisers, schedules and logs are exercised.
@@ -19,7 +28,7 @@ SPEC = {"name": "tn_cgan", "image_size": 32, "ngf": 4, "ndf": 4, "dropout_at_gen
 CPU = {"accelerator": "cpu", "devices": 1, "precision": "32-true"}
 
 
-def train(run_dir, epochs=2, dm=None, system=None, resume=True, checkpoint_every_s=0.0, **kw):
+def train(run_dir, epochs=2, dm=None, system=None, resume=True, checkpoint_every_s=0.0, callbacks=None, **kw):
     torch.manual_seed(0)
     system = system or GeneratorSystem(SPEC, epochs=epochs, decay_epochs=1, grid_rows=3, finite_check_every=1)
     dm = dm or SyntheticPairs(n_train=8, n_val=4, size=32, batch_size=4)
@@ -29,6 +38,7 @@ def train(run_dir, epochs=2, dm=None, system=None, resume=True, checkpoint_every
         run_dir,
         config={"spec": SPEC, "epochs": epochs, **kw},
         trainer_cfg=CPU,
+        callbacks=callbacks,
         progress=False,
         resume=resume,
         log_every_n_steps=1,
@@ -287,16 +297,16 @@ def _epoch_rows(run_dir):
 
 def test_discriminator_saturation_is_logged_each_epoch(trained):
     """train/d_saturated follows the epoch's mean D outputs, which are logged beside it."""
-    from tnf.generators.system import discriminator_saturated
-
     run_dir, _, _ = trained
     rows = _epoch_rows(run_dir)
     assert len(rows) == 2
+    t = DiscriminatorWatch.Config().threshold
     for r in rows:
-        expected = discriminator_saturated(float(r["train/d_real_epoch"]), float(r["train/d_fake_epoch"]))
+        expected = discriminator_saturated(float(r["train/d_real_epoch"]), float(r["train/d_fake_epoch"]), t)
         assert float(r["train/d_saturated"]) == float(expected)
-    assert discriminator_saturated(0.99, 0.01) and not discriminator_saturated(0.99, 0.2)
-    assert not discriminator_saturated(0.6, 0.4)
+    assert t == 0.95  # conf/callbacks/default.yaml
+    assert discriminator_saturated(0.99, 0.01, t) and not discriminator_saturated(0.99, 0.2, t)
+    assert not discriminator_saturated(0.6, 0.4, t)
 
 
 def test_training_without_the_adversarial_term(tmp_path, recwarn):
@@ -330,7 +340,7 @@ def test_a_discriminator_that_wins_is_reported(tmp_path, caplog):
 
     system = FrozenGenerator(SPEC, epochs=5, decay_epochs=0, grid_rows=3, finite_check_every=1)
     dm = SyntheticPairs(n_train=32, n_val=4, size=32, batch_size=4)
-    with caplog.at_level("WARNING", logger="tnf.generators.system"):
+    with caplog.at_level("WARNING", logger="tnf.generators.callbacks"):
         train(tmp_path / "run", epochs=5, system=system, dm=dm)
     rows = _epoch_rows(tmp_path / "run")
     flags = [float(r["train/d_saturated"]) for r in rows]
@@ -345,6 +355,7 @@ def test_a_discriminator_that_wins_is_reported(tmp_path, caplog):
 def test_weight_average_follows_its_decay_and_warm_up():
     torch.manual_seed(0)
     system = GeneratorSystem(SPEC, ema_decay=0.5)
+    average = WeightAverage()
     start = [p.clone() for p in system.generator.parameters()]
     assert all(torch.equal(a, p) for a, p in zip(system.generator_ema.parameters(), start, strict=True))
     assert not any(p.requires_grad for p in system.generator_ema.parameters())
@@ -353,7 +364,7 @@ def test_weight_average_follows_its_decay_and_warm_up():
         with torch.no_grad():
             for p in system.generator.parameters():
                 p.add_(shift)
-        system._update_average()
+        average.update(system)
         decay = min(0.5, (1 + n) / (10 + n))  # 0.1, 2/11, 0.25: the first updates follow the weights closely
         expect = [decay * e + (1 - decay) * p for e, p in zip(expect, system.generator.parameters(), strict=True)]
         for a, e in zip(system.generator_ema.parameters(), expect, strict=True):
@@ -406,14 +417,13 @@ def test_weight_average_resumes_with_its_update_count(tmp_path):
     resumed = GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1, ema_decay=0.9)
     names = [n for n, _ in resumed.generator.named_parameters()]
     weights = []  # the weights each update of the resumed run moves the average towards
-    update = resumed._update_average
 
-    def recording_update():
-        weights.append([p.detach().clone() for p in resumed.generator.parameters()])
-        update()
+    class Recording(WeightAverage):
+        def update(self, system):
+            weights.append([p.detach().clone() for p in system.generator.parameters()])
+            super().update(system)
 
-    resumed._update_average = recording_update
-    train(run_dir, epochs=1, system=resumed)
+    train(run_dir, epochs=1, system=resumed, callbacks=[Recording(), *build_callbacks()[1:]])
     assert int(resumed.ema_updates) == 4 and len(weights) == 2
     # The saved average went on with updates 3 and 4 (warm-up decays 3/12 and 4/13), rather than starting again.
     expect = [saved["generator_ema." + n] for n in names]
@@ -441,3 +451,44 @@ def test_system_builds_from_a_checked_config_as_it_is():
     system = GeneratorSystem((name, config), epochs=2, decay_epochs=1)
     assert system.generator.cfg is config
     assert system.hparams["generator"] == generator_spec(SPEC) == GeneratorSystem(SPEC).hparams["generator"]
+
+
+# -- the callbacks config group -------------------------------------------------------------------------------------
+def test_callbacks_group_builds_each_callback_with_its_settings():
+    from tnf.testing import compose
+
+    cfg = compose("train", ["callbacks.image_grids.folder=pictures", "callbacks.discriminator_watch=null"])
+    built = build_callbacks(cfg.callbacks)
+    assert [type(c).__name__ for c in built] == ["WeightAverage", "FiniteCheck", "ImageGrids"]
+    assert isinstance(built[2], ImageGrids) and built[2].config.folder == "pictures"
+    assert [type(c).__name__ for c in build_callbacks()] == [
+        "WeightAverage",
+        "FiniteCheck",
+        "DiscriminatorWatch",
+        "ImageGrids",
+    ]
+    with pytest.raises(TnfError, match="unknown callback 'early_stop'.*available: weight_average"):
+        build_callbacks({"early_stop": {}})
+    with pytest.raises(TnfError, match="callbacks.image_grids: unknown key 'rows'"):
+        build_callbacks({"image_grids": {"rows": 3}})
+    with pytest.raises(TnfError, match="callbacks.discriminator_watch: threshold must be in"):
+        build_callbacks({"discriminator_watch": {"threshold": 0.2}})
+
+
+def test_callbacks_left_out_leave_their_outputs_out(tmp_path):
+    """Without the grids and the watcher: no grids folder and no train/d_saturated column; the grids' folder is
+    a setting."""
+    run_dir = tmp_path / "run"
+    train(run_dir, epochs=1, callbacks=build_callbacks({"weight_average": {}, "finite_check": {}}))
+    assert not (run_dir / "grids").exists()
+    header = (run_dir / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert "train/d_real_epoch" in header and "train/d_saturated" not in header
+    train(tmp_path / "other", epochs=1, callbacks=build_callbacks({"image_grids": {"folder": "pictures"}}))
+    assert sorted(p.name for p in (tmp_path / "other" / "pictures").iterdir()) == ["epoch_000.png"]
+
+
+def test_a_weight_average_without_its_callback_is_refused(tmp_path):
+    system = GeneratorSystem(SPEC, epochs=1, decay_epochs=0, ema_decay=0.9)
+    with pytest.raises(TnfError, match="weight_average callback"):
+        train(tmp_path / "run", epochs=1, system=system, callbacks=build_callbacks({"finite_check": {}}))
+    assert not (tmp_path / "run").exists()

@@ -3,39 +3,33 @@
 It builds the generator from its registry name and config (both stored in the checkpoint, never a class
 path, so a checkpoint loads wherever the generator's package is installed), runs the generator's own GAN
 step with Lightning's manual optimisation (mixed precision and gradient scaling come from the trainer's
-``precision``), applies the learning-rate schedule (constant, then linear decay to zero), validates with
-``tnf.metrics`` (L1, SSIM, MSE), writes an image grid each epoch and stops on a non-finite loss.
+``precision``), applies the learning-rate schedule (constant, then linear decay to zero) and validates with
+``tnf.metrics`` (L1, SSIM, MSE).
 
-It also watches the adversarial game. Generators that report their discriminator's mean outputs on real and
-generated images (``d_real``, ``d_fake`` among their training-step losses) get ``train/d_saturated`` logged
-each epoch: 1 when, over the whole epoch, the discriminator told the two apart almost perfectly (mean outputs
-at least ``D_SATURATED`` and at most ``1 - D_SATURATED``). The epoch it starts and the epoch it ends are also
-logged as a warning. While saturated, the generator's adversarial loss is large and pulls it away from its
-image losses: in one sim_digit run the training L1 rose from 0.025 to 0.045 within four epochs as its
-discriminator began 11 saturated ones (docs/decisions/generator_residual.md).
+With ``ema_decay`` it also holds an exponential moving average of the generator's weights (``generator_ema``),
+which the ``WeightAverage`` callback updates after every training step. The average is what validates and
+generates; checkpoints hold both, and ``from_checkpoint`` loads the average unless asked for the trained weights.
 
-With ``ema_decay`` it also keeps an exponential moving average of the generator's weights (``generator_ema``,
-updated after every training step). The average is what validates and generates; checkpoints hold both, and
-``from_checkpoint`` loads the average unless asked for the trained weights.
+The finiteness check, the discriminator watcher and the image grids are callbacks too
+(``tnf.generators.callbacks``), which read ``finite_check_every`` and ``grid_rows`` from the system's
+hyper-parameters.
 """
 
 from __future__ import annotations
 
 import copy
-import logging
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import lightning as L
-import numpy as np
 import torch
 
 from tnf import __version__, metrics
 from tnf.artifacts import CACHE_VERSION
 from tnf.data.dataset import mirror_batch, unmirror_channels
-from tnf.errors import NonFiniteLoss, TnfError
+from tnf.errors import TnfError
 from tnf.generators.base import Generator
 from tnf.registry import GENERATORS, config_to_dict, split_spec
 
@@ -45,16 +39,6 @@ CHECKPOINT_FORMAT = CACHE_VERSION
 
 #: Prefix of the averaged generator's weights in a checkpoint's state dict (``ema_decay``).
 AVERAGE_PREFIX = "generator_ema."
-
-#: An epoch's mean discriminator outputs at or beyond this (real) and 1 - this (generated): saturated.
-D_SATURATED = 0.95
-
-log = logging.getLogger(__name__)
-
-
-def discriminator_saturated(d_real: float, d_fake: float) -> bool:
-    """Whether mean discriminator outputs on real and generated images show it tells them apart (almost) always."""
-    return d_real >= D_SATURATED and d_fake <= 1.0 - D_SATURATED
 
 
 class _LightningOptimisation:
@@ -100,13 +84,13 @@ class GeneratorSystem(L.LightningModule):
             :func:`generator_config`, built from as it is (not checked again).
         epochs: total training epochs (for the learning-rate schedule).
         decay_epochs: the last ``decay_epochs`` epochs decay the learning rate linearly to zero (pix2pix).
-        grid_rows: validation pairs shown in the per-epoch image grid.
-        grid_dir: folder for ``epoch_XXX.png`` grids; None writes none.
-        finite_check_every: check the losses for NaN/Inf every this many steps (each check synchronises
-            with the GPU); they are always checked before validation and at the end of an epoch.
+        grid_rows: validation pairs shown in the per-epoch image grid (``ImageGrids``; 0: none).
+        finite_check_every: ``FiniteCheck`` checks the losses for NaN/Inf every this many steps (each check
+            synchronises with the GPU); they are always checked before validation and at the end of an epoch.
         ema_decay: keep an exponential moving average of the generator's weights with this decay per
-            training step (its first steps decay less: ``min(ema_decay, (1 + n) / (10 + n))`` after n updates),
-            and validate and generate with it; None keeps none.
+            training step (updated by ``WeightAverage``), and validate and generate with it; None keeps none.
+        compile_nets: run the generator's networks through ``torch.compile`` (True, or one of its modes by
+            name); a speed setting that checkpoints do not record.
     """
 
     ema_updates: torch.Tensor  # a buffer, with ema_decay only
@@ -117,7 +101,6 @@ class GeneratorSystem(L.LightningModule):
         epochs: int = 200,
         decay_epochs: int = 100,
         grid_rows: int = 8,
-        grid_dir: str | None = None,
         finite_check_every: int = 50,
         ema_decay: float | None = None,
         compile_nets: bool | str = False,
@@ -140,7 +123,6 @@ class GeneratorSystem(L.LightningModule):
                 "ema_decay": ema_decay,
             }
         )
-        self.grid_dir = grid_dir
         self.automatic_optimization = False
         self.generator: Generator = GENERATORS.get(name)(config)
         # The average is a copy that no optimiser or gradient touches; its update count is checkpointed with it.
@@ -148,17 +130,9 @@ class GeneratorSystem(L.LightningModule):
         if ema_decay is not None:
             self.generator_ema = copy.deepcopy(self.generator).requires_grad_(False)
             self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
-        self._ema_n: int | None = None  # ema_updates as a Python int, read once (reading it waits for the GPU)
         self._opt = _LightningOptimisation(self)
-        self._finite = True
-        self._last_losses: dict[str, torch.Tensor] = {}
-        self._bad: torch.Tensor | None = None
         self._epoch_samples = 0  # pairs this process trained on in the current epoch
-        self._d_sum: torch.Tensor | None = None  # this epoch's summed (d_real, d_fake), kept on the device
-        self._d_steps = 0
-        self._d_was_saturated = False
         self._val: dict[str, list[torch.Tensor]] = {}
-        self._grid_batch: dict[str, torch.Tensor] | None = None
 
     @property
     def generator_name(self) -> str:
@@ -170,12 +144,10 @@ class GeneratorSystem(L.LightningModule):
         return self.generator_ema if self.generator_ema is not None else self.generator
 
     def configure_model(self) -> None:
-        # Channels-last convolutions are markedly faster with cuDNN (tensor cores) and with oneDNN on a CPU
-        # (the quick start's generator: 40 against 31 pairs/s on 2 cores, bench/generators.py); the datasets'
-        # float batches are channels-last already. The state dict is the same in either layout. Converted here,
-        # before the strategy wraps the model: DDP lays out its gradient buckets after the parameters as they
-        # are then, and parameters converted later made every step copy gradients between the two layouts
-        # (torch's "Grad strides do not match bucket view strides" warning).
+        # Channels-last: faster convolutions with cuDNN and oneDNN (docs/decisions/train_channels_last.md); the
+        # datasets' float batches are channels-last already, and the state dict is the same in either layout.
+        # Converted here, before the strategy wraps the model: DDP lays out its gradient buckets after the
+        # parameters as they are then (parameters converted later make every step copy gradients).
         self.to(memory_format=torch.channels_last)
         if self.compile_nets:
             mode = self.compile_nets if isinstance(self.compile_nets, str) else None
@@ -218,44 +190,17 @@ class GeneratorSystem(L.LightningModule):
         scheds = [torch.optim.lr_scheduler.LambdaLR(o, factor) for o in opts]
         return opts, scheds
 
-    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
+        """One step of the generator's game; returns its losses (scalars), which the callbacks receive."""
         losses = self.generator.training_step(batch, self._opt)
-        self._update_average()
-        self._last_losses = losses
-        bad = torch.stack([~torch.isfinite(v.float()).all() for v in losses.values()]).any()
-        self._bad = bad if self._bad is None else (self._bad | bad)
-        every = self.hparams["finite_check_every"]
-        if every > 0 and (batch_idx + 1) % every == 0:
-            self._check_finite()
-        if "d_real" in losses and "d_fake" in losses:
-            d = torch.stack([losses["d_real"].detach().float(), losses["d_fake"].detach().float()])
-            self._d_sum = d if self._d_sum is None else self._d_sum + d
-            self._d_steps += 1
         bs = next(iter(batch.values())).shape[0]
         self.log_dict({f"train/{k}": v for k, v in losses.items()}, on_step=True, on_epoch=True, batch_size=bs)
         self._epoch_samples += bs
         for k in ("loss_g", "loss_d"):
             if k in losses:
                 self.log(k, losses[k], prog_bar=True, on_step=True, on_epoch=False, logger=False, batch_size=bs)
-
-    @torch.no_grad()
-    def _update_average(self) -> None:
-        """Move ``generator_ema`` towards the generator's weights (and float buffers); other buffers are copied."""
-        if self.generator_ema is None:
-            return
-        if self._ema_n is None:
-            self._ema_n = int(self.ema_updates)
-        decay = min(float(self.hparams["ema_decay"]), (1 + self._ema_n) / (10 + self._ema_n))
-        avg: list[torch.Tensor] = list(self.generator_ema.parameters())
-        cur: list[torch.Tensor] = list(self.generator.parameters())
-        torch._foreach_lerp_(avg, cur, 1.0 - decay)
-        for a, c in zip(self.generator_ema.buffers(), self.generator.buffers(), strict=True):
-            if a.is_floating_point():
-                a.lerp_(c, 1.0 - decay)
-            else:
-                a.copy_(c)
-        self.ema_updates.add_(1)
-        self._ema_n += 1
+        # Detached, as the generator's contract asks: a DDP wrapper searches the step's outputs for a graph.
+        return {k: v.detach() for k, v in losses.items()}
 
     def reset_average(self) -> None:
         """Start the average afresh from the generator's current weights (no-op without ``ema_decay``)."""
@@ -263,31 +208,11 @@ class GeneratorSystem(L.LightningModule):
             return
         self.generator_ema.load_state_dict(self.generator.state_dict())
         self.ema_updates.zero_()
-        self._ema_n = 0
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        self._ema_n = None  # resumed: read the restored count at the next update
-
-    def _check_finite(self) -> None:
-        bad = self._bad is not None and bool(self._bad)
-        if self._trainer is not None and self.trainer.world_size > 1:
-            # Every rank stops together (a rank that stopped alone would leave the others waiting).
-            bad = self.trainer.strategy.reduce_boolean_decision(bad, all=False)
-        if bad:
-            names = [k for k, v in self._last_losses.items() if not torch.isfinite(v.float()).all()]
-            raise NonFiniteLoss(
-                f"non-finite training loss ({', '.join(names) or 'earlier in the epoch'}) at epoch "
-                f"{self.current_epoch}, step {self.global_step}; training stopped (lower the learning rate, "
-                "use precision=32-true, or check the dataset for NaN)"
-            )
 
     def on_train_epoch_start(self) -> None:
         self._epoch_samples = 0
-        self._d_sum, self._d_steps = None, 0
 
     def on_train_epoch_end(self) -> None:
-        # Runs before the checkpoint callback: a diverged model never overwrites last.ckpt.
-        self._check_finite()
         # Pairs trained on this epoch by all processes, and by this one (process 0's in the logs): with DDP each
         # process trains on its own shard, so rank_samples is samples / world size. Summed here, in a hook every
         # process runs in the same order (a sync_dist metric is summed lazily, when a callback of process 0
@@ -296,7 +221,6 @@ class GeneratorSystem(L.LightningModule):
         total = self.trainer.strategy.reduce(n.clone(), reduce_op="sum") if self.trainer.world_size > 1 else n
         self.log("train/samples", total, on_epoch=True, on_step=False)
         self.log("train/rank_samples", n, on_epoch=True, on_step=False)
-        self._watch_discriminator()
         opts = self._opt.optimizers()
         for name, o in zip(self.generator.optimizer_names, opts):  # the rate this epoch trained with
             self.log(f"lr/{name}", o.param_groups[0]["lr"], on_epoch=True, on_step=False)
@@ -305,78 +229,24 @@ class GeneratorSystem(L.LightningModule):
             if s is not None:
                 s.step()
 
-    def _watch_discriminator(self) -> None:
-        if self._d_sum is None:
-            return
-        d = self._d_sum / self._d_steps
-        if self.trainer.world_size > 1:  # every process runs this hook in the same order (see above)
-            d = self.trainer.strategy.reduce(d, reduce_op="mean")
-        d_real, d_fake = (float(v) for v in d.tolist())
-        saturated = discriminator_saturated(d_real, d_fake)
-        self.log("train/d_saturated", float(saturated), on_epoch=True, on_step=False)
-        if saturated != self._d_was_saturated and self.global_rank == 0:
-            if saturated:
-                gen = self.hparams["generator"]
-                hints = ["generator.gan_mode=lsgan"] if gen.get("gan_mode") == "vanilla" else []
-                hints += ["generator.lambda_gan=0"] if "lambda_gan" in gen else []
-                log.warning(
-                    "epoch %d: the discriminator tells real from generated images apart almost always (mean "
-                    "outputs %.3f real, %.3f generated); while it does, its gradient pulls the generator away "
-                    "from the image losses. If it lasts, try %s.",
-                    self.current_epoch,
-                    d_real,
-                    d_fake,
-                    " or ".join([*hints, "another seed"]),
-                )
-            else:
-                log.warning(
-                    "epoch %d: the discriminator no longer saturates (mean outputs %.3f real, %.3f generated)",
-                    self.current_epoch,
-                    d_real,
-                    d_fake,
-                )
-        self._d_was_saturated = saturated
-
     # -- validation -------------------------------------------------------------------------------------
     def on_validation_epoch_start(self) -> None:
-        if not self.trainer.sanity_checking:
-            self._check_finite()
         self._val = {"l1": [], "ssim": [], "mse": []}
-        self._grid_batch = None
 
-    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
+        """Scores the generated images of a batch; returns them (``fake``, [B, 3, H, W] in [-1, 1])."""
         fake = self.generating.generate(batch).float()
         real = batch["tactile"].float()
         self._val["l1"].append((fake - real).abs().flatten(1).mean(1))
         self._val["ssim"].append(metrics.ssim(fake, real))
         self._val["mse"].append(metrics.mse(fake, real))
-        rows = self.hparams["grid_rows"]
-        if rows > 0 and (self._grid_batch is None or len(self._grid_batch["fake"]) < rows):
-            part = {k: v[:rows].detach().float().cpu() for k, v in batch.items() if v.ndim == 4}
-            part["fake"] = fake[:rows].detach().cpu()
-            if self._grid_batch is None:
-                self._grid_batch = part
-            else:
-                need = rows - len(self._grid_batch["fake"])
-                self._grid_batch = {
-                    k: torch.cat([self._grid_batch[k], part[k][:need]]) for k in self._grid_batch if k in part
-                }
+        return {"fake": fake}
 
     def on_validation_epoch_end(self) -> None:
         if not self._val["l1"]:
             return
         vals = {f"val_{k}": torch.cat(v).mean() for k, v in self._val.items()}
         self.log_dict(vals, prog_bar=True, sync_dist=True)
-        if self.trainer.sanity_checking or self._grid_batch is None or not self.trainer.is_global_zero:
-            return
-        grid = image_grid(self._grid_batch)
-        if self.grid_dir is not None:
-            from PIL import Image
-
-            os.makedirs(self.grid_dir, exist_ok=True)
-            Image.fromarray(grid).save(Path(self.grid_dir) / f"epoch_{self.current_epoch:03d}.png")
-        for logger in self.loggers:
-            _log_image(logger, grid, self.global_step)
 
     # -- checkpoints ------------------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -482,37 +352,3 @@ def load_generator(
     It generates with the weights' average where the checkpoint holds one; ``averaged=False`` with the weights
     as trained."""
     return GeneratorSystem.from_checkpoint(path, device, expected=expected, averaged=averaged, ema_decay=None).eval()
-
-
-# -- image grids ----------------------------------------------------------------------------------------
-def image_grid(batch: Mapping[str, torch.Tensor]) -> np.ndarray:
-    """Rows of RGB | depth | generated | target (the pair's touch) | absolute difference (x4, so small errors
-    show) as uint8 [rows*S, 5*S, 3]. ``batch`` holds [N, C, S, S] tensors in [-1, 1]: fake, tactile and optionally
-    rgb, depth."""
-    fake = batch["fake"].float().clamp(-1, 1)
-    n, _, h, w = fake.shape
-
-    def col(x: torch.Tensor | None) -> torch.Tensor:
-        if x is None:
-            return torch.zeros(n, 3, h, w)
-        x = x.float().clamp(-1, 1)
-        x = x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x
-        return (x + 1) / 2
-
-    target = batch["tactile"].float().clamp(-1, 1)
-    diff = ((fake - target).abs() * 2).clamp(0, 1)  # |a - b| / 2 in [0, 1], times 4
-    cols = [col(batch.get("rgb")), col(batch.get("depth")), col(fake), col(target), diff]
-    grid = torch.cat([torch.cat(cols, 3)], 0)  # [N, 3, H, 5W]
-    grid = grid.permute(0, 2, 3, 1).reshape(n * h, 5 * w, 3)
-    return (grid * 255).round().clamp(0, 255).to(torch.uint8).numpy()
-
-
-def _log_image(logger: Any, grid: np.ndarray, step: int) -> None:
-    name = type(logger).__name__
-    try:
-        if name == "TensorBoardLogger":
-            logger.experiment.add_image("val/grid", grid, step, dataformats="HWC")
-        elif name == "WandbLogger":
-            logger.log_image(key="val/grid", images=[grid], step=step)
-    except Exception:  # an image is a convenience; a logger hiccup must not stop training
-        pass

@@ -13,7 +13,7 @@ import logging
 import os
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,8 +22,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from tnf import __version__
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_bytes, write_json
-from tnf.errors import TnfError
-from tnf.generators.system import NonFiniteLoss
+from tnf.errors import NonFiniteLoss, TnfError
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
 
 RUN_FILE = "run.json"
@@ -140,6 +139,7 @@ def fit(
     config: Mapping[str, Any],
     trainer_cfg: Mapping[str, Any],
     logger_cfg: Mapping[str, Any] | None = None,
+    callbacks: Sequence[Callback] | None = None,
     resume: bool = True,
     progress: bool = True,
     limit_train_batches: int | float | None = None,
@@ -152,7 +152,9 @@ def fit(
     also goes into the run's ``manifest.json`` (best and last validation metrics, epochs, checkpoints).
 
     ``config`` is what the run is identified by (the manifest's config and hash); ``trainer_cfg`` holds
-    Lightning Trainer arguments (accelerator, devices, precision, strategy, ...). ``last.ckpt`` is written at
+    Lightning Trainer arguments (accelerator, devices, precision, strategy, ...); ``callbacks`` the run's
+    configurable callbacks (``tnf.generators.callbacks.build_callbacks``, default: those of the ``callbacks``
+    group's default option), which join the checkpoints and the progress bar. ``last.ckpt`` is written at
     the end of an epoch once ``checkpoint_every_s`` seconds have passed since it was last written (0: after
     every epoch), and always after the last epoch.
     """
@@ -162,9 +164,16 @@ def fit(
     from lightning.pytorch.callbacks import RichProgressBar
     from torch.multiprocessing import ProcessRaisedException
 
+    from tnf.generators.callbacks import WeightAverage, build_callbacks
+
+    extra = list(build_callbacks() if callbacks is None else callbacks)
+    if getattr(system, "generator_ema", None) is not None and not any(isinstance(c, WeightAverage) for c in extra):
+        raise TnfError(
+            "ema_decay keeps a weight average, but the weight_average callback that updates it is left out "
+            "(callbacks.weight_average=null)"
+        )
     run_dir = Path(run_dir)
     ckpt_path = prepare_run_dir(run_dir, config, resume)
-    system.grid_dir = str(run_dir / "grids")
     checkpoint = ModelCheckpoint(
         dirpath=str(run_dir),
         filename="best",
@@ -198,15 +207,15 @@ def fit(
     on_gpu = str(targs.get("accelerator", "auto")) != "cpu"
     if on_gpu:
         targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
-    callbacks: list[Any] = [checkpoint, latest, ProcessSetup(tf32=on_gpu)]
+    every: list[Any] = [checkpoint, latest, ProcessSetup(tf32=on_gpu), *extra]
     if progress:
-        callbacks.append(RichProgressBar(leave=True))
+        every.append(RichProgressBar(leave=True))
     _quiet_trainer_start()
     trainer = L.Trainer(
         default_root_dir=str(run_dir),
         max_epochs=system.hparams["epochs"],
         logger=make_loggers(logger_cfg, run_dir),
-        callbacks=callbacks,
+        callbacks=every,
         enable_progress_bar=progress,
         enable_model_summary=progress,
         limit_train_batches=limit_train_batches,

@@ -76,9 +76,10 @@ def fit_section(
     cfg: Any, section: Any, system: Any, dm: Any, run_dir: Any, config: dict[str, Any], info: dict[str, Any]
 ) -> dict[str, Any]:
     """Train ``system`` on ``dm`` into ``run_dir`` with the run settings of ``section`` (``cfg.train`` or
-    ``cfg.finetune``) and the ``trainer`` and ``logger`` groups; returns the run's summary."""
+    ``cfg.finetune``) and the ``trainer``, ``logger`` and ``callbacks`` groups; returns the run's summary."""
     from omegaconf import OmegaConf
 
+    from tnf.generators.callbacks import build_callbacks
     from tnf.generators.training import fit
 
     return fit(
@@ -88,6 +89,7 @@ def fit_section(
         config=config,
         trainer_cfg=trainer_args(cfg),
         logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
+        callbacks=build_callbacks(cast(dict[str, Any], OmegaConf.to_container(cfg.callbacks, resolve=True))),
         resume=bool(section.resume) and not bool(section.force),
         progress=bool(cfg.progress),
         limit_train_batches=section.limit_train_batches,
