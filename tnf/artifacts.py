@@ -10,6 +10,7 @@ finished, and parallel jobs writing different items never clobber each other.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import glob
 import hashlib
@@ -27,6 +28,7 @@ from typing import Any
 
 from tnf import __version__
 from tnf.errors import TnfError
+from tnf.registry import IDENTITY
 
 MANIFEST = "manifest.json"
 DEFAULT_ROOT = "./tnf-data"
@@ -45,13 +47,23 @@ def data_root(configured: str | os.PathLike[str] | None = None) -> Path:
 
 
 def config_hash(config: Mapping[str, Any]) -> str:
-    """A stable hash of a JSON-able config (key order does not matter)."""
+    """A stable hash of a JSON-able config (key order does not matter; settings dataclasses by ``identity``)."""
     keyed = {"cache_version": CACHE_VERSION, "config": _jsonable(config)}
     blob = json.dumps(keyed, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def identity(settings: Any) -> Any:
+    """What of ``settings`` makes an artifact what it is, as plain data: a dataclass becomes a dict of its fields
+    without those whose metadata says ``identity: False`` (``tnf.registry.IDENTITY``: a batch size, a device, a
+    redo switch), nested dataclasses, mappings and lists likewise. Every artifact key (``config_hash``) and every
+    manifest's ``config`` is built from this."""
+    return _jsonable(settings)
+
+
 def _jsonable(x: Any) -> Any:
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: _jsonable(getattr(x, f.name)) for f in dataclasses.fields(x) if f.metadata.get(IDENTITY, True)}
     try:
         from omegaconf import DictConfig, ListConfig, OmegaConf
 

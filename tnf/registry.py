@@ -26,6 +26,7 @@ import importlib.metadata as md
 import inspect
 import math
 import os
+import re
 import threading
 import types
 import typing
@@ -229,7 +230,13 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
     if unknown:
         raise TnfError(f"{where}: unknown key {unknown[0]!r}; valid keys: {', '.join(sorted(fields))}")
     hints = typing.get_type_hints(cls)
-    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    kwargs = {}
+    for k, v in data.items():
+        try:
+            kwargs[k] = _coerce(v, hints[k], f"{where}.{k}")
+        except TnfError as e:
+            hint = fields[k].metadata.get(HINT)
+            raise (TnfError(f"{e}{hint}") if hint else e) from None
     try:
         obj = cls(**kwargs)
     except (TypeError, ValueError) as e:
@@ -241,9 +248,29 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
     if callable(check):
         try:
             check()
+        except SettingError as e:
+            raise TnfError(f"{where}.{e.field}: {e.message}") from None
         except (ValueError, AssertionError) as e:
             raise TnfError(f"{where}: {e}") from None
     return obj
+
+
+class SettingError(ValueError):
+    """What ``validate()`` raises about one field: ``from_dict`` names it ``<where>.<field>: <message>``."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+def at_least(settings: Any, minimum: float, *names: str) -> None:
+    """Raise a ``SettingError`` for the first of the fields ``names`` of ``settings`` below ``minimum`` (None
+    passes: an unset optional setting)."""
+    for name in names:
+        value = getattr(settings, name)
+        if value is not None and value < minimum:
+            raise SettingError(name, f"must be >= {minimum}, got {value}")
 
 
 def _coerce(value: Any, tp: Any, where: str) -> Any:
@@ -254,6 +281,11 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
+        switch = _switch_names(args)
+        if switch is not None:  # true, false or a name
+            if isinstance(value, bool) or value in switch:
+                return value
+            raise TnfError(f"{where}: expected true, false or one of {', '.join(switch)}, got {value!r}")
         errors = []
         for a in args:
             if a is type(None):
@@ -293,7 +325,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise TnfError(f"{where}: expected an integer, got {value!r}")
+            raise TnfError(f"{where}: expected a whole number, got {value!r}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -310,6 +342,18 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
 
 def _name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _switch_names(args: tuple[Any, ...]) -> tuple[str, ...] | None:
+    """The names of a ``bool | Literal[names...]`` type's ``args`` (a switch that also takes a name); None for
+    any other union."""
+    rest = [a for a in args if a is not type(None)]
+    if len(rest) != 2 or bool not in rest:
+        return None
+    other = rest[1] if rest[0] is bool else rest[0]
+    if typing.get_origin(other) is not typing.Literal:
+        return None
+    return tuple(str(a) for a in typing.get_args(other))
 
 
 # -- defaults from YAML -----------------------------------------------------------------------------
@@ -347,7 +391,9 @@ def yaml_defaults(
 ) -> Callable[[type[T]], type[T]]:
     """Class decorator, under ``@dataclass``: every field's default is its value in ``<conf>/<option>.yaml``.
 
-    Each field of the class is written ``name: type = FROM_YAML``; this puts the file's value in its place.
+    Each field of the class is written ``name: type = FROM_YAML`` (or ``= yaml_field(...)``, with metadata); this
+    puts the file's value in its place. A value that interpolates another section's setting (``${touch.radius}``
+    in ``generate/default.yaml``) takes that setting's value in ``<conf>/<section>/default.yaml``.
 
     ``option`` is a config group option such as ``"generator/tn_cgan"``; ``conf`` the folder of the YAML files,
     tnf's own ``conf/`` (``tnf.env.conf_dir``) unless given (a plugin passes its package's ``conf`` folder).
@@ -379,7 +425,7 @@ def yaml_defaults(
         for k in declared:
             if k not in cls.__dict__:
                 raise TnfError(f"{where}: {cls.__qualname__}.{k} has no default; write `{k}: ... = FROM_YAML`")
-            if cls.__dict__[k] is not FROM_YAML:
+            if _declared_default(cls.__dict__[k]) is not FROM_YAML:
                 raise TnfError(f"{where}: {cls.__qualname__}.{k} has a default in the code too; write it once, here")
         for k in names:
             if k not in values:
@@ -391,7 +437,14 @@ def yaml_defaults(
         for k in names:
             value = _coerce(values[k], hints[k], f"{where}: {k}")
             annotations.setdefault(k, hints[k])  # an inherited field, declared again to take this file's default
-            if _shareable(value):
+            declared_as = cls.__dict__.get(k)
+            if isinstance(declared_as, dataclasses.Field):  # yaml_field(...): its metadata stays
+                if _shareable(value):
+                    declared_as.default = value
+                else:
+                    declared_as.default = dataclasses.MISSING
+                    declared_as.default_factory = functools.partial(copy.deepcopy, value)
+            elif _shareable(value):
                 setattr(cls, k, value)
             else:  # a list, a dict, a dataclass: each instance gets its own copy
                 setattr(cls, k, dataclasses.field(default_factory=functools.partial(copy.deepcopy, value)))
@@ -400,6 +453,28 @@ def yaml_defaults(
         return cls
 
     return apply
+
+
+IDENTITY = "identity"
+"""Field metadata key: ``False`` for a setting that changes how a stage runs (a batch size, a device, a redo
+switch) but not what it makes; ``tnf.artifacts.identity`` leaves such fields out of artifact keys."""
+HINT = "hint"
+"""Field metadata key: text that ends the message refusing a value of the field (where one is likely meant for
+another setting)."""
+
+
+def yaml_field(*, identity: bool = True, hint: str | None = None) -> Any:
+    """A field whose default is in the YAML (as ``FROM_YAML``), with metadata: ``identity=False`` leaves it out of
+    artifact keys (``IDENTITY``); ``hint`` ends the message that refuses a value (``HINT``)."""
+    metadata: dict[str, Any] = {IDENTITY: identity}
+    if hint:
+        metadata[HINT] = hint
+    return dataclasses.field(default=FROM_YAML, metadata=metadata)
+
+
+def _declared_default(value: Any) -> Any:
+    """A class attribute's default: a ``dataclasses.field``'s own default, or the attribute itself."""
+    return value.default if isinstance(value, dataclasses.Field) else value
 
 
 def defaults_source(config_class: type) -> str | None:
@@ -419,8 +494,26 @@ def _yaml_values(path: Path, node: str | None, where: str) -> dict[str, Any]:
     out = {str(k): v for k, v in values.items()}
     for k, v in out.items():
         if isinstance(v, str) and "${" in v:
-            raise TnfError(f"{where}: {k} is an interpolation ({v}); a default must be a value")
+            out[k] = _section_default(path.parent.parent, v, f"{where}: {k}")
     return out
+
+
+def _section_default(conf: Path, value: str, where: str) -> Any:
+    """The default that the interpolation ``value`` of another section's setting (``${touch.radius}``) stands for:
+    its value in ``<conf>/<section>/default.yaml``. Any other interpolation is an error."""
+    from omegaconf import OmegaConf
+
+    match = re.fullmatch(r"\$\{(\w+)\.([\w.]+)\}", value)
+    path = conf / match[1] / "default.yaml" if match else None
+    if match is None or path is None or not path.is_file():
+        raise TnfError(f"{where} is an interpolation ({value}); a default must be a value or another section's")
+    found = OmegaConf.select(OmegaConf.load(path), match[2], default=_MISSING_KEY)
+    if found is _MISSING_KEY or (isinstance(found, str) and "${" in found):
+        raise TnfError(f"{where}: {value} names no value in {path}")
+    return OmegaConf.to_container(found) if OmegaConf.is_config(found) else found
+
+
+_MISSING_KEY = object()
 
 
 def _shareable(value: Any) -> bool:

@@ -95,9 +95,9 @@ def test_touches_record_their_force_and_band(data_root):
         if t["split"] in ("train", "val"):
             assert t["force_band"] == "train" and not 4.0 < t["force_target"] < 5.0
     assert sorted(t["force_band"] for t in touches if t["split"] == "novel_view") == sorted(BANDS * 3)
-    # Left at its default (null) the range changes nothing: the item's identity is the fixed-force one.
+    # Left at its default (null) the range is recorded as null: every touch presses with touch.force.
     cfg = compose("touch", over)
-    assert "force_range" not in item_config(cfg, DIGIT)["touch"]
+    assert item_config(cfg, DIGIT)["touch"]["force_range"] is None
     assert item_config(cfg, DIGIT)["touch"]["force"] == 3.0
 
 

@@ -68,9 +68,9 @@ def test_unknown_name_lists_available():
     "params, message",
     [
         ({"sise": 3}, r"widget.plain: unknown key 'sise'; valid keys: mode, path, scale, shape, size, tags"),
-        ({"size": "3"}, r"widget.plain.size: expected an integer, got '3'"),
-        ({"size": 2.5}, r"widget.plain.size: expected an integer"),
-        ({"size": True}, r"widget.plain.size: expected an integer"),
+        ({"size": "3"}, r"widget.plain.size: expected a whole number, got '3'"),
+        ({"size": 2.5}, r"widget.plain.size: expected a whole number"),
+        ({"size": True}, r"widget.plain.size: expected a whole number"),
         ({"scale": "big"}, r"widget.plain.scale: expected a number"),
         ({"mode": "c"}, r"widget.plain.mode: expected one of 'a', 'b', got 'c'"),
         ({"tags": "x"}, r"widget.plain.tags: expected a list"),

@@ -112,7 +112,7 @@ def test_partial_takes_only_the_keys_that_are_fields(tmp_path):
         ("size: 3\n", {"size": int}, {"size": 3}, r"a\.yaml: Config\.size has a default in the code too"),
         ("size: 3\n", {"size": int, "scale": float}, {"scale": None}, r"a\.yaml: Config\.scale has a default in"),
         ("size: 3\nscale: 1\n", {"size": int, "scale": float}, {}, r"a\.yaml: Config\.scale has no default; wr"),
-        ("size: big\n", {"size": int}, {}, r"a\.yaml: size: expected an integer, got 'big'$"),
+        ("size: big\n", {"size": int}, {}, r"a\.yaml: size: expected a whole number, got 'big'$"),
         ("size: ${other}\n", {"size": int}, {}, r"a\.yaml: size is an interpolation"),
         ("- 3\n", {"size": int}, {}, r"a\.yaml: expected a mapping of settings"),
     ],
@@ -192,3 +192,59 @@ def test_from_yaml_is_one_object_that_copies_and_pickles_as_itself():
     assert repr(FROM_YAML) == "FROM_YAML" and type(FROM_YAML)() is FROM_YAML
     assert copy.copy(FROM_YAML) is FROM_YAML and copy.deepcopy([FROM_YAML])[0] is FROM_YAML
     assert pickle.loads(pickle.dumps(FROM_YAML)) is FROM_YAML
+
+
+def test_field_metadata_sets_identity_and_hints(tmp_path):
+    """``yaml_field`` keeps its metadata: a field outside identity is left out of artifact keys, and a refused
+    value's message ends with the field's hint."""
+    from dataclasses import field
+
+    from tnf.artifacts import config_hash, identity
+    from tnf.registry import SettingError, at_least, yaml_field
+
+    conf = write(tmp_path, "stage/default", "size: 3\nbatch: 8\nredo: false\nnested: {depth: 2, workers: 1}\n")
+
+    @dataclass
+    @yaml_defaults("stage/default", conf=conf, node="nested")
+    class Nested:
+        depth: int = FROM_YAML
+        workers: int = yaml_field(identity=False)
+
+    @dataclass
+    @yaml_defaults("stage/default", conf=conf)
+    class Settings:
+        size: int = FROM_YAML
+        batch: int = yaml_field(identity=False)
+        redo: bool = yaml_field(identity=False, hint=" (it redoes finished items)")
+        nested: Nested = field(default=FROM_YAML)
+
+        def validate(self) -> None:
+            at_least(self, 1, "batch")
+            if self.size > 10:
+                raise SettingError("size", f"must be <= 10, got {self.size}")
+
+    s = Settings()
+    assert (s.size, s.batch, s.redo, s.nested) == (3, 8, False, Nested(2, 1))
+    assert identity(s) == {"size": 3, "nested": {"depth": 2}}
+    assert config_hash({"s": from_dict(Settings, {"batch": 2, "nested": {"workers": 4}})}) == config_hash({"s": s})
+    assert config_hash({"s": from_dict(Settings, {"size": 4})}) != config_hash({"s": s})
+    for data, message in [
+        ({"redo": 3}, r"^stage\.redo: expected true or false, got 3 \(it redoes finished items\)$"),
+        ({"batch": 0}, r"^stage\.batch: must be >= 1, got 0$"),
+        ({"size": 11}, r"^stage\.size: must be <= 10, got 11$"),
+        ({"nested": {"depth": 1.5}}, r"^stage\.nested\.depth: expected a whole number, got 1\.5$"),
+    ]:
+        with pytest.raises(TnfError, match=message):
+            from_dict(Settings, data, where="stage")
+
+
+def test_an_interpolation_of_another_section_takes_its_default(tmp_path):
+    conf = write(tmp_path, "touch/default", "radius: 0.15\n")
+    write(conf, "generate/default", "radius: ${touch.radius}\n")
+
+    @dataclass
+    @yaml_defaults("generate/default", conf=conf)
+    class Settings:
+        radius: float = FROM_YAML
+
+    assert Settings().radius == 0.15

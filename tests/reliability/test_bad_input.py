@@ -100,7 +100,7 @@ def test_unknown_registry_name_lists_the_available_ones(capsys, data_root):
         ("capture", "capture.resolution=0", "resolution must be in 8..4096 pixels, got 0"),
         ("capture", "capture.num_views=0", "num_views must be >= 1"),
         ("touch", "sensor.width=0", "sensor.digit: image size must be at least 8x8 pixels, got 0x80"),
-        ("touch", "touch.radius=0", "touch.radius must be > 0"),
+        ("touch", "touch.radius=0", "touch.radius: must be > 0"),
         ("fit-scene", "fit.steps=-5", "steps"),
         ("train", "train.decay_epochs=9", "decay_epochs must be in [0, epochs=2], got 9"),
         ("train", "data.batch_size=0", "batch_size"),

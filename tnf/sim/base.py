@@ -10,7 +10,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -49,15 +49,15 @@ class Simulator(ABC):
     """Base class of tactile simulators: presses a sensor onto objects and renders its images.
 
     A subclass declares a nested ``Config`` dataclass and sets, in ``__init__(cfg, sensor, device)``:
-    ``cfg``, ``sensor`` and ``background`` (``[H, W, 3]`` uint8, the image without contact or noise).
+    ``cfg``, ``sensor`` and ``background`` (``[H, W, 3]`` uint8, the image without contact or noise). A Config
+    field that changes only how fast it runs, not its touches, says so (``yaml_field(identity=False)``): item
+    keys leave it out.
     ``device`` is a warp device name (``cpu``, ``cuda:0``); a simulator that runs elsewhere may ignore it.
     """
 
     cfg: Any
     sensor: Sensor
     background: np.ndarray
-    unhashed: ClassVar[tuple[str, ...]] = ()
-    """Config fields that change only how fast it runs, not its touches: item hashes leave them out."""
 
     @abstractmethod
     def press(self, mesh: Any, start_c2w: np.ndarray, force: float | np.ndarray, seed: int = 0) -> TouchBatch:
@@ -95,10 +95,10 @@ class Simulator(ABC):
 
 
 def simulator_key(spec: Mapping[str, Any]) -> dict[str, Any]:
-    """A simulator's config node (``{"name": ..., **fields}``) as item hashes record it: without the fields
-    its class lists in ``unhashed``."""
+    """A simulator's config node (``{"name": ..., **fields}``) as item keys record it: its validated Config's
+    identity (``tnf.artifacts.identity``)."""
+    from tnf.artifacts import identity
     from tnf.registry import SIMULATORS, split_spec
 
     name, params = split_spec(spec, "simulator")
-    skip = getattr(SIMULATORS.get(name), "unhashed", ())
-    return {"name": name, **{k: v for k, v in params.items() if k not in skip}}
+    return {"name": name, **identity(SIMULATORS.config(name, params))}

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from tnf.artifacts import require_space
-from tnf.registry import SIMULATORS
+from tnf.registry import FROM_YAML, SIMULATORS, SettingError, at_least, yaml_defaults
 from tnf.runtime import progress
 from tnf.sim.forces import force_sampler
 from tnf.sim.touch import collect
@@ -23,15 +23,54 @@ SPLITS = ("train", "val", "novel_view")
 
 
 @dataclass
+@yaml_defaults("touch/default")
+class TouchSettings:
+    """The ``touch`` section: where the sensor starts, how hard it presses, how many touches."""
+
+    n_touches: int = FROM_YAML
+    """Training touches per object (touches without contact do not count)."""
+    n_val: int = FROM_YAML
+    """Validation touches per object, from the same pose distribution as training."""
+    n_novel_view: int = FROM_YAML
+    """Touches per object from the held-out cone of start directions (novel viewpoints)."""
+    radius: float = FROM_YAML
+    """Distance of the start poses from the object centre, metres (the sensor starts outside the object)."""
+    force: float = FROM_YAML
+    """Target normal force of every press, newtons (within the sensor's force range)."""
+    force_range: dict[str, Any] | None = FROM_YAML
+    """Touches at many forces (docs/force.md): null presses every touch with ``force``; a section ``{min, max,
+    dist, interpolation, extrapolation}`` (newtons; ``tnf.sim.forces.force_plan`` checks it against the sensor)
+    draws each touch's force."""
+    batch_size: int = FROM_YAML
+    """Touches simulated in one launch (it sets the noise seed of each launch: part of an item's identity)."""
+    random_roll: bool = FROM_YAML
+    """Rotate each sensor randomly about its view axis; false: the roll is fixed by ``up``."""
+    up: tuple[float, float, float] = FROM_YAML
+    """World up vector that fixes the sensor's roll (image +y toward it)."""
+    novel_view_axis: tuple[float, float, float] = FROM_YAML
+    """Centre direction of the held-out cone of start directions."""
+    novel_view_cone: float = FROM_YAML
+    """Half-angle of the held-out cone, degrees (training and validation starts lie outside it); 0: no cone."""
+    max_attempts: int = FROM_YAML
+    """Give up after ``max_attempts * n`` tries without ``n`` touches that made contact."""
+
+    def validate(self) -> None:
+        at_least(self, 0, "n_touches", "n_val", "n_novel_view", "max_attempts")
+        at_least(self, 1, "batch_size")
+        if self.radius <= 0:
+            raise SettingError("radius", f"must be > 0 metres, got {self.radius}")
+
+
+@dataclass
 class TouchJob:
-    """What ``tnf touch`` simulates: plain values, built from the run's config by the stage.
+    """What ``tnf touch`` simulates, built from the run's config by the stage.
 
     ``settings`` is the ``touch`` section; ``simulator`` the simulator group's config node as a plain dict;
     ``config`` what decides an item's content (its hash); ``plan`` the force plan (None: every touch presses
-    with ``settings["force"]``); ``names`` the objects still to simulate.
+    with ``settings.force``); ``names`` the objects still to simulate.
     """
 
-    settings: dict[str, Any]
+    settings: TouchSettings
     sensor: Any
     simulator: dict[str, Any]
     source: Any
@@ -79,7 +118,7 @@ def simulate_touches(job: TouchJob, store: Any, console: Any) -> None:
 
     tc = job.settings
     sim = SIMULATORS.build(job.simulator, sensor=job.sensor, device=job.device)
-    counts = {"train": int(tc["n_touches"]), "val": int(tc["n_val"]), "novel_view": int(tc["n_novel_view"])}
+    counts = {"train": tc.n_touches, "val": tc.n_val, "novel_view": tc.n_novel_view}
     # What an item takes on disk, at least: its background, and each touch about the size of the background at the
     # touches' compression (a touch adds contact shading to it, so it compresses a little worse: ~1.3x measured).
     background_png = _png(sim.background)
@@ -177,11 +216,11 @@ def _collect(job: TouchJob, sim: Any, mesh: Any, count: int, rng: Any, split: st
     """``count`` touches of one split (``tnf.sim.touch.collect``) with the touch section's settings."""
 
     tc = job.settings
-    force = float(tc["force"]) if job.plan is None else force_sampler(job.plan, split, seed)
+    force = tc.force if job.plan is None else force_sampler(job.plan, split, seed)
     return collect(
         sim, mesh, count, rng,
-        radius=float(tc["radius"]), force=force, batch_size=int(tc["batch_size"]),
-        axis=list(tc["novel_view_axis"]), cone_deg=float(tc["novel_view_cone"]),
-        inside=split == "novel_view", up=list(tc["up"]), random_roll=bool(tc["random_roll"]),
-        seed=seed, max_attempts=int(tc["max_attempts"]),
+        radius=tc.radius, force=force, batch_size=tc.batch_size,
+        axis=list(tc.novel_view_axis), cone_deg=tc.novel_view_cone,
+        inside=split == "novel_view", up=list(tc.up), random_roll=tc.random_roll,
+        seed=seed, max_attempts=tc.max_attempts,
     )  # fmt: skip

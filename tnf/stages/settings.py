@@ -59,10 +59,29 @@ def schema() -> dict[str, Any]:
     return out
 
 
+TYPED = {
+    "touch": "tnf.sim.items:TouchSettings",
+}
+"""The sections validated into their settings dataclass (``module:class``), as the stage itself does."""
+
+
+def settings_class(section: str) -> type | None:
+    """The settings dataclass of ``section`` (``TYPED``), or None for a section checked by its defaults' types."""
+    import importlib
+
+    if section not in TYPED:
+        return None
+    module, _, name = TYPED[section].partition(":")
+    cls: type = getattr(importlib.import_module(module), name)
+    return cls
+
+
 def check_settings(cfg: Any) -> None:
     """Raise a one-line TnfError naming the first setting of ``cfg`` whose value does not fit its default's type."""
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
+
+    from tnf.registry import from_dict
 
     for key, default in schema().items():
         if key not in cfg:
@@ -73,7 +92,11 @@ def check_settings(cfg: Any) -> None:
                 value = OmegaConf.to_container(value, resolve=True)
             except OmegaConfBaseException:  # an interpolation only a running Hydra job resolves: left to the stage
                 continue
-        _check(value, default, key)
+        cls = settings_class(key)
+        if cls is not None:
+            from_dict(cls, value, where=key)
+        else:
+            _check(value, default, key)
 
 
 def _check(value: Any, default: Any, where: str) -> None:

@@ -10,31 +10,26 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.artifacts import ArtifactStore
-from tnf.errors import TnfError
+from tnf.artifacts import ArtifactStore, identity
 from tnf.objects.captured import import_touches
-from tnf.registry import SENSORS, split_spec
+from tnf.registry import SENSORS, from_dict, split_spec
 from tnf.runtime import job_device, resolve_device, warp_device
 from tnf.sim.base import simulator_key
 from tnf.sim.forces import force_plan
-from tnf.sim.items import SPLITS, TouchJob, simulate_touches
+from tnf.sim.items import SPLITS, TouchJob, TouchSettings, simulate_touches
 from tnf.stages import run_objects, run_shard, shard_share
 
 __all__ = ["SPLITS", "item_config", "run"]
 
 
-def item_config(cfg: Any, sensor: Any) -> dict[str, Any]:
-    """What decides a touch item's content (its hash decides whether a finished item is reused)."""
-    from omegaconf import OmegaConf
-
-    touch = OmegaConf.to_container(cfg.touch, resolve=True)
-    assert isinstance(touch, dict)
-    if touch.get("force_range") is None:  # fixed-force items keep the hash they had before force ranges existed
-        touch.pop("force_range", None)
+def item_config(cfg: Any, sensor: Any, settings: TouchSettings | None = None) -> dict[str, Any]:
+    """What decides a touch item's content (its hash decides whether a finished item is reused); ``settings``:
+    the ``touch`` section, checked (from ``cfg`` when not given)."""
+    tc = settings if settings is not None else from_dict(TouchSettings, cfg.touch, where="touch")
     return {
         "sensor": sensor.describe(),
         "simulator": split_spec(simulator_key(cfg.simulator), "simulator"),
-        "touch": touch,
+        "touch": identity(tc),
         "seed": int(cfg.seed),
     }
 
@@ -44,23 +39,18 @@ def run(cfg: Any) -> None:
     from rich.console import Console
 
     console = Console(highlight=False)
-    tc = cfg.touch
+    tc = from_dict(TouchSettings, cfg.touch, where="touch")
     store = ArtifactStore(cfg.data_root)
     sensor = SENSORS.build(cfg.sensor)
-    sensor.check_force(float(tc.force))
-    force_range = tc.get("force_range")
-    if OmegaConf.is_config(force_range):
-        force_range = OmegaConf.to_container(force_range, resolve=True)
-    plan = force_plan(force_range, sensor)  # None: every touch presses with touch.force
-    if tc.radius <= 0:
-        raise TnfError(f"touch.radius must be > 0 metres, got {tc.radius}")
+    sensor.check_force(tc.force)
+    plan = force_plan(tc.force_range, sensor)  # None: every touch presses with touch.force
     source, names = run_objects(cfg)
     names = shard_share(names, cfg)  # a job of a sweep over shards: its share
     if any(source.touches(n) is not None for n in names):  # the source's own tactile frames: imported, not simulated
         for n in names:
-            console.print(import_touches(store, sensor, source, n, start_radius=float(tc.radius)))
+            console.print(import_touches(store, sensor, source, n, start_radius=tc.radius))
         return
-    config = item_config(cfg, sensor)
+    config = item_config(cfg, sensor, tc)
     todo = [n for n in names if not store.is_done("touch", sensor.name, source.name, n, config=config)]
     for n in names:
         if n not in todo:
@@ -68,7 +58,7 @@ def run(cfg: Any) -> None:
     if not todo:
         return
     job = TouchJob(
-        settings=OmegaConf.to_container(tc, resolve=True),  # type: ignore[arg-type]
+        settings=tc,
         sensor=sensor,
         simulator=OmegaConf.to_container(cfg.simulator, resolve=True),  # type: ignore[arg-type]
         source=source,

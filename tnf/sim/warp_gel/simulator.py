@@ -12,7 +12,7 @@ import numpy as np
 import warp as wp
 
 from tnf.errors import TnfError
-from tnf.registry import FROM_YAML, yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults, yaml_field
 from tnf.runtime import check_memory, init_warp
 from tnf.sensors.base import Sensor
 from tnf.sim.base import Simulator, TouchBatch
@@ -57,8 +57,6 @@ class _PressBuffers:
 class WarpGel(Simulator):
     """Elastic gel pressed with a constant force, ray cast and shaded in NVIDIA Warp (CPU or CUDA)."""
 
-    unhashed = ("cpu_threads",)
-
     @dataclass
     @yaml_defaults("simulator/warp_gel")
     class Config:
@@ -72,7 +70,7 @@ class WarpGel(Simulator):
         """Decay length of the gel's deformation around the contact, as a multiple of the gel thickness."""
         max_distance: float = FROM_YAML
         """Longest ray cast from the gel toward the object, metres."""
-        cpu_threads: int = FROM_YAML
+        cpu_threads: int = yaml_field(identity=False)
         """Threads that share a batch on the ``cpu`` device (warp runs each CPU launch on one thread); 1 = off."""
 
         def validate(self) -> None:
