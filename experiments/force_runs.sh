@@ -52,7 +52,7 @@ case "$1" in
     run_one() {  # run_one KIND SEED
       case $1 in
         plane) TNF_DATA=$force tnf pipeline experiment=sim_digit_force "${dev[@]}" seed=$2 generator.force=plane \
-          "pipeline.stages=$stages" ;;
+          train.run_name=tn_cgan_force-digit-force-seed$2 "pipeline.stages=$stages" ;;
         film) TNF_DATA=$force tnf train experiment=sim_digit_force "${dev[@]}" seed=$2 generator.force=film \
           train.run_name=tn_cgan_film-digit-force-seed$2 ;;
         tn) TNF_DATA=$paper tnf pipeline experiment=sim_digit "${dev[@]}" seed=$2 generator=tn_cgan \
@@ -79,7 +79,7 @@ def at_best(run):
     rows = [r for r in csv.DictReader(open(models / run / "metrics.csv")) if r.get("val_l1")]
     best = min(rows, key=lambda r: float(r["val_l1"]))
     return int(float(best["epoch"])), float(best["val_ssim"])
-(ep_p, plane), (ep_f, film) = at_best("tn_cgan-digit-force-seed0"), at_best("tn_cgan_film-digit-force-seed0")
+(ep_p, plane), (ep_f, film) = at_best("tn_cgan_force-digit-force-seed0"), at_best("tn_cgan_film-digit-force-seed0")
 print(f"plane: validation SSIM {plane:.4f} at its lowest validation L1 (epoch {ep_p})")
 print(f"film:  validation SSIM {film:.4f} at its lowest validation L1 (epoch {ep_f})")
 pick = "film" if film >= plane + 0.001 else "plane"
@@ -92,7 +92,7 @@ PY
     pick=$(chosen)
     pids=() i=0
     for s in $seeds; do
-      run=tn_cgan-digit-force-seed$s
+      run=tn_cgan_force-digit-force-seed$s
       [[ $pick == film ]] && run=tn_cgan_film-digit-force-seed$s
       ( if ((gpus > 1)); then export CUDA_VISIBLE_DEVICES=$((i % gpus)); fi
         TNF_DATA=$force timed "at-3n-seed$s" tnf evaluate experiment=sim_digit_force "${dev[@]}" seed=$s generator.force=$pick \

@@ -95,17 +95,21 @@ def test_the_transfer_frames_its_pairs_as_the_model_it_fine_tunes():
 
 def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
     """T-N and FS fine-tune on 5 touches per training object, T-N+ on the same 5 and 45 more in all (the paper's
-    "additional 45 training images"); each variant's model gets its own run name."""
-    from tnf.stages.pipeline import finetune_run_name
+    "additional 45 training images"); each variant's model gets its own run id: its transfer option names it,
+    and the settings its hash covers differ."""
+    from tnf.generators.names import finetune_option
+    from tnf.stages.train import run_config
+    from tnf.testing import hydra_job
 
-    names = {}
+    options, settings = {}, {}
     for variant in ("tn", "tn_plus", "fs"):
-        cfg = compose("pipeline", ["experiment=sim_omnitact_transfer", f"transfer={variant}"])
-        assert cfg.data.per_object == 5
-        assert cfg.data.extra_touches == (45 if variant == "tn_plus" else 0)
-        names[variant] = finetune_run_name(cfg)
-    assert names["tn_plus"] == names["tn"].replace("-5pt-", "-5pt+45-")
-    assert "-scratch-5pt-" in names["fs"] and len(set(names.values())) == 3
+        with hydra_job("pipeline", ["experiment=sim_omnitact_transfer", f"transfer={variant}"]) as cfg:
+            assert cfg.data.per_object == 5
+            assert cfg.data.extra_touches == (45 if variant == "tn_plus" else 0)
+            options[variant] = finetune_option("tn_cgan")
+            settings[variant] = run_config(cfg, "finetune", (), source=cfg.finetune.checkpoint)
+    assert all(options[v].endswith(f"+{v}") for v in options) and len(set(options.values())) == 3
+    assert settings["tn"] != settings["tn_plus"] != settings["fs"] != settings["tn"]
 
 
 def test_every_component_takes_its_defaults_from_its_yaml():
@@ -175,11 +179,17 @@ def test_run_wide_settings_take_their_types_from_base_yaml():
 
 
 def test_the_transfer_variants_start_from_the_digit_model_the_pipeline_names():
-    """T-N and T-N+ name their source model by hand: it must be the run `tnf pipeline experiment=sim_digit`
-    trains with the same seed."""
-    from tnf.stages.pipeline import model_run_name
+    """T-N and T-N+ name their source model by its run family (its run id without the settings hash): it must be
+    the family of the run `tnf pipeline experiment=sim_digit` trains with the same seed."""
+    import re
 
-    digit = model_run_name(compose("pipeline", ["experiment=sim_digit", "seed=2"]))
+    from tnf.generators.names import HASH_CHARS
+    from tnf.stages.train import model_run
+    from tnf.testing import hydra_job
+
+    with hydra_job("pipeline", ["experiment=sim_digit", "seed=2"]) as cfg:
+        digit = model_run(cfg)
     for variant in ("tn", "tn_plus"):
         cfg = compose("pipeline", ["experiment=sim_omnitact_transfer", f"transfer={variant}", "seed=2"])
-        assert cfg.finetune.checkpoint == digit == "tn_cgan-digit-hashgrid-seed2"
+        assert cfg.finetune.checkpoint == "tn_cgan-digit-hashgrid-seed2"
+        assert re.fullmatch(rf"{cfg.finetune.checkpoint}-[0-9a-f]{{{HASH_CHARS}}}", digit), digit

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from tests.generators.synthetic import make_pairs
-from tests.generators.test_stages import write_pairs
+from tests.generators.test_stages import model_of, write_pairs
 from tnf.generators import load_generator
 
 DDP = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]
@@ -39,7 +39,7 @@ def test_ddp_train_writes_one_complete_loadable_run_with_sharded_epochs(data_roo
     # 12 pairs: 8 train, 4 val; two processes of batch 4 -> one step of 4 pairs each per epoch.
     write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
     tnf("train", *TINY, root=data_root)
-    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
+    run_dir = data_root / "models" / model_of("train", *TINY)
     for f in ("last.ckpt", "best.ckpt", "metrics.csv", "manifest.json", "grids/epoch_000.png", "grids/epoch_001.png"):
         assert (run_dir / f).is_file(), f
     # Written by process 0 alone: no second metrics file, no temporary or partial files anywhere.
@@ -103,7 +103,7 @@ def test_killed_ddp_run_resumes_from_its_last_checkpoint(data_root):
     write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
     args = ["-m", "tnf.cli", "train", *TINY, "train.epochs=3", "train.decay_epochs=0"]
     env = {**os.environ, "TNF_DATA": str(data_root), "OMP_NUM_THREADS": "1"}
-    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
+    run_dir = data_root / "models" / model_of(*args[2:])
     # Kill the whole process group (the command and its DDP processes) once the first epoch's checkpoint is
     # there, as a lost node would.
     proc = subprocess.Popen(
@@ -161,8 +161,8 @@ def test_ddp_with_processes_started_by_torchrun(data_root):
     cmd = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "tnf.cli", "train", *TINY]
     out = subprocess.run([sys.executable, *cmd], capture_output=True, text=True, env=env, timeout=600)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
-    assert out.stdout.count("tn_cgan_digit-hashgrid: 2 epochs") == 1  # the summary, from process 0 alone
-    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
+    run_dir = data_root / "models" / model_of("train", *TINY)
+    assert out.stdout.count(f"{run_dir.name}: 2 epochs") == 1  # the summary, from process 0 alone
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["world_size"] == 2 and manifest["epochs"] == 2 and manifest["global_step"] == 2
     rows = epoch_rows(run_dir, "train/samples")
@@ -184,7 +184,7 @@ def test_diverged_ddp_run_stops_every_process_with_a_one_line_error(data_root):
     assert out.returncode == 1
     assert "error: non-finite training loss" in out.stderr and "in DDP process" in out.stderr
     assert "Traceback" not in out.stderr
-    assert not (data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").exists()
+    assert not (data_root / "models" / model_of("train", *TINY) / "manifest.json").exists()
 
 
 @pytest.mark.parametrize(

@@ -14,20 +14,22 @@ from tnf.errors import TnfError
 from tnf.scenes import save_scene
 from tnf.testing import compose
 
+SHORT = ["train.epochs=1", "train.decay_epochs=0"]
+
 
 @pytest.fixture
 def trained_model(data_root):
     from tnf.stages import train
 
     write_pairs(data_root / "pairs" / "digit-hashgrid", n=6)
-    train.run(compose("train", [*TINY, "train.epochs=1", "train.decay_epochs=0"]))
+    out = train.run(compose("train", [*TINY, *SHORT]))
     # The object's fitted scene and the capture camera the crop is measured in.
     save_scene(SphereScene(SphereScene.Config(radius=0.04)), data_root / "scenes" / "hashgrid" / "builtin" / "ball")
     write_json(
         data_root / "capture" / "builtin" / "ball" / "transforms.json",
         {"fl_x": 200.0, "fl_y": 200.0, "w": 128, "h": 128},
     )
-    return "tn_cgan_digit-hashgrid"
+    return out["run_name"]
 
 
 GEN = [*TINY, "object=ball", "device=cpu", "generate.crop_px=48", "generate.radius=0.1"]
@@ -54,11 +56,8 @@ def test_generate_writes_a_touch_dataset(data_root, trained_model):
     assert (folder / "background.png").is_file()
     manifest = json.loads((folder / "manifest.json").read_text())
     assert manifest["sensor"]["name"] == "digit" and manifest["generator"]["name"] == "tn_cgan"
-    # Same settings again: nothing to do.
-    assert (
-        generate.run(compose("generate", [*GEN, f"generate.model={trained_model}", "generate.n_poses=5"]))["written"]
-        == {}
-    )
+    # Same settings again, the model left to its default (the one `tnf train` trains with this config): nothing to do.
+    assert generate.run(compose("generate", [*GEN, *SHORT, "generate.n_poses=5"]))["written"] == {}
 
 
 def test_generate_from_a_poses_file(data_root, trained_model, tmp_path):
@@ -132,7 +131,8 @@ def test_generate_directions_errors(data_root, trained_model):
 def test_generate_errors(data_root, trained_model):
     from tnf.stages import generate
 
-    with pytest.raises(TnfError, match="generate.model is not set"):
+    # Without generate.model: the model `tnf train` trains with the same config, here not trained.
+    with pytest.raises(TnfError, match=r"checkpoint not found: .*/models/tn_cgan-digit-hashgrid-seed0-\w+/best.ckpt"):
         generate.run(compose("generate", GEN))
     with pytest.raises(TnfError, match="checkpoint not found"):
         generate.run(compose("generate", [*GEN, "generate.model=nope"]))

@@ -41,6 +41,15 @@ def write_pairs(folder, n=12, seed=0, objects=("ball", "box")):
 TINY = ["debug=tiny", "progress=false", "data.batch_size=4"]
 
 
+def model_of(stage, *overrides):
+    """The run id `tnf <stage> <overrides>` gives the model of its config (its generator option from Hydra)."""
+    from tnf.stages.train import model_run
+    from tnf.testing import hydra_job
+
+    with hydra_job(stage, overrides) as cfg:
+        return model_run(cfg)
+
+
 def test_train_stage_writes_a_loadable_run(data_root, monkeypatch):
     from tnf.registry import GENERATORS
     from tnf.stages import train
@@ -52,8 +61,8 @@ def test_train_stage_writes_a_loadable_run(data_root, monkeypatch):
         m.setattr(GENERATORS, "config", lambda name, params=None: checks.append(name) or check(name, params))
         out = train.run(cfg)
     assert checks == ["tn_cgan"]  # the spec is checked once: the system builds from the stage's checked Config
-    run_dir = data_root / "models" / "tn_cgan_digit-hashgrid"
-    assert out["run_dir"] == str(run_dir)
+    run_dir = data_root / "models" / out["run_name"]
+    assert out["run_dir"] == str(run_dir) and out["run_name"].startswith("tn_cgan-digit-hashgrid-seed0-")
     for f in ("last.ckpt", "best.ckpt", "metrics.csv", "manifest.json", "grids/epoch_001.png"):
         assert (run_dir / f).is_file(), f
     manifest = json.loads((run_dir / "manifest.json").read_text())
@@ -63,10 +72,12 @@ def test_train_stage_writes_a_loadable_run(data_root, monkeypatch):
     assert system.hparams["generator"]["ngf"] == 8
     batch = {k: v for k, v in make_pairs(2, 128).items()}
     assert system.generate(batch).shape == (2, 3, 128, 128)
-    # Same settings again: skipped; other settings into the same run folder: refused.
+    # Same settings again: skipped; other settings: another run; other settings into the same run folder: refused.
     assert train.run(cfg)["skipped"]
+    assert train.model_run(compose("train", [*TINY, "generator.lambda_l1=10"])) != out["run_name"]
     with pytest.raises(TnfError, match="another config"):
-        train.run(compose("train", [*TINY, "generator.lambda_l1=10", "train.resume=true"]))
+        named = [f"train.run_name={out['run_name']}", "train.resume=true"]
+        train.run(compose("train", [*TINY, "generator.lambda_l1=10", *named]))
 
 
 def test_train_stage_prints_no_lightning_advice(data_root, recwarn, caplog):
@@ -107,7 +118,7 @@ def test_train_stage_with_the_mirror_augmentation(data_root):
         train.run(compose("train", [*TINY, "data.augment=[flip]"]))
     assert not (data_root / "models").exists()  # refused before anything was written
     out = train.run(compose("train", [*TINY, "data.augment=[mirror,jitter]", "train.epochs=1", "train.decay_epochs=0"]))
-    manifest = json.loads((data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").read_text())
+    manifest = json.loads((data_root / "models" / out["run_name"] / "manifest.json").read_text())
     assert manifest["epochs"] == 1 and 0 < out["last"]["val_ssim"] < 1
     assert manifest["config"]["data"]["augment"] == ["mirror", "jitter"]
 
@@ -118,14 +129,14 @@ def test_train_and_finetune_stages_with_a_weight_average(data_root):
     write_pairs(data_root / "pairs" / "digit-hashgrid")
     write_pairs(data_root / "pairs" / "omnitact-hashgrid", n=6, seed=3)
     out = train.run(compose("train", [*TINY, "train.ema_decay=0.9", "train.epochs=1", "train.decay_epochs=0"]))
-    manifest = json.loads((data_root / "models" / "tn_cgan_digit-hashgrid" / "manifest.json").read_text())
+    manifest = json.loads((data_root / "models" / out["run_name"] / "manifest.json").read_text())
     assert manifest["config"]["train"]["ema_decay"] == 0.9
     state = torch.load(f"{out['run_dir']}/best.ckpt", weights_only=True)["state_dict"]
     assert int(state["ema_updates"]) == out["global_step"] > 0  # no adversarial term: one optimiser step a batch
     with pytest.raises(TnfError, match="ema_decay must be in"):
-        finetune.run(compose("finetune", [*TINY, "finetune.checkpoint=tn_cgan_digit-hashgrid", "finetune.ema_decay=2"]))
+        finetune.run(compose("finetune", [*TINY, f"finetune.checkpoint={out['run_name']}", "finetune.ema_decay=2"]))
     ft = finetune.run(
-        compose("finetune", [*TINY, "data.datasets=[omnitact-hashgrid]", "finetune.checkpoint=tn_cgan_digit-hashgrid"])
+        compose("finetune", [*TINY, "data.datasets=[omnitact-hashgrid]", f"finetune.checkpoint={out['run_name']}"])
     )
     ft_state = torch.load(f"{ft['run_dir']}/last.ckpt", weights_only=True)["state_dict"]
     assert not any(k.startswith("generator_ema.") for k in ft_state)  # finetune.ema_decay is its own (null)
@@ -146,13 +157,13 @@ def test_finetune_stage_from_checkpoint_and_from_scratch(data_root):
     write_pairs(data_root / "pairs" / "digit-hashgrid")
     write_pairs(data_root / "pairs" / "omnitact-hashgrid", n=6, seed=3)
     train.run(compose("train", TINY))
-    src = data_root / "models" / "tn_cgan_digit-hashgrid" / "best.ckpt"
+    src = data_root / "models" / train.model_run(compose("train", TINY)) / "best.ckpt"
     src_bytes = src.read_bytes()
     ft = [*TINY, "data.datasets=[omnitact-hashgrid]"]
-    out = finetune.run(
-        compose("finetune", [*ft, "finetune.checkpoint=tn_cgan_digit-hashgrid", "finetune.freeze=[net_g.encoders.rgb]"])
-    )
-    assert out["run_dir"].endswith("tn_cgan_digit-hashgrid_ft_omnitact-hashgrid")
+    # The source named by its run family: the one finished run of that generator, dataset and seed.
+    frozen = ["finetune.checkpoint=tn_cgan-digit-hashgrid-seed0", "finetune.freeze=[net_g.encoders.rgb]"]
+    out = finetune.run(compose("finetune", [*ft, *frozen]))
+    assert out["run_name"].startswith("tn_cgan+ft-omnitact-hashgrid-seed0-")
     assert src.read_bytes() == src_bytes
     a = torch.load(src, weights_only=True)["state_dict"]
     b = torch.load(f"{out['run_dir']}/last.ckpt", weights_only=True)["state_dict"]
@@ -164,7 +175,8 @@ def test_finetune_stage_from_checkpoint_and_from_scratch(data_root):
     assert manifest["source"]["checkpoint"] == str(src.resolve()) and manifest["frozen"]
 
     scratch = finetune.run(compose("finetune", ft))
-    assert scratch["run_dir"].endswith("scratch_tn_cgan_omnitact-hashgrid")
+    assert scratch["run_name"].startswith("tn_cgan+ft-omnitact-hashgrid-seed0-")
+    assert scratch["run_name"] != out["run_name"]
     c = torch.load(f"{scratch['run_dir']}/last.ckpt", weights_only=True)["state_dict"]
     assert not torch.equal(a[rgb[0]], c[rgb[0]])
 

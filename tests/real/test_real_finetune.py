@@ -112,7 +112,7 @@ def test_finetune_stage_on_a_press_folder(checkpoint, root, taxim_presses, capsy
     # The same settings again: skipped; from scratch: its own run.
     assert finetune.run(compose("finetune", real))["skipped"]
     scratch = finetune.run(compose("finetune", [*real[:-1], "finetune.checkpoint=null", "finetune.press_test=[]"]))
-    assert scratch["run_dir"].endswith(f"scratch_tn_cgan_presses-{taxim_presses.folder.name}-gelsight_mini")
+    assert scratch["run_name"].startswith(f"tn_cgan+ft-presses-{taxim_presses.folder.name}-gelsight_mini-seed0-")
 
 
 @pytest.mark.parametrize(
@@ -138,14 +138,18 @@ def test_finetune_stage_refuses_bad_press_settings_in_one_line(root, taxim_press
 def test_the_real_transfers_start_from_the_model_the_pipeline_names(variant):
     """transfer=real and real_plus fine-tune the T-N model `tnf pipeline experiment=sim_gelsight_mini` trains with
     the same seed; real_fs trains that network from scratch; all train on the calibration's training presses."""
-    from tnf.stages.pipeline import model_run_name
+    from tnf.generators.names import HASH_CHARS
     from tnf.stages.settings import check_settings
-    from tnf.testing import compose
+    from tnf.stages.train import model_run
+    from tnf.testing import compose, hydra_job
 
-    mini = model_run_name(compose("pipeline", ["experiment=sim_gelsight_mini", "seed=1"]))
+    with hydra_job("pipeline", ["experiment=sim_gelsight_mini", "seed=1"]) as cfg:
+        mini = model_run(cfg)
     cfg = compose("finetune", ["experiment=sim_gelsight_mini", f"transfer={variant}", "seed=1"])
     check_settings(cfg)
-    assert cfg.finetune.checkpoint == (None if variant == "real_fs" else mini)
+    # The checkpoint names the model by its run family: its run id without the settings hash.
+    family = None if variant == "real_fs" else mini[: -HASH_CHARS - 1]
+    assert cfg.finetune.checkpoint == family
     assert cfg.finetune.presses == "taxim:gelsight_mini" and cfg.data.per_object is None
     assert list(cfg.finetune.press_train) == list(cfg.calibrate.train) == list(range(16))
     assert list(cfg.finetune.press_test) == list(range(16, 24))

@@ -136,14 +136,14 @@ def _ckpt(path):
 @pytest.mark.slow
 @pytest.mark.parametrize("augment", ["[]", "[mirror,jitter]"])
 def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path, augment):
-    from tests.generators.test_stages import write_pairs
+    from tests.generators.test_stages import model_of, write_pairs
 
     ref, root = tmp_path / "ref", tmp_path / "data"
     for r in (ref, root):
         write_pairs(r / "pairs" / "digit-hashgrid", n=9)
     train = (*TRAIN, f"data.augment={augment}")
     run_to_end(ref, *train)
-    run_dir = root / "models" / "tn_cgan_digit-hashgrid"
+    run_dir = root / "models" / model_of(*train)
     last = run_dir / "last.ckpt"
 
     def after_second_epoch():
@@ -159,7 +159,7 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
     killed = _ckpt(last)
     run_to_end(root, *train)
     assert (run_dir / "metrics.part1.csv").is_file(), "the re-run started afresh instead of resuming"
-    a, b = _ckpt(run_dir / "last.ckpt"), _ckpt(ref / "models" / "tn_cgan_digit-hashgrid" / "last.ckpt")
+    a, b = _ckpt(run_dir / "last.ckpt"), _ckpt(ref / "models" / run_dir.name / "last.ckpt")
     progress = [(c["epoch"], c["global_step"]) for c in (killed, a, b)]
     assert progress[1] == progress[2] and progress[1][1] > progress[0][1], progress
     for sa, sb in zip(a["lr_schedulers"], b["lr_schedulers"]):
@@ -177,7 +177,7 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
         rows = [r for r in csv.DictReader(open(folder / "metrics.csv")) if r.get("val_l1")]
         return [(int(r["epoch"]), round(float(r["val_l1"]), 5)) for r in rows]
 
-    assert val_rows(run_dir) == val_rows(ref / "models" / "tn_cgan_digit-hashgrid")
+    assert val_rows(run_dir) == val_rows(ref / "models" / run_dir.name)
     assert [e for e, _ in val_rows(run_dir)] == [0, 1, 2, 3]
     # The weights are an uninterrupted run's, whatever the augmentation (its draws are not in the checkpoint).
     for k, wa in a["state_dict"].items():
@@ -185,7 +185,7 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
             k,
             (wa.float() - b["state_dict"][k].float()).abs().max(),
         )
-    assert manifest(run_dir)["config_hash"] == manifest(ref / "models" / "tn_cgan_digit-hashgrid")["config_hash"]
+    assert manifest(run_dir)["config_hash"] == manifest(ref / "models" / run_dir.name)["config_hash"]
 
 
 @pytest.mark.slow

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.generators.test_stages import model_of
 from tests.reliability.helpers import (
     assert_not_rewritten,
     copy_stages,
@@ -43,12 +44,12 @@ TINY = (
     "fit.preview_views=1",
     "pair.scene_source=mesh",
 )
-MODEL = "tn_cgan-digit-mesh-seed0"  # the pipeline's name for the generator trained on DATASET
 DATASET = "digit-mesh"
 UPSTREAM = ("capture", "scenes", "touch", "pairs", "models")
 # Several batches per object, so that a kill can land between two of them.
 GENERATE_SIZE = ("generate.n_poses=8", "generate.batch_size=2")
 PIPELINE = ("pipeline", *TINY, *GENERATE_SIZE)
+MODEL = model_of(*PIPELINE)  # the pipeline's run id for the generator trained on DATASET
 # What the pipeline gives the generate and evaluate stages, on the command line.
 GENERATE = ("generate", *TINY, *GENERATE_SIZE, f"generate.model={MODEL}")
 EVALUATE = (
@@ -56,7 +57,6 @@ EVALUATE = (
     *TINY,
     *GENERATE_SIZE,
     f"generate.model={MODEL}",
-    f"train.run_name={MODEL}",
     f"evaluate.model={MODEL}",
     f"evaluate.generated={MODEL}",
     f"evaluate.dataset={DATASET}",

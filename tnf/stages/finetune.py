@@ -1,11 +1,12 @@
 """``tnf finetune``: continue a trained generator on a small dataset of another sensor.
 
-``tnf finetune finetune.checkpoint=tn_cgan_digit/best.ckpt data.datasets=[omnitact_pairs] data.per_object=5``
+``tnf finetune finetune.checkpoint=tn_cgan-digit-hashgrid-seed0 data.datasets=[omnitact_pairs] data.per_object=5``
 loads the generator's weights (its config comes from the checkpoint; the optimisers start afresh), optionally
 freezes some of its parameters (``finetune.freeze``), and trains on the new data, whose pairs carry the new
 sensor's background image as a condition. Without ``finetune.checkpoint`` the same command trains
 ``cfg.generator`` from scratch on that data: the baseline of the transfer experiment. Writes
-``<data_root>/models/<run_name>/`` like ``tnf train``; the source checkpoint is never modified.
+``<data_root>/models/<run id>/`` like ``tnf train`` (``<generator option>+<transfer option>-...``,
+``tnf.generators.names``; ``finetune.run_name`` replaces the id); the source checkpoint is never modified.
 
 With ``finetune.presses`` (``transfer=real``, ``real_fs``, ``real_plus``) the data are real indenter presses
 instead: a press folder or ``taxim:SENSOR``, as ``tnf calibrate`` takes it. The stage writes the press pairs of
@@ -26,7 +27,10 @@ from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, ru
 
 
 def resolve_checkpoint(value: str, data_root: Any) -> Path:
-    """A checkpoint given as a path, as ``<run>/<file>`` under ``models/``, or as a run name (best.ckpt)."""
+    """A checkpoint given as a path, as ``<run>/<file>`` under ``models/``, or as a run (best.ckpt). A run is
+    a folder name or a run family (``tnf.generators.names.run_family``, a run id without its hash) with one
+    finished run."""
+    from tnf.generators.names import find_run
 
     p = Path(value).expanduser()
     if p.is_file():
@@ -35,8 +39,13 @@ def resolve_checkpoint(value: str, data_root: Any) -> Path:
     for cand in (models / value, models / value / "best.ckpt"):
         if cand.is_file():
             return cand
+    run, _, file = value.partition("/")
+    found = find_run(models, run)
+    if found is not None and (models / found / (file or "best.ckpt")).is_file():
+        return models / found / (file or "best.ckpt")
     raise TnfError(
-        f"finetune.checkpoint: no checkpoint at {p} nor {models / value}[/best.ckpt]; train one with `tnf train`"
+        f"finetune.checkpoint: no checkpoint at {p} nor {models / value}[/best.ckpt], and no finished run "
+        f"{run}-<hash>; train one with `tnf train`"
     )
 
 
@@ -44,7 +53,7 @@ def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
     from rich.console import Console
 
-    from tnf.generators.names import finetune_run_name
+    from tnf.generators.names import finetune_option, run_id
     from tnf.generators.system import GeneratorSystem
 
     console = Console(highlight=False)
@@ -72,18 +81,14 @@ def run(cfg: Any) -> dict[str, Any]:
     extra: dict[str, Any] = {}
     if real is not None:
         datasets, extra["presses"] = _press_dataset(cfg, store, real, ckpt, datasets, console)
-    if ckpt is not None:
-        default_name = finetune_run_name(ckpt.parent.name, "", datasets)
-    else:
-        default_name = finetune_run_name(None, system.hparams["generator"]["name"], datasets)
     spec = dict(system.hparams["generator"])
     frozen = system.generator.freeze([str(x) for x in f.freeze]) if f.freeze else []
-    run_name = str(f.run_name or default_name)
-    run_dir = store.path("models", run_name)
     config = run_config(cfg, "finetune", ("checkpoint",), generator=spec, source=source, **extra)
+    run_name = str(f.run_name or run_id(finetune_option(spec["name"]), datasets[0], cfg.seed, config))
+    run_dir = store.path("models", run_name)
     if not f.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true)")
-        return {"run_dir": str(run_dir), "skipped": True}
+        return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
 
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)
@@ -117,7 +122,7 @@ def run(cfg: Any) -> dict[str, Any]:
     )
     if real is not None and real["test"]:
         summary["press_realism"] = _score_presses(cfg, real, run_dir, console)["mean"][run_dir.name]
-    return {"run_dir": str(run_dir), **summary}
+    return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
 
 def _press_settings(cfg: Any) -> dict[str, Any]:

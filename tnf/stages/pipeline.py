@@ -3,16 +3,20 @@
 (calibrate ->) capture -> fit-scene -> touch -> pair -> train (or finetune, for sensor transfer) -> generate ->
 evaluate, each with the same composed config.
 Each stage skips the items the artifact store already holds with a matching config, so re-running a finished
-or interrupted pipeline only does what is missing. The generator's run is named after the generator, the
-dataset and the seed, so a sweep (``tnf pipeline -m generator=tn_cgan,lee,cyclegan seed=0,1,2``) trains one
-model per job and all jobs fill one report.
+or interrupted pipeline only does what is missing. Each stage gets what the stages before it returned (the
+model's run id, the folder of generated images; ``stage_config``). The model's run id is the one ``tnf train``
+gives it (``tnf.generators.names``: generator option, dataset, seed and settings hash), so a pipeline after a
+``tnf train`` with the same settings reuses its model, and a sweep (``tnf pipeline -m
+generator=tn_cgan,lee,cyclegan seed=0,1,2``) trains one model per job and all jobs fill one report.
 """
 
 from __future__ import annotations
 
+import copy
 import importlib
 import json
 import time
+from pathlib import Path
 from typing import Any
 
 from tnf.artifacts import ArtifactStore, write_json
@@ -23,7 +27,7 @@ ORDER = ("calibrate", "capture", "fit-scene", "touch", "pair", "train", "finetun
 
 
 def run(cfg: Any) -> dict[str, Any]:
-    from omegaconf import OmegaConf, open_dict
+    from omegaconf import OmegaConf
     from rich.console import Console
 
     console = Console(highlight=False)
@@ -35,18 +39,11 @@ def run(cfg: Any) -> dict[str, Any]:
 
     if "train" in stages and "finetune" in stages:
         raise TnfError("pipeline.stages: give train (a new model) or finetune (sensor transfer), not both")
-    with open_dict(cfg):
-        cfg.evaluate.dataset = cfg.evaluate.dataset or _dataset(cfg)
-        if "finetune" in stages:
-            cfg.finetune.run_name = cfg.finetune.run_name or finetune_run_name(cfg)
-            model = cfg.finetune.run_name
-        else:
-            cfg.train.run_name = cfg.train.run_name or model_run_name(cfg)
-            model = cfg.train.run_name
-        cfg.generate.model = cfg.generate.model or model
-        cfg.evaluate.model = cfg.evaluate.model or model
-        cfg.evaluate.generated = cfg.evaluate.generated or cfg.generate.run_name or cfg.generate.model
+    cfg = copy.deepcopy(cfg)  # the caller's config stays as it was
     OmegaConf.resolve(cfg)
+    # The model the generate and evaluate stages use: the one train or finetune returns; without either stage,
+    # the model `tnf train` trains with this config.
+    model = None if {"train", "finetune"} & set(stages) else _given_model(cfg)
 
     times: dict[str, float] = {}
     results: dict[str, Any] = {}
@@ -54,18 +51,49 @@ def run(cfg: Any) -> dict[str, Any]:
     t_all = time.perf_counter()
     for i, stage in enumerate(stages, 1):
         if stage == "evaluate":  # the report it writes shows this run's wall times so far
-            _write_timings(cfg, times, None)
+            _write_timings(cfg, model, times, None)
         left = time_left(stages[i - 1 :], times, expected)
         eta = f" · about {_clock(left)} left" if left is not None else ""
         so_far = _clock(time.perf_counter() - t_all)
         console.rule(f"[bold]pipeline {i}/{len(stages)}: {stage}[/] · {so_far} so far{eta}")
         module = importlib.import_module(f"tnf.stages.{stage.replace('-', '_')}")
         t0 = time.perf_counter()
-        results[stage] = module.run(cfg)
+        results[stage] = module.run(stage_config(cfg, stage, model, results.get("generate")))
         times[stage] = time.perf_counter() - t0
+        if stage in ("train", "finetune"):
+            model = str(results[stage]["run_name"])
     total = time.perf_counter() - t_all
-    _summary(console, cfg, stages, times, total, results.get("evaluate"))
-    return {"times": times, "total": total, "model": str(cfg.generate.model)}
+    _summary(console, cfg, model, stages, times, total)
+    return {"times": times, "total": total, "model": model}
+
+
+def stage_config(cfg: Any, stage: str, model: str | None, generated: dict[str, Any] | None = None) -> Any:
+    """The config ``stage`` runs with in the pipeline: ``cfg`` with what earlier stages returned filled in where
+    ``cfg`` leaves it unset. ``generate`` and ``evaluate`` get the model (``generate.model``, ``evaluate.model``),
+    ``evaluate`` the generated images (``evaluate.generated``: the folder ``generated`` returned by the generate
+    stage names, else ``generate.run_name`` or the model) and the test dataset (``evaluate.dataset``: this
+    config's paired dataset)."""
+    from omegaconf import open_dict
+
+    if stage not in ("generate", "evaluate"):
+        return cfg
+    out = copy.deepcopy(cfg)
+    with open_dict(out):
+        out.generate.model = out.generate.model or model
+        if stage == "evaluate":
+            images = Path(generated["run_dir"]).name if generated else out.generate.run_name or out.generate.model
+            out.evaluate.model = out.evaluate.model or model
+            out.evaluate.generated = out.evaluate.generated or images
+            out.evaluate.dataset = out.evaluate.dataset or _dataset(out)
+    return out
+
+
+def _given_model(cfg: Any) -> str:
+    """The model of ``cfg`` when the pipeline trains none: ``generate.model``, else the one ``tnf train``
+    trains with ``cfg`` (``train.run_name`` or its run id)."""
+    from tnf.stages.train import model_run
+
+    return str(cfg.generate.model or model_run(cfg))
 
 
 def expected_times(cfg: Any) -> dict[str, float]:
@@ -113,23 +141,6 @@ def _clock(seconds: float) -> str:
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
 
 
-def model_run_name(cfg: Any) -> str:
-    """The model run of this config (``tnf.generators.names.model_run_name``)."""
-    from tnf.generators.names import model_run_name as name
-
-    return name(str(cfg.generator.name), _dataset(cfg), cfg.seed)
-
-
-def finetune_run_name(cfg: Any) -> str:
-    """The sensor-transfer model run of this config (``tnf.generators.names.transfer_run_name``)."""
-    from tnf.generators.names import transfer_run_name
-
-    d = cfg.data
-    return transfer_run_name(
-        str(cfg.generator.name), _dataset(cfg), cfg.finetune.checkpoint, d.per_object, d.get("extra_touches"), cfg.seed
-    )
-
-
 def _dataset(cfg: Any) -> str:
     """The name ``tnf pair`` gives the dataset of this config."""
     from tnf.data.store import dataset_name
@@ -137,7 +148,9 @@ def _dataset(cfg: Any) -> str:
     return dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name))
 
 
-def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float], total: float, ev: Any) -> None:
+def _summary(
+    console: Any, cfg: Any, model: str | None, stages: list[str], times: dict[str, float], total: float
+) -> None:
     from rich.table import Table
 
     table = Table(title="pipeline stages", header_style="bold")
@@ -147,7 +160,7 @@ def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float],
         table.add_row(s, f"{times[s]:.1f} s")
     table.add_row("[bold]total", f"[bold]{total:.1f} s")
     console.print(table)
-    report = _write_timings(cfg, times, total)
+    report = _write_timings(cfg, model, times, total)
     if (report / "report.md").is_file():
         if "evaluate" in stages:
             console.print(f"report: [bold]{report / 'report.md'}[/]")
@@ -155,14 +168,16 @@ def _summary(console: Any, cfg: Any, stages: list[str], times: dict[str, float],
             console.print(f"report (not updated: evaluate did not run): {report / 'report.md'}")
 
 
-def _write_timings(cfg: Any, times: dict[str, float], total: float | None) -> Any:
+def _write_timings(cfg: Any, model: str | None, times: dict[str, float], total: float | None) -> Any:
     """``<report>/timings/<model>.json``: this run's wall time per stage (the stages run so far; ``total_s`` once
-    all have run), which the report shows. Returns the report's folder."""
+    all have run), which the report shows; nothing without a model. Returns the report's folder."""
 
     report = ArtifactStore(cfg.data_root).path("reports", str(cfg.evaluate.name))
+    if model is None:
+        return report
     device = resolve_device(str(cfg.device))
     write_json(
-        report / "timings" / f"{cfg.generate.model}.json",
-        {"stages": times, "total_s": total, "device": device, "model": str(cfg.generate.model)},
+        report / "timings" / f"{model}.json",
+        {"stages": times, "total_s": total, "device": device, "model": model},
     )
     return report

@@ -2,14 +2,14 @@
 
 Reads the datasets of ``data.datasets`` (default: the one ``tnf pair`` builds), trains with the Lightning
 trainer of ``trainer=`` (cpu, gpu, ddp) and logs with ``logger=`` (csv, tensorboard, wandb). Writes
-``<data_root>/models/<run_name>/``: ``last.ckpt``, ``best.ckpt`` (lowest validation L1), ``grids/``,
-``metrics.csv`` and ``manifest.json``. An unfinished run resumes from ``last.ckpt``; a finished run with the
-same settings is skipped.
+``<data_root>/models/<run id>/`` (``tnf.generators.names``; ``train.run_name`` replaces the id): ``last.ckpt``,
+``best.ckpt`` (lowest validation L1), ``grids/``, ``metrics.csv`` and ``manifest.json``. An unfinished run
+resumes from ``last.ckpt``; a finished run with the same settings is skipped.
 """
 
 from __future__ import annotations
 
-from typing import Any, cast
+from typing import Any, NamedTuple, cast
 
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
@@ -17,28 +17,60 @@ from tnf.registry import config_to_dict
 from tnf.runtime import seed_everything
 
 
-def run(cfg: Any) -> dict[str, Any]:
+class TrainPlan(NamedTuple):
+    """What ``tnf train`` trains with a config, before any training."""
+
+    checked: Any
+    """``(registered name, Config)`` of the generator, checked once."""
+    spec: dict[str, Any]
+    """The generator's name and settings as plain data."""
+    datasets: list[str]
+    """Names of the paired datasets it trains on."""
+    config: dict[str, Any]
+    """The settings that define the model (``run_config``): their hash decides whether a finished run is
+    skipped and ends the run id."""
+    run_name: str
+    """The run folder's name under ``models/``: ``train.run_name``, or the run id (``tnf.generators.names``)."""
+
+
+def plan(cfg: Any) -> TrainPlan:
+    """What ``tnf train`` trains with ``cfg`` and where it goes (checks the generator's settings)."""
     from omegaconf import OmegaConf
+
+    from tnf.generators.names import generator_option, run_id
+    from tnf.generators.system import generator_config
+
+    # Checked once: the system builds the generator from this Config, the run's hash records its fields.
+    checked = generator_config(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
+    spec = {"name": checked[0], **config_to_dict(checked[1])}
+    datasets = dataset_names(cfg)
+    config = run_config(cfg, "train", ("compile",), generator=spec)
+    name = cfg.train.run_name or run_id(generator_option(spec["name"]), datasets[0], cfg.seed, config)
+    return TrainPlan(checked, spec, datasets, config, str(name))
+
+
+def model_run(cfg: Any) -> str:
+    """The run folder name under ``models/`` of the model ``tnf train`` trains with ``cfg``."""
+    return plan(cfg).run_name
+
+
+def run(cfg: Any) -> dict[str, Any]:
+    """Train the generator of ``cfg``; returns ``run_name``, ``run_dir`` and the run's summary (``skipped``:
+    true when a finished run with the same settings was there)."""
     from rich.console import Console
 
-    from tnf.generators.names import train_run_name
-    from tnf.generators.system import GeneratorSystem, generator_config
+    from tnf.generators.system import GeneratorSystem
     from tnf.generators.training import process_rank
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
     console = Console(highlight=False, quiet=process_rank() != 0)
     t = cfg.train
-    # Checked once: the system builds the generator from this Config, the run's hash records its fields.
-    checked = generator_config(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
-    spec = {"name": checked[0], **config_to_dict(checked[1])}
-    datasets = dataset_names(cfg)
-    run_name = str(t.run_name or train_run_name(spec["name"], datasets))
+    checked, spec, datasets, config, run_name = plan(cfg)
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
-    config = run_config(cfg, "train", ("compile",), generator=spec)
     if not t.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
-        return {"run_dir": str(run_dir), "skipped": True}
+        return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
 
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)
@@ -55,13 +87,14 @@ def run(cfg: Any) -> dict[str, Any]:
     info = {"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names}
     summary = fit_section(cfg, t, system, dm, run_dir, config, info)
     _print_summary(console, run_name, summary)
-    return {"run_dir": str(run_dir), **summary}
+    return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
 
 def run_config(cfg: Any, section: str, unhashed: tuple[str, ...] = (), **extra: Any) -> dict[str, Any]:
     """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
-    run is skipped): ``extra`` (the generator spec, a fine-tuning source), the data and run settings, precision
-    and seed. ``unhashed`` names more of the section's keys that do not change the model."""
+    run is skipped and ends the run id, ``tnf.generators.names.run_id``): ``extra`` (the generator spec, a
+    fine-tuning source), the data and run settings, precision and seed. ``unhashed`` names more of the
+    section's keys that do not change the model."""
     skip = ("resume", "force", "run_name", "checkpoint_every_s", *unhashed)
     return {
         **extra,

@@ -1,10 +1,11 @@
-"""Helpers for testing tnf and its plugins: compose a stage's real config, and contract test suites."""
+"""Helpers for testing tnf and its plugins: compose a stage's real config (``hydra_job``: with Hydra's runtime, as
+in a ``tnf`` job), and contract test suites."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from tnf.testing.config import compose
+from tnf.testing.config import compose, hydra_job
 
 __all__ = [
     "GeneratorContract",
@@ -13,6 +14,7 @@ __all__ = [
     "SensorContract",
     "SimulatorContract",
     "compose",
+    "hydra_job",
     "random_batch",
     "undocumented_fields",
 ]

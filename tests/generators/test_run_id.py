@@ -1,0 +1,81 @@
+"""One run id per model: `tnf train`, `tnf pipeline` and `tnf generate` name the model of a config the same way
+(tnf.generators.names): generator option, dataset, seed and the hash of the settings that define the model."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from tests.generators.test_stages import TINY, write_pairs
+from tnf.errors import TnfError
+from tnf.generators.names import HASH_CHARS, find_run
+from tnf.testing import compose, hydra_job
+
+# The quick start's settings at the tiny size.
+SETTINGS = ["experiment=quickstart", *TINY]
+
+
+def tnf(*args, root):
+    env = {**os.environ, "TNF_DATA": str(root), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-m", "tnf.cli", *args], capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    return out
+
+
+def test_a_pipeline_after_tnf_train_with_the_same_settings_reuses_its_model(data_root):
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    tnf("train", *SETTINGS, root=data_root)
+    (run,) = (data_root / "models").iterdir()
+    # The quick start's generator option (a variant of tn_cgan), the dataset, the seed and the settings hash.
+    manifest = json.loads((run / "manifest.json").read_text())
+    assert run.name == f"tn_cgan_press-digit-hashgrid-seed0-{manifest['config_hash'][:HASH_CHARS]}"
+    files = {p: p.stat().st_mtime_ns for p in run.rglob("*")}
+    ckpt = (run / "last.ckpt").read_bytes()
+
+    out = tnf("pipeline", *SETTINGS, "pipeline.stages=[train]", root=data_root)
+    assert f"{run.name}: trained with the same settings, skipped" in " ".join(out.stdout.split())
+    assert [p.name for p in (data_root / "models").iterdir()] == [run.name]  # no second run folder
+    assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == files  # nothing in it rewritten
+    assert (run / "last.ckpt").read_bytes() == ckpt
+    timings = json.loads((data_root / "reports" / "quickstart" / "timings" / f"{run.name}.json").read_text())
+    assert timings["model"] == run.name
+
+
+def test_the_run_id_names_the_generator_option_and_agrees_with_the_skip_key(data_root):
+    from tnf.stages import train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=6)
+    short = ["train.epochs=1", "train.decay_epochs=0"]
+    out = train.run(compose("train", [*TINY, *short]))
+    manifest = json.loads((data_root / "models" / out["run_name"] / "manifest.json").read_text())
+    # Composed without a Hydra job: the registered name; the hash is the one the manifest records.
+    assert out["run_name"] == f"tn_cgan-digit-hashgrid-seed0-{manifest['config_hash'][:HASH_CHARS]}"
+    with hydra_job("train", [*TINY, *short]) as cfg:
+        assert train.model_run(cfg) == out["run_name"]  # the option is tn_cgan's own
+    with hydra_job("train", [*TINY, *short, "generator=tn_cgan_plain"]) as cfg:
+        assert train.model_run(cfg).startswith("tn_cgan_plain-digit-hashgrid-seed0-")
+    # Another seed or setting: another run; train.run_name replaces the id.
+    assert train.model_run(compose("train", [*TINY, *short, "seed=1"])).startswith("tn_cgan-digit-hashgrid-seed1-")
+    assert train.model_run(compose("train", [*TINY, "train.epochs=3"])) != out["run_name"]
+    assert train.model_run(compose("train", [*TINY, "train.run_name=mine"])) == "mine"
+    # Settings that do not change the model keep the id.
+    unhashed = ["train.force=true", "train.compile=true", "train.checkpoint_every_s=5"]
+    assert train.model_run(compose("train", [*TINY, *short, *unhashed])) == out["run_name"]
+
+
+def test_a_run_family_names_its_one_finished_run(data_root):
+    models = data_root / "models"
+    assert find_run(models, "tn_cgan-digit-hashgrid-seed0") is None
+    (models / "tn_cgan-digit-hashgrid-seed0-0123abcd").mkdir(parents=True)  # unfinished: no manifest
+    (models / "tn_cgan-digit-hashgrid-seed0-extra-0123abcd").mkdir()  # another family
+    assert find_run(models, "tn_cgan-digit-hashgrid-seed0") is None
+    (models / "tn_cgan-digit-hashgrid-seed0-0123abcd" / "manifest.json").write_text("{}")
+    (models / "tn_cgan-digit-hashgrid-seed0-extra-0123abcd" / "manifest.json").write_text("{}")
+    assert find_run(models, "tn_cgan-digit-hashgrid-seed0") == "tn_cgan-digit-hashgrid-seed0-0123abcd"
+    assert find_run(models, "tn_cgan-digit-hashgrid-seed0-0123abcd") == "tn_cgan-digit-hashgrid-seed0-0123abcd"
+    (models / "tn_cgan-digit-hashgrid-seed0-4567cdef").mkdir()
+    (models / "tn_cgan-digit-hashgrid-seed0-4567cdef" / "manifest.json").write_text("{}")
+    with pytest.raises(TnfError, match="several finished runs.*0123abcd, .*4567cdef"):
+        find_run(models, "tn_cgan-digit-hashgrid-seed0")
