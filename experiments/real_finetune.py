@@ -49,6 +49,9 @@ def setup(root: Path, model: str, calibration: str) -> dict:
     """The pipeline's checkpoint, its generator spec and framing, the calibrated sensor and the presses."""
     import torch
 
+    from tnf.generators.names import find_run
+
+    model = find_run(root / "models", model) or model  # a run family names its one finished run
     ckpt = root / "models" / model / "best.ckpt"
     cal = root / "calibration" / "gelsight_mini" / calibration
     sensor = SENSORS.build({"name": "gelsight_mini", "width": 160, "height": 120, "calibration": str(cal)})
@@ -156,7 +159,7 @@ def main() -> None:
     ap.add_argument("phase", choices=("select", "select-fs", "final"))
     ap.add_argument("--data-root", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--model", default="tn_cgan-gelsight_mini-hashgrid-seed0")
+    ap.add_argument("--model", default="tn_cgan_plain-gelsight_mini-hashgrid-seed0", help="a run, or its family")
     ap.add_argument("--calibration", default="mini_160x120")
     a = ap.parse_args()
     s = setup(a.data_root, a.model, a.calibration)

@@ -124,11 +124,15 @@ def main() -> None:
     print(f"Taxim: {wall['Taxim']:.0f} s", flush=True)
 
     # 3. T-N trained on the calibrated simulator's pairs.
-    from tnf.generators.names import model_run_name
+    from tnf.generators.names import find_run
 
-    run = model_run_name("tn_cgan", "gelsight_mini-hashgrid", args.seed)
+    # The pipeline's model: the one finished run of sim_gelsight_mini's generator option, dataset and seed.
+    family = f"tn_cgan_plain-gelsight_mini-hashgrid-seed{args.seed}"
+    run = find_run(root / "models", family)
+    wall["pipeline to T-N"] = 0.0 if run is not None else run_pipeline(root, args.seed)
+    run = run or find_run(root / "models", family)
+    assert run is not None, f"the pipeline left no finished run {family}-<hash> under {root / 'models'}"
     ckpt = root / "models" / run / "best.ckpt"
-    wall["pipeline to T-N"] = 0.0 if ckpt.is_file() else run_pipeline(root, args.seed)
     small_cal = root / "calibration" / "gelsight_mini" / "mini_160x120"
     small = SENSORS.build({"name": "gelsight_mini", "width": 160, "height": 120, "calibration": str(small_cal)})
     small_info = json.loads((small_cal / "realism.json").read_text())["fit"]
