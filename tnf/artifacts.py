@@ -56,14 +56,20 @@ def config_hash(config: Mapping[str, Any]) -> str:
 def identity(settings: Any) -> Any:
     """What of ``settings`` makes an artifact what it is, as plain data: a dataclass becomes a dict of its fields
     without those whose metadata says ``identity: False`` (``tnf.registry.IDENTITY``: a batch size, a device, a
-    redo switch), nested dataclasses, mappings and lists likewise. Every artifact key (``config_hash``) and every
-    manifest's ``config`` is built from this."""
+    redo switch) or names a test that the settings fail (a setting that only matters with another's value),
+    nested dataclasses, mappings and lists likewise. Every artifact key (``config_hash``) and every manifest's
+    ``config`` is built from this."""
     return _jsonable(settings)
+
+
+def _in_identity(field: dataclasses.Field[Any], settings: Any) -> bool:
+    rule = field.metadata.get(IDENTITY, True)
+    return bool(rule(settings)) if callable(rule) else bool(rule)
 
 
 def _jsonable(x: Any) -> Any:
     if dataclasses.is_dataclass(x) and not isinstance(x, type):
-        return {f.name: _jsonable(getattr(x, f.name)) for f in dataclasses.fields(x) if f.metadata.get(IDENTITY, True)}
+        return {f.name: _jsonable(getattr(x, f.name)) for f in dataclasses.fields(x) if _in_identity(f, x)}
     try:
         from omegaconf import DictConfig, ListConfig, OmegaConf
 

@@ -457,15 +457,17 @@ def yaml_defaults(
 
 IDENTITY = "identity"
 """Field metadata key: ``False`` for a setting that changes how a stage runs (a batch size, a device, a redo
-switch) but not what it makes; ``tnf.artifacts.identity`` leaves such fields out of artifact keys."""
+switch) but not what it makes, or a test ``settings -> bool`` for one that matters only with another setting's
+value; ``tnf.artifacts.identity`` leaves such fields out of artifact keys."""
 HINT = "hint"
 """Field metadata key: text that ends the message refusing a value of the field (where one is likely meant for
 another setting)."""
 
 
-def yaml_field(*, identity: bool = True, hint: str | None = None) -> Any:
+def yaml_field(*, identity: bool | Callable[[Any], bool] = True, hint: str | None = None) -> Any:
     """A field whose default is in the YAML (as ``FROM_YAML``), with metadata: ``identity=False`` leaves it out of
-    artifact keys (``IDENTITY``); ``hint`` ends the message that refuses a value (``HINT``)."""
+    artifact keys, a test ``settings -> bool`` leaves it out where the test fails (``IDENTITY``); ``hint`` ends
+    the message that refuses a value (``HINT``)."""
     metadata: dict[str, Any] = {IDENTITY: identity}
     if hint:
         metadata[HINT] = hint

@@ -117,7 +117,7 @@ def test_generate_directions_errors(data_root, trained_model):
     from tnf.stages import generate
 
     base = [*GEN, f"generate.model={trained_model}", "generate.n_poses=2"]
-    with pytest.raises(TnfError, match="generate.directions must be sphere or novel_view"):
+    with pytest.raises(TnfError, match="generate.directions: expected one of 'sphere', 'novel_view', got 'cone'"):
         generate.run(compose("generate", [*base, "generate.directions=cone"]))
     with pytest.raises(TnfError, match="needs a held-out cone"):
         generate.run(compose("generate", [*base, "generate.directions=novel_view", "touch.novel_view_cone=0.0"]))

@@ -20,14 +20,14 @@ from typing import Any
 
 import numpy as np
 
-from tnf.artifacts import MANIFEST, ArtifactStore, read_json, write_json
+from tnf.artifacts import MANIFEST, ArtifactStore, identity, read_json, write_json
 from tnf.data.pairing import capture_camera
 from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
 from tnf.data.prior import DepthPrior
 from tnf.data.render import Framing, TouchItem, render_rgbd_crops
-from tnf.data.splits import TOUCH_SPLITS
 from tnf.errors import TnfError
 from tnf.generators import load_generator
+from tnf.generators.settings import GenerateSettings
 from tnf.registry import SENSORS
 from tnf.runtime import progress, resolve_device, warp_device
 from tnf.scenes import load_scene
@@ -35,19 +35,17 @@ from tnf.sim.base import simulator_key
 from tnf.sim.forces import requested_forces
 from tnf.sim.touch import sphere_directions, start_poses
 
-# generate settings that do not change the images (left out of an item's config hash)
-_UNHASHED = ("force", "batch_size", "render_chunk", "run_name")
-
 
 @dataclass
 class GenerateJob:
-    """What ``tnf generate`` makes: plain values, built from the run's config by the stage.
+    """What ``tnf generate`` makes, built from the run's config by the stage.
 
-    ``settings`` is the ``generate`` section and ``pair`` the ``pair`` section (the framing when the model's
-    dataset is not found); ``sensor`` and ``simulator`` are those groups' config nodes as plain dicts.
+    ``settings`` is the ``generate`` section (its ``model`` set) and ``pair`` the ``pair`` section (the framing
+    when the model's dataset is not found); ``sensor`` and ``simulator`` are those groups' config nodes as plain
+    dicts.
     """
 
-    settings: dict[str, Any]
+    settings: GenerateSettings
     pair: dict[str, Any]
     data_root: str
     source: Any
@@ -121,13 +119,13 @@ def sample_poses(
     return start_poses(rng, dirs, radius, up=list(up), random_roll=random_roll)
 
 
-def pose_source(settings: dict[str, Any], sim: bool = False) -> dict[str, Any]:
+def pose_source(settings: GenerateSettings, sim: bool = False) -> dict[str, Any]:
     """Where the poses of generated touches came from, for their manifest: ``{"directions": "sphere"}``,
     ``{"directions": "novel_view", "cone_axis": [x, y, z], "cone_deg": d}``, ``{"directions": "file"}`` or
     ``{"directions": "sim"}`` (the simulated touches' own poses)."""
     if sim:
         return {"directions": "sim"}
-    if settings.get("poses_file"):
+    if settings.poses_file:
         return {"directions": "file"}
     cone = pose_cone(settings)
     if cone is None:
@@ -135,19 +133,15 @@ def pose_source(settings: dict[str, Any], sim: bool = False) -> dict[str, Any]:
     return {"directions": "novel_view", "cone_axis": [float(a) for a in cone[0]], "cone_deg": cone[1]}
 
 
-def pose_cone(settings: dict[str, Any]) -> tuple[Any, float] | None:
+def pose_cone(settings: GenerateSettings) -> tuple[list[float], float] | None:
     """The cone that sampled directions come from (``generate.directions``): None for the whole sphere."""
-    directions = settings.get("directions", "sphere")
-    if directions == "sphere":
+    if settings.directions == "sphere":
         return None
-    if directions != "novel_view":
-        raise TnfError(f"generate.directions must be sphere or novel_view, got {directions!r}")
-    deg = float(settings["cone_deg"])
-    if deg == 0.0:  # sphere_directions would draw from the whole sphere; it checks the range and the axis
+    if settings.cone_deg == 0.0:  # sphere_directions would draw from the whole sphere; it checks range and axis
         raise TnfError(
             "generate.directions=novel_view needs a held-out cone: generate.cone_deg (from touch.novel_view_cone) is 0"
         )
-    return list(settings["cone_axis"]), deg
+    return list(settings.cone_axis), settings.cone_deg
 
 
 def generate(job: GenerateJob) -> dict[str, Any]:
@@ -178,11 +172,9 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
     """Check the settings, load the checkpoint and build the sensor."""
 
     g = job.settings
-    if not g["model"]:
+    if not g.model:
         raise TnfError("generate.model is not set: name a trained run under models/ (see `tnf train`)")
-    if g["split"] not in TOUCH_SPLITS:
-        raise TnfError(f"generate.split must be one of {', '.join(TOUCH_SPLITS)}, got {g['split']!r}")
-    ckpt = store.path("models", str(g["model"])) / str(g["checkpoint"])
+    ckpt = store.path("models", g.model) / g.checkpoint
     if not ckpt.is_file():
         raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check generate.model/checkpoint")
     device = resolve_device(job.device)
@@ -190,13 +182,13 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
     hp = system.hparams["generator"]
     size = int(hp.get("image_size", SIZE))
     if size != SIZE:
-        raise TnfError(f"model {g['model']} generates {size} px images; tnf datasets use {SIZE} px")
+        raise TnfError(f"model {g.model} generates {size} px images; tnf datasets use {SIZE} px")
     # The force of each image (generate.touch_force): a list of forces, "sim" or None (a model without force).
-    wanted = requested_forces(g.get("touch_force"), hp.get("force", "none") != "none", str(g["model"]), job.touch_force)
+    wanted = requested_forces(g.touch_force, hp.get("force", "none") != "none", g.model, job.touch_force)
     sensor = SENSORS.build(job.sensor)
     background_full = sensor.background()
-    mirror = sensor.mirror_channels() if g["mirror_average"] else None
-    if g["mirror_average"]:
+    mirror = sensor.mirror_channels() if g.mirror_average else None
+    if g.mirror_average:
         console.print(
             f"generate: each image averaged with its mirror image ({sensor.name}'s mirror symmetry)"
             if mirror is not None
@@ -205,13 +197,13 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
     # A generator with a surface field (tnf.generators.field) gets each pixel's surface point and the object's
     # index in its training vocabulary (-1 for an object it never touched: the field then adds nothing).
     needs_points = "surface" in (hp.get("inputs") or ())
-    vocabulary = list((store.manifest("models", str(g["model"])) or {}).get("object_names") or [])
+    vocabulary = list((store.manifest("models", g.model) or {}).get("object_names") or [])
     if needs_points and not vocabulary:
-        raise TnfError(f"model {g['model']} has a surface field but its manifest lists no object_names; retrain it")
+        raise TnfError(f"model {g.model} has a surface field but its manifest lists no object_names; retrain it")
     return _Model(
         system=system,
         ckpt=ckpt,
-        run_name=str(g["run_name"] or g["model"]),
+        run_name=g.run_name or g.model,
         wanted=wanted,
         sensor=sensor,
         gel=gel_size_m(sensor),
@@ -233,7 +225,7 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
 
     g, src = job.settings, job.source.name
     prep = _preprocessing(job, store)
-    file_poses = read_poses(g["poses_file"]) if g["poses_file"] else None
+    file_poses = read_poses(g.poses_file) if g.poses_file else None
     cone = pose_cone(g)
     jobs = []
     for obj in job.names:
@@ -244,7 +236,7 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
             )
         transforms = store.path("capture", src, obj) / "transforms.json"
         focal, _, _ = capture_camera(read_json(transforms, "capture transforms"), transforms)
-        crop = g["crop_px"] or prep["crop_px"].get(obj)
+        crop = g.crop_px or prep["crop_px"].get(obj)
         if crop is None and prep["footprint_distance"] is None:
             raise TnfError(
                 f"no framing for {obj!r}: name the paired dataset (generate.dataset), or set pair.footprint_distance "
@@ -262,11 +254,9 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
         elif file_poses is not None:
             poses = file_poses
         else:
-            poses = sample_poses(
-                int(g["n_poses"]), float(g["radius"]), g["up"], bool(g["random_roll"]), seed, cone=cone
-            )
+            poses = sample_poses(g.n_poses, g.radius, g.up, g.random_roll, seed, cone=cone)
         config = _item_config(job, store, model, obj, framing, poses if file_poses is not None else None, own)
-        if not g["force"] and store.is_done("generated", model.run_name, src, obj, config=config):
+        if not g.force and store.is_done("generated", model.run_name, src, obj, config=config):
             console.print(f"generate: {model.run_name}/{src}/{obj} is up to date")
             continue
         jobs.append((obj, scene_dir, focal, framing, poses, config, seed, own))
@@ -298,24 +288,16 @@ def _item_config(
     """What decides an object's images (its hash decides whether a finished item is reused)."""
     g, src = job.settings, job.source.name
     config = {
-        "model": str(g["model"]),
-        "checkpoint": str(g["checkpoint"]),
-        "model_hash": (store.manifest("models", str(g["model"])) or {}).get("config_hash"),
+        "model": g.model,
+        "checkpoint": g.checkpoint,
+        "model_hash": (store.manifest("models", str(g.model)) or {}).get("config_hash"),
         "checkpoint_mtime": model.ckpt.stat().st_mtime_ns,
         "scene": job.scene_name,
         "scene_hash": (store.manifest("scenes", job.scene_name, src, obj) or {}).get("config_hash"),
         "sensor": model.sensor.describe(),
         "framing": dataclasses.asdict(framing),
         "poses": file_poses.round(9).tolist() if file_poses is not None else None,
-        "settings": {
-            k: v
-            for k, v in g.items()
-            if k not in _UNHASHED
-            # (hashes of items made before forces and cones existed)
-            and not (k == "touch_force" and v is None)
-            and not (k in ("cone_axis", "cone_deg") and g.get("directions", "sphere") == "sphere")
-            and not (k == "directions" and v == "sphere")
-        },
+        "settings": identity(g),
         "seed": job.seed,
         "prior": _prior_key(job) if model.needs_prior else None,
     }
@@ -346,7 +328,7 @@ def _generate_object(job: GenerateJob, store: Any, model: _Model, item: tuple[An
         if own is not None
         else np.asarray(wanted if isinstance(wanted, list) else [np.nan], np.float32)
     )
-    step = max(1, int(job.settings["batch_size"]) // per_pose)
+    step = max(1, job.settings.batch_size // per_pose)
     # The generator's noise (dropout kept on when generating, as in pix2pix) comes from torch's RNG: seed
     # it per object, so that an object's images depend on the seed only and not on which objects this
     # process generated before (a resumed run generates only the missing ones).
@@ -370,7 +352,7 @@ def _generate_object(job: GenerateJob, store: Any, model: _Model, item: tuple[An
             for i in range(b * k):
                 rel = f"images/{s * k + i:05d}.png"
                 saves.append(pool.submit(Image.fromarray(images[i]).save, tmp / rel))
-                split = str(own[s + i // k]["split"]) if own is not None else str(job.settings["split"])
+                split = str(own[s + i // k]["split"]) if own is not None else job.settings.split
                 touches.append(
                     _touch_record(s * k + i, s + i // k, split, rel, poses, contact[i // k], image_force[i], wanted)
                 )
@@ -403,7 +385,7 @@ def _generate_batch(
     b = len(c2w)
     with torch.no_grad():
         rgb8, depth01, contact, points = render_rgbd_crops(
-            scene, c2w, focal, model.gel, framing, chunk=job.settings["render_chunk"], measure_contact=True,
+            scene, c2w, focal, model.gel, framing, chunk=job.settings.render_chunk, measure_contact=True,
             with_points=model.needs_points,
         )  # fmt: skip
     batch = condition_batch(rgb8, depth01, model.background, device)
@@ -484,8 +466,8 @@ def _manifest(
         "sensor": model.sensor.describe(),
         "object": obj,
         "source": job.source.name,
-        "counts": {str(g["split"]): len(touches), "discarded": 0},
-        "generator": {"name": model.system.generator_name, "model": str(g["model"]), "checkpoint": str(model.ckpt)},
+        "counts": {g.split: len(touches), "discarded": 0},
+        "generator": {"name": model.system.generator_name, "model": g.model, "checkpoint": str(model.ckpt)},
         "image_size": SIZE,
         "poses": pose_source(g, sim=model.wanted == "sim"),
         **(
@@ -519,9 +501,9 @@ def _preprocessing(job: GenerateJob, store: Any) -> dict[str, Any]:
     """Crop and depth settings of the dataset the model was trained on (``generate.dataset`` overrides);
     falls back to the ``pair`` section when no dataset manifest is found."""
 
-    name = job.settings["dataset"]
+    name = job.settings.dataset
     if name is None:
-        m = store.manifest("models", store.path("models", str(job.settings["model"])).name) or {}
+        m = store.manifest("models", store.path("models", str(job.settings.model)).name) or {}
         datasets = m.get("datasets") or []
         name = datasets[0] if datasets else None
     pre: dict[str, Any] = {}
@@ -531,7 +513,7 @@ def _preprocessing(job: GenerateJob, store: Any) -> dict[str, Any]:
             folder = store.path("pairs", str(name))
         if (folder / MANIFEST).is_file():
             pre = read_json(folder / MANIFEST, "dataset manifest").get("preprocess", {}) or {}
-        elif job.settings["dataset"] is not None:
+        elif job.settings.dataset is not None:
             raise TnfError(f"generate.dataset: no paired dataset {name!r} (looked in {folder})")
     crop = pre.get("crop_px", {})
     # Without a dataset manifest, the pair section's settings; otherwise the dataset's (older datasets lack

@@ -36,8 +36,6 @@ SECTIONS = (
 """Config sections with a ``default.yaml`` that sets every key's type."""
 TOP_LEVEL = ("seed", "progress")
 """Run-wide settings; their defaults in ``conf/base.yaml`` set their types."""
-HINTS = {"generate.force": " (it redoes finished images; the force of a generated touch is generate.touch_force)"}
-"""What a refused setting's line adds, where a value is likely meant for another setting."""
 NAMED_SWITCHES = {"train.compile": ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")}
 """Switches that also take one of these names (``train.compile``: torch.compile's modes)."""
 AT_LEAST_ONE = ("evaluate.classify.sim_per_object",)
@@ -61,6 +59,7 @@ def schema() -> dict[str, Any]:
 
 TYPED = {
     "touch": "tnf.sim.items:TouchSettings",
+    "generate": "tnf.generators.settings:GenerateSettings",
 }
 """The sections validated into their settings dataclass (``module:class``), as the stage itself does."""
 
@@ -115,7 +114,7 @@ def _check(value: Any, default: Any, where: str) -> None:
         names = NAMED_SWITCHES.get(where, ())
         if not isinstance(value, bool) and value not in names:
             either = f"true, false or one of {', '.join(names)}" if names else "true or false"
-            raise TnfError(f"{where}: expected {either}, got {value!r}{HINTS.get(where, '')}")
+            raise TnfError(f"{where}: expected {either}, got {value!r}")
     elif isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             raise TnfError(f"{where}: expected a whole number, got {value!r}")

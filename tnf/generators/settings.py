@@ -1,0 +1,77 @@
+"""Settings of the generator stages, as validated dataclasses: ``GenerateSettings`` (the ``generate`` section,
+read by ``tnf.generators.generate``).
+
+Kept apart from the modules that use them, which import torch, so that every stage checks every section
+before any work without importing it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from tnf.objects import TOUCH_SPLITS
+from tnf.registry import FROM_YAML, SettingError, at_least, yaml_defaults, yaml_field
+
+
+def _in_cone(settings: GenerateSettings) -> bool:
+    return settings.directions == "novel_view"
+
+
+@dataclass
+@yaml_defaults("generate/default")
+class GenerateSettings:
+    """The ``generate`` section: which model, which poses, where the images go."""
+
+    model: str | None = FROM_YAML
+    """Trained generator: a run folder under ``<data_root>/models/``; null: the stage names the model ``tnf
+    train`` trains with the same config."""
+    checkpoint: str = FROM_YAML
+    """Checkpoint file inside the model folder."""
+    run_name: str | None = yaml_field(identity=False)
+    """Output folder name under ``<data_root>/generated/``; null: the model's run name."""
+    n_poses: int = FROM_YAML
+    """Poses sampled per object on a sphere around it (ignored with ``poses_file``)."""
+    directions: Literal["sphere", "novel_view"] = FROM_YAML
+    """Where sampled poses look from: ``sphere`` (every direction) or ``novel_view`` (inside the touch stage's
+    held-out cone)."""
+    cone_axis: tuple[float, float, float] = yaml_field(identity=_in_cone)
+    """Centre direction of the held-out cone for ``directions=novel_view`` (default: ``touch.novel_view_axis``)."""
+    cone_deg: float = yaml_field(identity=_in_cone)
+    """Half-angle of that cone, degrees (default: ``touch.novel_view_cone``)."""
+    poses_file: str | None = FROM_YAML
+    """Camera-to-world poses to use instead of sampling: ``.npy`` ``[N, 4, 4]`` or ``.json``, metres."""
+    radius: float = FROM_YAML
+    """Distance of the sampled poses from the object centre, metres (default: ``touch.radius``)."""
+    up: tuple[float, float, float] = FROM_YAML
+    """World up vector that fixes the roll of sampled poses (default: ``touch.up``)."""
+    random_roll: bool = FROM_YAML
+    """Rotate each sampled pose randomly about its view axis (default: ``touch.random_roll``)."""
+    dataset: str | None = FROM_YAML
+    """Paired dataset whose preprocessing (crop, depth normalisation) is copied; null: the model's first
+    training dataset."""
+    crop_px: int | None = FROM_YAML
+    """A fixed square crop in capture-camera pixels in place of the dataset's framing; null: the dataset's."""
+    split: str = FROM_YAML
+    """Split label written for each generated touch (``train``, ``val`` or ``novel_view``)."""
+    batch_size: int = yaml_field(identity=False)
+    """Poses rendered and generated per batch."""
+    render_chunk: int | None = yaml_field(identity=False)
+    """Rays per chunk inside the scene renderer; null: the scene's default."""
+    mirror_average: bool = FROM_YAML
+    """Average each image with the generator's image of the mirrored touch, mirrored back, where the sensor has a
+    left-right mirror symmetry."""
+    touch_force: float | list[float] | str | None = FROM_YAML
+    """Force of each generated touch, newtons, for a model trained with force: a number, a list, ``"low:high:count"``
+    or ``sim`` (the object's simulated touches' poses and forces); null: ``touch.force`` for such a model."""
+    force: bool = yaml_field(
+        identity=False,
+        hint=" (it redoes finished images; the force of a generated touch is generate.touch_force)",
+    )
+    """Generate again even when the output exists with the same settings."""
+
+    def validate(self) -> None:
+        at_least(self, 0, "n_poses")
+        at_least(self, 1, "batch_size", "crop_px", "render_chunk")
+        if self.split not in TOUCH_SPLITS:
+            raise SettingError("split", f"must be one of {', '.join(TOUCH_SPLITS)}, got {self.split!r}")
