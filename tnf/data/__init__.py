@@ -7,14 +7,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from tnf.data.augment import AUGMENTATIONS, augment_batch, mirror_batch, sensor_mirror
 from tnf.data.dataset import (
-    AUGMENTATIONS,
     MixedPairDataset,
     PairDataset,
-    augment_batch,
     collate_pairs,
-    mirror_batch,
-    sensor_mirror,
     to_float_batch,
     training_order,
 )

@@ -12,15 +12,13 @@ import torch
 from torch.utils.data import DataLoader, DistributedSampler
 
 from tnf.artifacts import MANIFEST, data_root
+from tnf.data.augment import augment_batch, check_augment, mirror_augment
 from tnf.data.dataset import (
     Batch,
     MixedPairDataset,
     PairDataset,
-    augment_batch,
-    check_augment,
     check_subsample,
     collate_pairs,
-    mirror_augment,
     to_float_batch,
 )
 from tnf.data.store import open_pairs
