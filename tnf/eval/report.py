@@ -14,187 +14,49 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
-import re
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from tnf.artifacts import write_bytes
-from tnf.eval.aggregate import Stat, TableData, aggregate
+from tnf.eval.aggregate import TableData, aggregate
+from tnf.eval.claims import (
+    against_paper,
+    checks,
+    verdict,
+)
 from tnf.eval.figures import bar_plot
 from tnf.eval.force_report import force_section
 from tnf.eval.paper import PAPER
 from tnf.eval.scoring import BG
+from tnf.eval.tables import (
+    TABLES,
+    TEST_SET_NAMES,
+    _csv,
+    _ordered_methods,
+    _pair,
+    _stat_cells,
+    accuracy_rows,
+    fmt_stat,
+    image_rows,
+)
 
-TABLES = {"main": ("1", "Simulated tactile images (the paper's: Digit)"), "transfer": ("2", "Transfer to a new sensor")}
-TEST_SET_NAMES = {
-    "novel_view": "Novel view",
-    "novel_object": "Novel object",
-    "all": "All test sets",
-    "val": "Validation",
-    "train": "Training",
-}
-# The paper's method order per table; methods it does not have follow in the order first seen.
-METHOD_ORDER = {"main": ["T-N", "Lee", "Cycle"], "transfer": ["T-N", "T-N+", "FS"]}
-PRIMARY = "T-N"
-
-
-def _fmt(x: float, kind: str) -> str:
-    if kind == "ssim":
-        return f"{x:.3f}"
-    if kind == "acc":
-        return f"{x:.1f}"
-    return f"{x:.1f}" if abs(x) < 100 else f"{x:.0f}"
-
-
-def fmt_stat(st: Stat | tuple[float, float] | None, kind: str) -> str:
-    """'mean ± se', the value alone for one seed (no spread to state), or '-' when missing."""
-    if st is None:
-        return "-"
-    if isinstance(st, Stat) and st.n == 1:
-        return _fmt(st.mean, kind)
-    m, se = (st.mean, st.se) if isinstance(st, Stat) else st
-    return f"{_fmt(m, kind)} ± {_fmt(se, kind)}"
-
-
-def _ordered_methods(table: str, data: TableData) -> list[str]:
-    order = [m for m in METHOD_ORDER.get(table, []) if m in data.methods]
-    return order + [m for m in data.methods if m not in order]
-
-
-def _row_methods(table: str, data: TableData) -> list[str]:
-    """The paper's methods of this table (so its figures show even without a run of ours), then ours."""
-    paper = METHOD_ORDER.get(table, [])
-    return paper + [m for m in _ordered_methods(table, data) if m not in paper]
-
-
-def image_rows(table: str, data: TableData) -> list[dict[str, Any]]:
-    """Rows of table a: per test set each method then BG, last the pooled BG row; ours and the paper's."""
-    paper = PAPER.get(table, {}).get("image", {})
-    keys = set(data.image) | set(paper)
-    test_sets = [t for t in ("novel_view", "novel_object") if any(k[0] == t for k in keys)]
-    test_sets += sorted({k[0] for k in keys} - set(test_sets) - {"all"})
-    rows = []
-    for ts in test_sets:
-        for method in [*_row_methods(table, data), BG]:
-            if (ts, method) in data.image or (ts, method) in paper:
-                rows.append(_image_row(ts, method, data.image.get((ts, method), {}), paper.get((ts, method), {})))
-    if ("all", BG) in data.image or ("all", BG) in paper:
-        rows.append(_image_row("all", BG, data.image.get(("all", BG), {}), paper.get(("all", BG), {})))
-    return rows
-
-
-def _image_row(ts: str, method: str, ours: dict[str, Stat], paper: dict[str, tuple[float, float]]) -> dict:
-    return {"test_set": ts, "method": method, "ours": ours, "paper": paper}
-
-
-def accuracy_rows(table: str, data: TableData) -> list[dict[str, Any]]:
-    paper = PAPER.get(table, {}).get("accuracy", {})
-    methods = _row_methods(table, data)
-    names = ["Sim", *[f"Sim + {m}" for m in methods], *[f"{m} only" for m in methods]]
-    names = [n for n in names if n in data.accuracy or n in paper]
-    names += [n for n in data.accuracy if n not in names]
-    return [{"row": n, "ours": data.accuracy.get(n), "paper": paper.get(n)} for n in names]
-
-
-def _csv(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> bytes:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(header)
-    for r in rows:
-        w.writerow(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in r])
-    return buf.getvalue().encode()
-
-
-def _pair(p: tuple[float, float] | None) -> tuple[float | None, float | None]:
-    return (None, None) if p is None else p
-
-
-def checks(table: str, data: TableData) -> list[tuple[str, str, str]]:
-    """The paper's qualitative claims tested on our numbers: (claim, verdict, detail).
-
-    Verdict ``holds`` or ``FAILS``, with `` (within noise)`` when the gap is no larger than the combined standard
-    error over seeds. Claims whose rows are missing are left out.
-    """
-    out: list[tuple[str, str, str]] = []
-
-    def compare(claim: str, a: Stat | None, b: Stat | None, higher_better: bool, kind: str) -> None:
-        if a is None or b is None:
-            return
-        better = a.mean > b.mean if higher_better else a.mean < b.mean
-        noise = math.hypot(a.se, b.se)
-        close = abs(a.mean - b.mean) <= noise
-        verdict = (
-            ("holds (within noise)" if close else "holds") if better else ("FAILS (within noise)" if close else "FAILS")
-        )
-        out.append((claim, verdict, f"{fmt_stat(a, kind)} vs {fmt_stat(b, kind)}"))
-
-    def img(ts: str, method: str, metric: str) -> Stat | None:
-        return data.image.get((ts, method), {}).get(metric)
-
-    test_sets = sorted({k[0] for k in data.image} - {"all"}, key=lambda t: (t != "novel_view", t))
-    others = [m for m in _ordered_methods(table, data) if m != PRIMARY]
-    baselines = [m for m in others if not m.startswith(PRIMARY)]  # T-N+ is a variant of ours, not a baseline
-    for ts in test_sets:
-        name = TEST_SET_NAMES.get(ts, ts).lower()
-        for b in baselines:
-            compare(f"{PRIMARY} SSIM > {b} SSIM ({name})", img(ts, PRIMARY, "ssim"), img(ts, b, "ssim"), True, "ssim")
-            compare(f"{PRIMARY} MSE < {b} MSE ({name})", img(ts, PRIMARY, "mse"), img(ts, b, "mse"), False, "mse")
-        compare(f"{PRIMARY} SSIM > BG SSIM ({name})", img(ts, PRIMARY, "ssim"), img(ts, BG, "ssim"), True, "ssim")
-        compare(f"{PRIMARY} MSE < BG MSE ({name})", img(ts, PRIMARY, "mse"), img(ts, BG, "mse"), False, "mse")
-        if f"{PRIMARY}+" in others and ts == "novel_object":
-            compare(
-                f"{PRIMARY}+ SSIM > {PRIMARY} SSIM ({name})",
-                img(ts, f"{PRIMARY}+", "ssim"),
-                img(ts, PRIMARY, "ssim"),
-                True,
-                "ssim",
-            )
-    acc = data.accuracy
-    compare(f"Sim + {PRIMARY} accuracy > Sim", acc.get(f"Sim + {PRIMARY}"), acc.get("Sim"), True, "acc")
-    for b in baselines:
-        compare(
-            f"Sim + {PRIMARY} accuracy > Sim + {b}", acc.get(f"Sim + {PRIMARY}"), acc.get(f"Sim + {b}"), True, "acc"
-        )
-    return out
-
-
-def against_paper(table: str, data: TableData) -> list[tuple[str, str, str]]:
-    """Our method's figures (T-N and its variants) against the paper's own: (figure, verdict, ours vs paper).
-
-    Verdict ``reaches``, ``short, within noise`` when the shortfall is within the combined standard error, or
-    ``FALLS SHORT``. The classification figure is the gain of ``Sim + <method>`` over ``Sim``.
-    """
-    paper = PAPER.get(table, {})
-    ours = [m for m in _ordered_methods(table, data) if m.startswith(PRIMARY)]
-    out: list[tuple[str, str, str]] = []
-
-    def compare(what: str, a: Stat | None, b: tuple[float, float] | None, higher_better: bool, kind: str) -> None:
-        if a is None or b is None:
-            return
-        ahead = a.mean >= b[0] if higher_better else a.mean <= b[0]
-        short = "short, within noise" if abs(a.mean - b[0]) <= math.hypot(a.se, b[1]) else "FALLS SHORT"
-        out.append((what, "reaches" if ahead else short, f"{fmt_stat(a, kind)} vs {fmt_stat(b, kind)}"))
-
-    image = paper.get("image", {})
-    for ts, method in sorted(image, key=lambda k: (k[0] != "novel_view", k[0], k[1])):
-        if method in ours:
-            name = TEST_SET_NAMES.get(ts, ts).lower()
-            for metric, higher_better in (("ssim", True), ("mse", False)):
-                a, b = data.image.get((ts, method), {}).get(metric), image[(ts, method)].get(metric)
-                compare(f"{method} {metric.upper()} ({name})", a, b, higher_better, metric)
-    acc, paper_acc = data.accuracy, paper.get("accuracy", {})
-    for m in ours:
-        a, a0, b, b0 = acc.get(f"Sim + {m}"), acc.get("Sim"), paper_acc.get(f"Sim + {m}"), paper_acc.get("Sim")
-        if a is not None and a0 is not None and b is not None and b0 is not None:
-            gain = Stat(a.mean - a0.mean, math.hypot(a.se, a0.se), min(a.n, a0.n))
-            compare(f"Sim + {m} gain over Sim (points)", gain, (b[0] - b0[0], math.hypot(b[1], b0[1])), True, "acc")
-    return out
+# The tables' and the claims' names stay importable from here.
+__all__ = [
+    "TABLES",
+    "TEST_SET_NAMES",
+    "accuracy_rows",
+    "against_paper",
+    "checks",
+    "fmt_stat",
+    "image_rows",
+    "render_markdown",
+    "verdict",
+    "write_report",
+]
 
 
 def batch_sampling(runs: Sequence[dict[str, Any]]) -> str | None:
@@ -299,85 +161,6 @@ def environments(runs: Sequence[dict[str, Any]]) -> list[str]:
         cells = [env[k] if env[k] is not None else "-" for k in keys[:-2]]
         lines.append(f"| {', '.join(names)} | " + " | ".join(str(c) for c in cells) + f" | {version} |")
     return [*lines, ""]
-
-
-def _plain(claim: str) -> str:
-    """A check's claim in words: ``T-N SSIM > BG SSIM (novel view)`` -> ``T-N above BG in SSIM on novel views``."""
-    m = re.fullmatch(r"(\S+) (SSIM|MSE) ([<>]) (\S+) (?:SSIM|MSE) \((.+)\)", claim)
-    if not m:
-        return claim.replace(" > ", " above ").replace(" < ", " below ")
-    a, metric, op, b, where = m.groups()
-    return f"{a} {'above' if op == '>' else 'below'} {b} in {metric} on {where}s"
-
-
-def verdict(tables: dict[str, TableData], next_step: str | None = None) -> str:
-    """The report's first paragraph, in plain words: whether the paper's claims that the run checks hold, how
-    the primary method's SSIM compares with the paper's, then ``next_step`` (the experiment's own words)."""
-    parts: list[str] = []
-    for table in sorted(tables, key=lambda t: (t not in TABLES, t)):
-        data = tables[table]
-        cks = checks(table, data)
-        if not cks:
-            continue
-        label = f" (Table {TABLES.get(table, (table,))[0]})" if len(tables) > 1 else ""
-        seeds = len({r["seed"] for r in data.runs if r["method"] == PRIMARY})
-        on = f"on {seeds} seed{'s' if seeds != 1 else ''}" if seeds else "so far"
-        failed = [
-            (c, d + (", within the spread between seeds" if v.endswith("(within noise)") else ""))
-            for c, v, d in cks
-            if v.startswith("FAILS")
-        ]
-        noisy = sum(v == "holds (within noise)" for _, v, _ in cks)
-        if failed:
-            listed = "; ".join(f"{_plain(c)} ({d.replace(' vs ', ' against ')})" for c, d in failed)
-            held = f"{len(cks) - len(failed)} of {len(cks)}"
-            parts.append(f"**{held} claims of the paper hold{label} {on}; these do not: {listed}.**")
-        else:
-            close = f", {noisy} of them by less than the spread between seeds" if noisy else ""
-            count = f"{len(cks)} of {len(cks)}, {on}{close}"
-            parts.append(f"**Every claim of the paper that this run checks holds{label} ({count}).**")
-        test_sets = sorted({k[0] for k in data.image} - {"all"}, key=lambda t: (t != "novel_view", t))
-        image_failed = any("accuracy" not in c for c, _ in failed)
-        baselines = [m for m in _ordered_methods(table, data) if not m.startswith(PRIMARY)]
-        compared = [
-            t for t in test_sets if (t, PRIMARY) in data.image and any((t, m) in data.image for m in [BG, *baselines])
-        ]
-        if compared and not image_failed:
-            rivals = ["the background image"] + baselines
-            where = " and ".join(TEST_SET_NAMES.get(t, t).lower() + "s" for t in compared)
-            parts.append(
-                f"{PRIMARY}'s generated touches are closer to the true ones than {', '.join(rivals)} on {where}, "
-                "in SSIM and in MSE."
-            )
-        sim, with_primary = data.accuracy.get("Sim"), data.accuracy.get(f"Sim + {PRIMARY}")
-        if sim and with_primary and with_primary.mean > sim.mean:  # a failed claim is named above
-            parts.append(
-                f"Added to the simulator's touches, {PRIMARY}'s touches train a better object classifier "
-                f"({fmt_stat(with_primary, 'acc')} % against {fmt_stat(sim, 'acc')} %)."
-            )
-        paper = PAPER.get(table, {}).get("image", {})
-        ours = [
-            (t, data.image[(t, PRIMARY)]["ssim"], paper[(t, PRIMARY)]["ssim"])
-            for t in test_sets
-            if "ssim" in data.image.get((t, PRIMARY), {}) and (t, PRIMARY) in paper
-        ]
-        if ours:
-            names = " / ".join(TEST_SET_NAMES.get(t, t).lower() for t, _, _ in ours)
-            here = " / ".join(fmt_stat(o, "ssim").split(" ")[0] for _, o, _ in ours)
-            theirs = " / ".join(fmt_stat(p, "ssim").split(" ")[0] for _, _, p in ours)
-            level = (
-                "below"
-                if all(o.mean < p[0] for _, o, p in ours)
-                else "at or above"
-                if all(o.mean >= p[0] for _, o, p in ours)
-                else "around"
-            )
-            parts.append(f"{PRIMARY}'s SSIM here ({names}: {here}) is {level} the paper's ({theirs}).")
-    if not parts:
-        parts.append("**No claim of the paper can be checked yet**: the rows it compares are missing.")
-    if next_step and next_step.strip():
-        parts.append(next_step.strip())
-    return " ".join(parts)
 
 
 def render_markdown(
@@ -562,10 +345,6 @@ def write_report(
         md += "\n" + "\n".join(section)
     write_bytes(folder / "report.md", md.encode())
     return tables
-
-
-def _stat_cells(st: Stat | None) -> list[Any]:
-    return [None, None, None] if st is None else [st.mean, st.se, st.n]
 
 
 def _relpath(p: Path, base: Path) -> str:
