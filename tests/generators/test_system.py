@@ -21,7 +21,7 @@ from tnf.generators.callbacks import (
     image_grid,
 )
 from tnf.generators.system import generator_config, generator_spec
-from tnf.generators.training import fit, merge_metrics_parts
+from tnf.generators.training import fit, keep_epochs
 
 # With the adversarial term (not the default), so that both players' optimisers, schedules and logs are exercised.
 SPEC = {"name": "tn_cgan", "image_size": 32, "ngf": 4, "ndf": 4, "dropout_at_generation": False, "lambda_gan": 1.0}
@@ -159,46 +159,52 @@ def test_resume_continues_from_last(tmp_path):
         train(run_dir, epochs=2, system=system)
     _, s2 = train(run_dir, epochs=1, system=GeneratorSystem(SPEC, epochs=2, decay_epochs=1, finite_check_every=1))
     assert s2["epochs"] == 2 and s2["global_step"] == 2 * steps
-    # The finished run's metrics.csv holds both parts; the first part's raw log stays beside it.
+    # The finished run's metrics.csv holds both parts, each step's rows once.
     rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
     assert [int(r["epoch"]) for r in rows if r["val_l1"]] == [0, 1]
-    assert (run_dir / "metrics.part1.csv").is_file()
+    assert [int(r["step"]) for r in rows if r["train/loss_g_step"]] == list(range(2 * steps // 2))
+    assert sorted(p.name for p in run_dir.glob("*.csv")) == ["metrics.csv"]
 
 
-def test_merged_metrics_drop_the_steps_a_resume_repeated(tmp_path):
-    """A run killed mid-epoch logged steps past its last checkpoint; the resumed part logs them again. The
-    merged history keeps each step once, from the part that went on, with the union of both parts' columns."""
-    (tmp_path / "metrics.part1.csv").write_text("epoch,step,train/loss\n0,0,5\n0,1,4\n0,2,3\n1,3,2.5\n1,4,2.4\n")
-    (tmp_path / "metrics.part2.csv").write_text("")  # killed before it logged anything
-    (tmp_path / "metrics.partial.csv").write_text("not,a,part\n")  # a user's file: neither read nor touched
-    (tmp_path / "metrics.csv").write_text("epoch,step,train/loss,val_l1\n1,3,2.6,\n1,4,2.2,\n1,4,,0.5\n")
-    merge_metrics_parts(tmp_path)
-    rows = list(csv.DictReader(open(tmp_path / "metrics.csv")))
-    assert [(r["step"], r["train/loss"], r["val_l1"]) for r in rows] == [
-        ("0", "5", ""),
-        ("1", "4", ""),
-        ("2", "3", ""),
-        ("3", "2.6", ""),
-        ("4", "2.2", ""),
-        ("4", "", "0.5"),
-    ]
-    assert (tmp_path / "metrics.part1.csv").read_text().count("\n") == 6  # the raw part is kept
-    assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "metrics.csv",
-        "metrics.part1.csv",
-        "metrics.part2.csv",
-        "metrics.partial.csv",
-    ]  # no temporary file left behind
+def test_resuming_keeps_the_rows_of_the_epochs_its_checkpoint_holds(tmp_path):
+    """Rows of the epochs after the checkpoint, which the resumed run logs again, are dropped; the columns stay."""
+    metrics = tmp_path / "metrics.csv"
+    metrics.write_text("epoch,step,train/loss,val_l1\n0,0,5,\n0,1,4,\n0,1,,0.5\n1,2,3,\n1,3,2.5,\n2,4,2,\n")
+    keep_epochs(metrics, 2)
+    assert metrics.read_text() == "epoch,step,train/loss,val_l1\n0,0,5,\n0,1,4,\n0,1,,0.5\n1,2,3,\n1,3,2.5,\n"
+    keep_epochs(metrics, 1)
+    assert [r["step"] for r in csv.DictReader(open(metrics))] == ["0", "1", "1"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.csv"]  # no temporary file left behind
+    keep_epochs(tmp_path / "missing.csv", 1)
+    assert not (tmp_path / "missing.csv").exists()
 
 
-def test_merging_again_after_a_finished_run_is_resumed_keeps_each_step_once(tmp_path):
-    """A finished run's merged metrics.csv becomes the next part when the run is resumed for more epochs; the
-    next merge must not repeat the steps it already holds."""
-    (tmp_path / "metrics.part1.csv").write_text("epoch,step,loss\n0,0,5\n0,1,4\n")
-    (tmp_path / "metrics.part2.csv").write_text("epoch,step,loss\n0,0,5\n0,1,4\n1,2,3\n1,3,2\n")  # merged before
-    (tmp_path / "metrics.csv").write_text("epoch,step,loss\n2,4,1.5\n2,5,1\n")
-    merge_metrics_parts(tmp_path)
-    assert [r["step"] for r in csv.DictReader(open(tmp_path / "metrics.csv"))] == ["0", "1", "2", "3", "4", "5"]
+def test_last_checkpoint_is_in_place_only_once_its_epochs_rows_are_written(tmp_path):
+    """Whenever last.ckpt is there, metrics.csv holds every row of the epochs it holds, the epoch's training
+    metrics (logged after the checkpoint is saved) included: a run killed at any moment loses no row."""
+    from lightning.pytorch.callbacks import Checkpoint
+
+    run_dir = tmp_path / "run"
+    seen = []
+
+    class Look(Checkpoint):  # a checkpoint callback: runs after LatestCheckpoint has saved at an epoch's end
+        def look(self, *_):
+            last = run_dir / "last.ckpt"
+            if not last.is_file():
+                seen.append(None)
+                return
+            epoch = torch.load(last, weights_only=True)["epoch"]
+            rows = list(csv.DictReader(open(run_dir / "metrics.csv")))
+            ended = [int(r["epoch"]) for r in rows if r.get("lr/g")]  # the rows of the epochs' training metrics
+            assert ended[: epoch + 1] == list(range(epoch + 1)), (epoch, ended)
+            seen.append(epoch)
+
+        on_train_epoch_end = on_train_epoch_start = on_train_batch_end = on_validation_end = look
+
+    train(run_dir, epochs=3, callbacks=[*build_callbacks(), Look()])
+    assert seen[-1] == 1 and 0 in seen  # last.ckpt of the final epoch is put in place when training ends
+    assert torch.load(run_dir / "last.ckpt", weights_only=True)["epoch"] == 2
+    assert not list(run_dir.glob("*.pending"))
 
 
 def test_last_checkpoint_interval_skips_epochs_but_keeps_the_final_one(tmp_path):
@@ -284,11 +290,11 @@ def test_image_grid_layout():
 def test_loggers(tmp_path):
     from tnf.generators.training import make_loggers
 
-    assert [type(x).__name__ for x in make_loggers({"name": "csv"}, tmp_path)] == ["CSVLogger"]
+    assert [type(x).__name__ for x in make_loggers({"name": "csv"}, tmp_path)] == ["RunCSVLogger"]
     with pytest.raises(TnfError, match="unknown logger 'mlflow'"):
         make_loggers({"name": "mlflow"}, tmp_path)
     wandb = make_loggers({"name": "wandb", "project": "tnf", "mode": "offline"}, tmp_path)
-    assert [type(x).__name__ for x in wandb] == ["CSVLogger", "WandbLogger"]
+    assert [type(x).__name__ for x in wandb] == ["RunCSVLogger", "WandbLogger"]
 
 
 def _epoch_rows(run_dir):

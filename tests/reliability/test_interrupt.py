@@ -157,8 +157,10 @@ def test_train_killed_resumes_from_last_checkpoint_with_optimiser_state(tmp_path
     assert kill_when(root, train, after_second_epoch, poll=0.05, pause=True)
     assert not (run_dir / "manifest.json").exists()
     killed = _ckpt(last)
+    grid = run_dir / "grids" / "epoch_000.png"  # written once: a resumed run does not train epoch 0 again
+    written = grid.stat().st_mtime_ns
     run_to_end(root, *train)
-    assert (run_dir / "metrics.part1.csv").is_file(), "the re-run started afresh instead of resuming"
+    assert grid.stat().st_mtime_ns == written, "the re-run started afresh instead of resuming"
     a, b = _ckpt(run_dir / "last.ckpt"), _ckpt(ref / "models" / run_dir.name / "last.ckpt")
     progress = [(c["epoch"], c["global_step"]) for c in (killed, a, b)]
     assert progress[1] == progress[2] and progress[1][1] > progress[0][1], progress

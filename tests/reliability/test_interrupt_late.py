@@ -211,8 +211,10 @@ def test_finetune_killed_after_an_epoch_resumes_with_optimiser_and_scheduler_sta
     assert kill_when(root, FINETUNE, ckpt_epoch_at_least(run / "last.ckpt", 1), poll=0.05, pause=True)
     assert not (run / "manifest.json").exists()
     killed = ckpt(run / "last.ckpt")
+    grid = run / "grids" / "epoch_000.png"  # written once: a resumed run does not train epoch 0 again
+    written = grid.stat().st_mtime_ns
     run_to_end(root, *FINETUNE)
-    assert (run / "metrics.part1.csv").is_file(), "the re-run started afresh instead of resuming"
+    assert grid.stat().st_mtime_ns == written, "the re-run started afresh instead of resuming"
     last = check_finetuned(root, finetune_reference)
     ref_last = ckpt(finetune_reference / "models" / "ft" / "last.ckpt")
     assert last["global_step"] > killed["global_step"]
@@ -236,7 +238,6 @@ def test_finetune_killed_before_its_first_checkpoint_starts_afresh(tmp_path, ups
     assert kill_when(root, FINETUNE, (run / "run.json").is_file)
     assert not (run / "last.ckpt").exists() and not (run / "manifest.json").exists()
     run_to_end(root, *FINETUNE)
-    assert not (run / "metrics.part1.csv").exists()
     last = check_finetuned(root, finetune_reference)
     # Started afresh with the same seed: the very weights of the uninterrupted run.
     ref = ckpt(finetune_reference / "models" / "ft" / "last.ckpt")["state_dict"]
@@ -418,9 +419,11 @@ def test_pipeline_from_scratch_killed_in_every_stage_resumes(tmp_path, reference
         stamps = manifest_stamps(root, "capture", "scenes", "touch", "pairs")
         # The pair stage's per-object caches are removed once the dataset is built.
         stamps = {k: v for k, v in stamps.items() if ".cache" not in k.parts}
+    grid = root / "models" / MODEL / "grids" / "epoch_000.png"  # written once: a resumed run does not redo epoch 0
+    written = grid.stat().st_mtime_ns
     run_to_end(root, *PIPELINE)
     assert_not_rewritten(stamps)
-    assert (root / "models" / MODEL / "metrics.part1.csv").is_file(), "training did not resume"
+    assert grid.stat().st_mtime_ns == written, "training did not resume"
     # Training was resumed, which draws other random numbers than an uninterrupted run: what comes after it has
     # the same settings but not the same numbers.
     check_pipeline(root, reference, exact_from=("capture", "touch", "pairs"))

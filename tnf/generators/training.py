@@ -1,14 +1,20 @@
 """Running a ``GeneratorSystem`` with Lightning: trainer, loggers, checkpoints, resume, run folder.
 
 Shared by ``tnf train`` and ``tnf finetune``. A run folder ``<root>/models/<run_name>/`` holds ``last.ckpt``,
-``best.ckpt`` (lowest validation L1), ``grids/epoch_XXX.png``, ``metrics.csv`` (a resumed run logs its earlier
-parts to ``metrics.partN.csv``; once it finishes, ``metrics.csv`` holds the whole history), ``run.json`` (the run's
-config, written when it starts, so a resumed run can be checked against it) and, once finished,
-``manifest.json``.
+``best.ckpt`` (lowest validation L1), ``grids/epoch_XXX.png``, ``metrics.csv`` (the run's whole history, one row
+per logging event, a resumed run's included), ``run.json`` (the run's config, written when it starts, so a
+resumed run can be checked against it) and, once finished, ``manifest.json``.
+
+A run killed at any moment (``kill -9``) and started again resumes from ``last.ckpt``, and its ``metrics.csv``
+goes on from there: ``last.ckpt`` is in place only once the rows of its epochs are all in ``metrics.csv``
+(``LatestCheckpoint``), the rows the killed run logged after it are dropped on resuming (``keep_epochs``), and
+the CSV logger appends to the rows kept (``RunCSVLogger``).
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import logging
 import os
 import time
@@ -19,6 +25,9 @@ from typing import Any
 
 import lightning
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger
+from lightning.pytorch.loggers.csv_logs import ExperimentWriter
+from lightning.pytorch.loggers.logger import rank_zero_experiment
 
 from tnf import __version__
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_bytes, write_json
@@ -27,14 +36,27 @@ from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
 
 RUN_FILE = "run.json"
 
+#: The run's metrics, one CSV row per logging event (Lightning's ``CSVLogger`` layout).
+METRICS = "metrics.csv"
+
+#: Suffix of a checkpoint written but not yet in place (``LatestCheckpoint``).
+PENDING = ".pending"
+
 
 class LatestCheckpoint(ModelCheckpoint):
     """``ModelCheckpoint`` of the latest epoch that skips an epoch's write when its file is younger than
-    ``every_s`` seconds, except after the last epoch (so a finished run's checkpoint is its final state)."""
+    ``every_s`` seconds, except after the last epoch (so a finished run's checkpoint is its final state).
+
+    Lightning saves it at the end of an epoch, before it logs the epoch's training metrics. It is written to
+    ``last.ckpt.pending`` then, and renamed to ``last.ckpt`` when the next epoch starts or training ends, once
+    the loggers have written the epoch's rows: a run killed at any moment resumes from a checkpoint whose
+    epochs' rows are all in ``metrics.csv``, and ``last.ckpt`` is never a half-written file.
+    """
 
     def __init__(self, *args: Any, every_s: float = 0.0, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.every_s = float(every_s)
+        self._pending: str | None = None  # the checkpoint written to <path>.pending, not yet renamed
 
     def _due(self, trainer: Any) -> bool:
         if self.every_s <= 0 or trainer.should_stop or trainer.current_epoch + 1 >= (trainer.max_epochs or 0):
@@ -57,11 +79,51 @@ class LatestCheckpoint(ModelCheckpoint):
             super().on_validation_end(trainer, pl_module)
 
     def _save_checkpoint(self, trainer: Any, filepath: str) -> None:
-        # The loggers first: a run killed just after this checkpoint resumes after its epoch, so metrics.csv
-        # must already hold that epoch's rows (the CSV logger buffers them until it saves).
+        super()._save_checkpoint(trainer, filepath + PENDING)
+        self._pending = filepath
+
+    def on_train_epoch_start(self, trainer: Any, pl_module: Any) -> None:
+        self._put_in_place(trainer)
+
+    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
+        self._put_in_place(trainer)
+
+    def _put_in_place(self, trainer: Any) -> None:
+        """Rename the pending checkpoint to its name, after the loggers have written what they hold."""
+        if self._pending is None:
+            return
         for lg in trainer.loggers:
             lg.save()
-        super()._save_checkpoint(trainer, filepath)
+        if trainer.is_global_zero:  # the process that wrote it
+            os.replace(self._pending + PENDING, self._pending)
+        self._pending = None
+
+
+class RunCSVLogger(CSVLogger):
+    """Lightning's ``CSVLogger`` that continues the run folder's ``metrics.csv`` rather than deleting it: a
+    resumed run appends its rows to those of its earlier part (``prepare_run_dir`` keeps the rows up to the
+    checkpoint it resumes from)."""
+
+    @property
+    @rank_zero_experiment
+    def experiment(self) -> Any:
+        if self._experiment is None:
+            self._fs.makedirs(self.root_dir, exist_ok=True)
+            self._experiment = _ContinuingWriter(log_dir=self.log_dir)
+        return self._experiment
+
+
+class _ContinuingWriter(ExperimentWriter):
+    """Lightning's CSV writer, starting from the columns of an existing ``metrics.csv`` and appending to it."""
+
+    def __init__(self, log_dir: str) -> None:
+        super().__init__(log_dir=log_dir)
+        if os.path.isfile(self.metrics_file_path):
+            with open(self.metrics_file_path, newline="") as f:
+                self.metrics_keys = list(next(csv.reader(f), []))
+
+    def _check_log_dir_exists(self) -> None:
+        pass  # Lightning's deletes metrics.csv here
 
 
 def make_loggers(logger_cfg: Mapping[str, Any] | None, run_dir: Path) -> list[Any]:
@@ -70,9 +132,7 @@ def make_loggers(logger_cfg: Mapping[str, Any] | None, run_dir: Path) -> list[An
     ``logger_cfg``: ``{name: csv | tensorboard | wandb, ...}``; wandb is imported only when selected and runs
     offline unless ``mode: online``.
     """
-    from lightning.pytorch.loggers import CSVLogger
-
-    loggers: list[Any] = [CSVLogger(save_dir=str(run_dir), name="", version="")]
+    loggers: list[Any] = [RunCSVLogger(save_dir=str(run_dir), name="", version="")]
     cfg = dict(logger_cfg or {})
     name = cfg.pop("name", "csv")
     if name in ("csv", None, "none"):
@@ -100,7 +160,8 @@ def prepare_run_dir(run_dir: Path, config: Mapping[str, Any], resume: bool) -> P
     """Create the run folder; returns ``last.ckpt`` to resume from, or None to start afresh.
 
     A folder holding a run of another config is an error (rather than silently mixing two runs); with
-    ``resume=False`` an unfinished earlier run is started again. Only process 0 of a distributed run writes.
+    ``resume=False`` an unfinished earlier run is started again. Resuming keeps the rows of ``metrics.csv`` up to
+    the checkpoint's epoch; starting afresh deletes it. Only process 0 of a distributed run writes.
     """
     last = run_dir / "last.ckpt"
     run_file = run_dir / RUN_FILE
@@ -117,18 +178,34 @@ def prepare_run_dir(run_dir: Path, config: Mapping[str, Any], resume: bool) -> P
         return last if resume and last.is_file() else None
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(run_file, {"config": config, "config_hash": config_hash(config)})
+    # A checkpoint that a killed run wrote but never put in place (LatestCheckpoint): its epoch's rows may be
+    # missing from metrics.csv, so the run resumes from the one before.
+    (run_dir / f"last.ckpt{PENDING}").unlink(missing_ok=True)
     if resume and last.is_file():
-        # The CSV logger starts metrics.csv afresh; keep the earlier part of the run's history.
-        old = run_dir / "metrics.csv"
-        if old.is_file():
-            k = 1
-            while (run_dir / f"metrics.part{k}.csv").exists():
-                k += 1
-            old.rename(run_dir / f"metrics.part{k}.csv")
+        keep_epochs(run_dir / METRICS, _progress(last, monitor="val_l1")[0])
         return last
-    for stale in ("last.ckpt", "best.ckpt", MANIFEST):
+    for stale in ("last.ckpt", "best.ckpt", MANIFEST, METRICS):
         (run_dir / stale).unlink(missing_ok=True)
     return None
+
+
+def keep_epochs(metrics: Path, epochs: int) -> None:
+    """Keep the rows of the first ``epochs`` epochs in ``metrics`` (a ``metrics.csv``; rows without an epoch
+    too) and drop the later ones, which a resumed run logs again. A missing file is left missing."""
+    if not metrics.is_file():
+        return
+    with open(metrics, newline="") as f:
+        reader = csv.DictReader(f)
+        columns = list(reader.fieldnames or [])
+        rows = list(reader)
+    kept = [r for r in rows if not r.get("epoch") or int(float(r["epoch"])) < epochs]
+    if len(kept) == len(rows):
+        return
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(kept)
+    write_bytes(metrics, text.getvalue().encode())
 
 
 def fit(
@@ -271,47 +348,15 @@ def fit(
             "config_hash": config_hash(config),
             "tnf_version": __version__,
         }
-        merge_metrics_parts(run_dir)
         write_json(run_dir / MANIFEST, manifest)
     return summary
-
-
-def merge_metrics_parts(run_dir: Path) -> None:
-    """Rewrite a resumed run's ``metrics.csv`` as its whole history: the earlier parts (``metrics.partN.csv``,
-    kept as they are) and the last, each part cut where the next one resumed, so that the steps repeated after
-    a resume from ``last.ckpt`` appear once. Columns are the union, in order of first appearance."""
-    import csv
-    import io
-
-    last = run_dir / "metrics.csv"
-    numbered = {f: f.stem.removeprefix("metrics.part") for f in run_dir.glob("metrics.part*.csv")}
-    parts = sorted((f for f, k in numbered.items() if k.isdigit()), key=lambda f: int(numbered[f]))
-    if not parts or not last.is_file():
-        return
-    columns: dict[str, None] = {}
-    tables = []
-    for f in [*parts, last]:
-        with open(f, newline="") as fh:
-            reader = csv.DictReader(fh)
-            columns.update(dict.fromkeys(reader.fieldnames or []))
-            tables.append([r for r in reader])
-    rows: list[dict[str, str]] = []
-    for i, table in enumerate(tables):
-        later = [float(r["step"]) for t in tables[i + 1 :] for r in t if r.get("step")]
-        resumed_at = min(later) if later else float("inf")
-        rows += [r for r in table if not r.get("step") or float(r["step"]) < resumed_at]
-    text = io.StringIO(newline="")
-    writer = csv.DictWriter(text, fieldnames=list(columns))
-    writer.writeheader()
-    writer.writerows(rows)
-    write_bytes(last, text.getvalue().encode())
 
 
 def quiet_advice() -> None:
     """Silence Lightning advice that does not apply to GAN training here: small datasets and CPU runs (few
     loader workers, short epochs), DDP's per-epoch training losses, which are process 0's (averaging them
     over processes would synchronise every step), and a run folder that is not empty, which tnf made itself
-    (``prepare_run_dir``: the manifest first, and on resuming the metrics it merges back); and Lightning's own
+    (``prepare_run_dir``: the run file first, and on resuming the metrics it keeps); and Lightning's own
     deprecations (``tnf.runtime.ignore_lightning_deprecations``)."""
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
     warnings.filterwarnings("ignore", ".*smaller than the logging interval.*")
