@@ -276,68 +276,8 @@ def write_report(
     tables = aggregate(results)
     figures: dict[str, list[tuple[str, str]]] = {}
     for table, data in tables.items():
-        num = TABLES.get(table, (table,))[0]
-        img_rows = image_rows(table, data)
-        write_bytes(
-            folder / f"table{num}a_image.csv",
-            _csv(
-                [
-                    "test_set",
-                    "method",
-                    "ssim_mean",
-                    "ssim_se",
-                    "mse_mean",
-                    "mse_se",
-                    "seeds",
-                    "paper_ssim_mean",
-                    "paper_ssim_se",
-                    "paper_mse_mean",
-                    "paper_mse_se",
-                ],
-                [
-                    [
-                        r["test_set"],
-                        r["method"],
-                        *(_stat_cells(r["ours"].get("ssim"))[:2]),
-                        *(_stat_cells(r["ours"].get("mse"))),
-                        *_pair(r["paper"].get("ssim")),
-                        *_pair(r["paper"].get("mse")),
-                    ]
-                    for r in img_rows
-                ],
-            ),
-        )
-        write_bytes(
-            folder / f"table{num}b_accuracy.csv",
-            _csv(
-                ["training_set", "accuracy_mean", "accuracy_se", "seeds", "paper_accuracy_mean", "paper_accuracy_se"],
-                [[r["row"], *_stat_cells(r["ours"]), *_pair(r["paper"])] for r in accuracy_rows(table, data)],
-            ),
-        )
-        figs: list[tuple[str, str]] = []
-        methods = [*_ordered_methods(table, data), BG]
-        for ts in sorted({k[0] for k in data.per_object}, key=lambda t: (t != "novel_view", t)):
-            series = {m: data.per_object[(ts, m)] for m in methods if (ts, m) in data.per_object}
-            if not series:
-                continue
-            lo = min(s.mean - s.se for v in series.values() for s in v.values())
-            y_lo = max(0.0, math.floor(min(lo, 0.9) * 10) / 10)
-            png = f"ssim_per_object_{table}_{ts}.png"
-            bar_plot(series, f"SSIM per object, {TEST_SET_NAMES.get(ts, ts).lower()}", (y_lo, 1.0)).save(folder / png)
-            figs.append((f"SSIM per object ({TEST_SET_NAMES.get(ts, ts).lower()})", png))
-        for m in _ordered_methods(table, data):
-            runs = sorted((r for r in data.runs if r["method"] == m and r.get("examples")), key=lambda r: r["seed"])
-            if runs and "_path" in runs[0]:
-                ex = Path(runs[0]["_path"]).parent / runs[0]["examples"]
-                if ex.is_file():
-                    # Runs written before examples_split was recorded took their examples from novel_object.
-                    split = str(runs[0].get("examples_split", "novel_object"))
-                    caption = (
-                        f"{m}, {TEST_SET_NAMES.get(split, split).lower()} touches (seed {runs[0]['seed']}): RGB | "
-                        "depth | generated | target | thresholded difference"
-                    )
-                    figs.append((caption, _relpath(ex, folder)))
-        figures[table] = figs
+        _write_tables(folder, table, data)
+        figures[table] = _table_figures(folder, table, data)
     timings = [json.loads(p.read_text()) for p in sorted((folder / "timings").glob("*.json"))]
     md = render_markdown(name or folder.name, tables, figures, notes, timings, next_step)
 
@@ -345,6 +285,77 @@ def write_report(
         md += "\n" + "\n".join(section)
     write_bytes(folder / "report.md", md.encode())
     return tables
+
+
+def _write_tables(folder: Path, table: str, data: TableData) -> None:
+    """Write ``table``'s two CSV files into ``folder``: ``table<N>a_image.csv`` and ``table<N>b_accuracy.csv``."""
+    num = TABLES.get(table, (table,))[0]
+    img_rows = image_rows(table, data)
+    write_bytes(
+        folder / f"table{num}a_image.csv",
+        _csv(
+            [
+                "test_set",
+                "method",
+                "ssim_mean",
+                "ssim_se",
+                "mse_mean",
+                "mse_se",
+                "seeds",
+                "paper_ssim_mean",
+                "paper_ssim_se",
+                "paper_mse_mean",
+                "paper_mse_se",
+            ],
+            [
+                [
+                    r["test_set"],
+                    r["method"],
+                    *(_stat_cells(r["ours"].get("ssim"))[:2]),
+                    *(_stat_cells(r["ours"].get("mse"))),
+                    *_pair(r["paper"].get("ssim")),
+                    *_pair(r["paper"].get("mse")),
+                ]
+                for r in img_rows
+            ],
+        ),
+    )
+    write_bytes(
+        folder / f"table{num}b_accuracy.csv",
+        _csv(
+            ["training_set", "accuracy_mean", "accuracy_se", "seeds", "paper_accuracy_mean", "paper_accuracy_se"],
+            [[r["row"], *_stat_cells(r["ours"]), *_pair(r["paper"])] for r in accuracy_rows(table, data)],
+        ),
+    )
+
+
+def _table_figures(folder: Path, table: str, data: TableData) -> list[tuple[str, str]]:
+    """Draw ``table``'s SSIM-per-object bar plots into ``folder``; returns (caption, path) of each figure, the
+    methods' example figures included (a path relative to ``folder``)."""
+    figs: list[tuple[str, str]] = []
+    methods = [*_ordered_methods(table, data), BG]
+    for ts in sorted({k[0] for k in data.per_object}, key=lambda t: (t != "novel_view", t)):
+        series = {m: data.per_object[(ts, m)] for m in methods if (ts, m) in data.per_object}
+        if not series:
+            continue
+        lo = min(s.mean - s.se for v in series.values() for s in v.values())
+        y_lo = max(0.0, math.floor(min(lo, 0.9) * 10) / 10)
+        png = f"ssim_per_object_{table}_{ts}.png"
+        bar_plot(series, f"SSIM per object, {TEST_SET_NAMES.get(ts, ts).lower()}", (y_lo, 1.0)).save(folder / png)
+        figs.append((f"SSIM per object ({TEST_SET_NAMES.get(ts, ts).lower()})", png))
+    for m in _ordered_methods(table, data):
+        runs = sorted((r for r in data.runs if r["method"] == m and r.get("examples")), key=lambda r: r["seed"])
+        if runs and "_path" in runs[0]:
+            ex = Path(runs[0]["_path"]).parent / runs[0]["examples"]
+            if ex.is_file():
+                # Runs written before examples_split was recorded took their examples from novel_object.
+                split = str(runs[0].get("examples_split", "novel_object"))
+                caption = (
+                    f"{m}, {TEST_SET_NAMES.get(split, split).lower()} touches (seed {runs[0]['seed']}): RGB | "
+                    "depth | generated | target | thresholded difference"
+                )
+                figs.append((caption, _relpath(ex, folder)))
+    return figs
 
 
 def _relpath(p: Path, base: Path) -> str:
