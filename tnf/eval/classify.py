@@ -12,7 +12,6 @@ Images go in as uint8 ``[N, 3, S, S]`` (the touch-format loader below makes them
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -28,67 +27,8 @@ from torch import nn
 from tnf.artifacts import read_json
 from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.errors import TnfError
+from tnf.eval.settings import ClassifierConfig
 from tnf.metrics import exact_fp32_matmul
-from tnf.registry import FROM_YAML, yaml_defaults
-
-
-@dataclass
-@yaml_defaults("evaluate/default", node="classifier")
-class ClassifierConfig:
-    """Settings of the tactile object classifier (identical for every training set)."""
-
-    image_size: int = FROM_YAML
-    """Side of the square input image in pixels (128 is the generators' size; 64 trains 4x faster)."""
-    width: int = FROM_YAML
-    """Channels of the first convolution block; doubled in each of the next blocks (up to 4 blocks)."""
-    steps: int = FROM_YAML
-    """Optimisation steps (batches); the same for every row, so a larger training set gets no extra steps."""
-    batch_size: int = FROM_YAML
-    """Images per step."""
-    lr: float = FROM_YAML
-    """Adam learning rate, decayed with a cosine schedule to zero over ``steps``."""
-    weight_decay: float = FROM_YAML
-    """AdamW weight decay."""
-    shift: int = FROM_YAML
-    """Augmentation: random translation of each batch by up to this many pixels (0 = none)."""
-    real_fraction: float | None = FROM_YAML
-    """In a training set that mixes ground-truth and generated images (``Sim + G``), the share of each batch drawn
-    from the ground truth; None draws batches uniformly from the whole set, so adding generated images also cuts
-    how often each ground-truth image is seen. Sets of one kind (``Sim``, ``G only``) are drawn as with None."""
-    restarts: int = FROM_YAML
-    """Classifiers trained per row, each from its own seed and (in ``tnf evaluate``) its own draw of the Sim
-    touches; the row's accuracy is their mean. With a small test set or a few Sim touches per object, one
-    classifier's spread can exceed the difference between rows; more restarts average it out."""
-
-    def validate(self) -> None:
-        if self.image_size < 16:
-            raise TnfError(f"evaluate.classifier.image_size must be >= 16 pixels, got {self.image_size}")
-        for name in ("width", "steps", "batch_size", "restarts"):
-            if getattr(self, name) < 1:
-                raise TnfError(f"evaluate.classifier.{name} must be >= 1, got {getattr(self, name)}")
-        if self.lr <= 0:
-            raise TnfError(f"evaluate.classifier.lr must be > 0, got {self.lr}")
-        if not 0 <= self.shift < self.image_size // 2:
-            raise TnfError(f"evaluate.classifier.shift must be in [0, image_size/2), got {self.shift}")
-        if self.real_fraction is not None and not (
-            isinstance(self.real_fraction, (int, float))
-            and not isinstance(self.real_fraction, bool)
-            and 0 < self.real_fraction < 1
-        ):
-            raise TnfError(
-                f"evaluate.classifier.real_fraction must be null or a number in (0, 1), got {self.real_fraction!r}"
-            )
-
-    @classmethod
-    def from_dict(cls, params: Mapping[str, Any]) -> ClassifierConfig:
-        """Build and validate from a config node; an unknown key is a TnfError naming it."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        for key in params:
-            if key not in known:
-                raise TnfError(f"unknown key evaluate.classifier.{key}; known: {', '.join(sorted(known))}")
-        cfg = cls(**dict(params))
-        cfg.validate()
-        return cfg
 
 
 class TactileClassifier(nn.Module):

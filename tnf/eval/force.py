@@ -31,6 +31,7 @@ from tnf.data import PairDataset, collate_pairs
 from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.data.render import TouchItem
 from tnf.errors import TnfError
+from tnf.eval.settings import EvaluateSettings
 from tnf.metrics import mse, ssim
 from tnf.registry import OBJECTS, SENSORS, SIMULATORS, split_spec
 from tnf.runtime import warp_device
@@ -175,7 +176,7 @@ def fmt(x: float | None, digits: int = 4) -> str:
 
 
 def by_force(
-    settings: Mapping[str, Any],
+    settings: EvaluateSettings,
     seed: int,
     pairs: Any,
     object_names: Sequence[str] | None,
@@ -198,26 +199,26 @@ def by_force(
 
     from torch.utils.data import DataLoader
 
-    bf = settings["by_force"]
+    bf = settings.by_force
     manifest = read_json(pairs / MANIFEST, "dataset manifest")
     plan = dataset_plan(manifest, pairs)
-    sweep = [check_force_value(f, "evaluate.by_force.sweep") for f in (bf["sweep"] or plan.sweep(6))]
+    sweep = [check_force_value(f, "evaluate.by_force.sweep") for f in (bf.sweep or plan.sweep(6))]
     if len(sweep) < 2 or any(b <= a for a, b in zip(sweep, sweep[1:], strict=False)):
         raise TnfError(f"evaluate.by_force.sweep must hold at least two forces in ascending order, got {sweep}")
-    threshold = float(bf["area_threshold"])
+    threshold = bf.area_threshold
     out: dict[str, Any] = {"plan": plan.describe(), "sweep": sweep, "area_threshold": threshold}
-    splits = list(settings["splits"])
+    splits = list(settings.splits)
     for split in splits:
-        ds = PairDataset(pairs, splits=[split], per_object=settings["per_object"], seed=seed, object_names=object_names)
-        loader = DataLoader(ds, batch_size=int(settings["batch_size"]), shuffle=False, collate_fn=collate_pairs)
+        ds = PairDataset(pairs, splits=[split], per_object=settings.per_object, seed=seed, object_names=object_names)
+        loader = DataLoader(ds, batch_size=settings.batch_size, shuffle=False, collate_fn=collate_pairs)
         task = bar.add_task(f"by force {split}", total=len(loader))
         out[split] = score_split(
             loader, generate, plan, sweep, threshold, on_batch=functools.partial(bar.advance, task)
         )
 
     # The figure: the figure split's first touch that shows a contact, pressed again at each force of the sweep.
-    split = str(bf["figure_split"]) if bf["figure_split"] in splits else splits[0]
-    ds = PairDataset(pairs, splits=[split], per_object=settings["per_object"], seed=seed, object_names=object_names)
+    split = bf.figure_split if bf.figure_split in splits else splits[0]
+    ds = PairDataset(pairs, splits=[split], per_object=settings.per_object, seed=seed, object_names=object_names)
     batch = ds.__getitems__(list(range(min(len(ds), 64))))
     areas = contact_area(batch["tactile"], batch["background"], threshold)
     row = int(torch.argmax((areas > 0).float()))  # the first with a contact (0 when none has one)
@@ -234,7 +235,7 @@ def by_force(
     simulated = resimulate(sensor, sim, source.load(obj), np.asarray(touch["start_c2w"]), sweep, SIZE)
     # The simulator's own growth with force on the figure split's first poses: what the generator's is measured
     # against (a pose the simulator does not grow on cannot be asked of the generator).
-    n_ref = min(int(bf["simulator_poses"]), len(ds))
+    n_ref = min(bf.simulator_poses, len(ds))
     if n_ref > 0:
         ref = ds.__getitems__(list(range(n_ref)))
         starts: dict[str, list[tuple[int, np.ndarray]]] = {}

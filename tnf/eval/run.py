@@ -19,19 +19,20 @@ from typing import Any
 from tnf.artifacts import MANIFEST, read_json, write_json
 from tnf.errors import TnfError
 from tnf.eval.aggregate import RESULTS_FILE, SCHEMA, find_results, load_results
+from tnf.eval.settings import EvaluateSettings
 from tnf.runtime import environment, progress, resolve_device, seed_everything
 
 
 @dataclass
 class EvalJob:
-    """What ``tnf evaluate`` scores: plain values, built from the run's config by the stage.
+    """What ``tnf evaluate`` scores, built from the run's config by the stage.
 
     ``settings`` is the ``evaluate`` section; ``method`` the row label; ``generator`` the generator group's
     name (None without one); ``datasets`` the ``data.datasets`` list (the default test dataset); ``objects`` and
     ``simulator`` those groups' config nodes as plain dicts; ``object_names`` the run's selected objects.
     """
 
-    settings: dict[str, Any]
+    settings: EvaluateSettings
     method: str
     seed: int
     device: str
@@ -112,10 +113,10 @@ def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | No
     figures: dict[str, bytes] = {}
     results: dict[str, Any] = {
         "schema": SCHEMA,
-        "table": str(ecfg["table"]),
+        "table": ecfg.table,
         "method": job.method,
         "generator": job.generator,
-        "model": str(ecfg["model"]),
+        "model": str(ecfg.model),
         "seed": job.seed,
         "image": {},
         "accuracy": {},
@@ -123,7 +124,7 @@ def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | No
         "environment": environment(device),
     }
     with progress(job.progress) as bar:
-        if list(ecfg["splits"]):
+        if ecfg.splits:
             seed_everything(job.seed)
             image, examples, force = image_metrics(job, store, device, bar)
             results["image"] = image
@@ -134,11 +135,11 @@ def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | No
                 from tnf.eval.figures import example_grid
 
                 buf = io.BytesIO()
-                example_grid(examples["tensors"], float(ecfg["diff_threshold"]), examples["labels"]).save(buf, "PNG")
+                example_grid(examples["tensors"], ecfg.diff_threshold, examples["labels"]).save(buf, "PNG")
                 examples_png = buf.getvalue()
                 results["examples"] = "examples.png"
                 results["examples_split"] = examples["split"]
-        if ecfg["classify"]["enabled"]:
+        if ecfg.classify.enabled:
             seed_everything(job.seed)
             acc, info, warnings = classification(job, store, device, bar)
             results["accuracy"] = acc
@@ -161,39 +162,39 @@ def image_metrics(
     from tnf.eval.scoring import BG, score_batches
 
     ecfg = job.settings
-    dataset = ecfg["dataset"] or (job.datasets[0] if job.datasets else None)
+    dataset = ecfg.dataset or (job.datasets[0] if job.datasets else None)
     if not dataset:
         raise TnfError("evaluate.dataset is not set: name the paired dataset (under pairs/) with the test splits")
     pairs = resolve_dataset(str(dataset), job.data_root)
-    ckpt = store.path("models", str(ecfg["model"]), str(ecfg["checkpoint"]))
+    ckpt = store.path("models", str(ecfg.model), ecfg.checkpoint)
     if not ckpt.is_file():
         raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check evaluate.model/checkpoint")
     generate, uses_force, fixed_force = _model_images(job, ckpt, pairs, device, bar)
     out: dict[str, Any] = {}
     bg_all = None
     examples = None
-    splits = list(ecfg["splits"])
+    splits = list(ecfg.splits)
     example_split = "novel_object" if "novel_object" in splits else splits[-1]
     # Object ids as in training (a surface field, tnf.generators.field, knows objects by their training ids);
     # the dataset's other objects come after them.
     object_names = training_order(
-        (store.manifest("models", str(ecfg["model"])) or {}).get("object_names"),
+        (store.manifest("models", str(ecfg.model)) or {}).get("object_names"),
         read_json(pairs / MANIFEST, "dataset manifest").get("objects") or [],
     )
     for split in splits:
-        ds = PairDataset(pairs, splits=[split], per_object=ecfg["per_object"], seed=job.seed, object_names=object_names)
+        ds = PairDataset(pairs, splits=[split], per_object=ecfg.per_object, seed=job.seed, object_names=object_names)
         names = _object_names(ds)
         if len(ds) == 0:
             raise TnfError(f"split {split!r} of dataset {pairs} is empty; check evaluate.splits")
         loader = DataLoader(
             ds,
-            batch_size=int(ecfg["batch_size"]),
+            batch_size=ecfg.batch_size,
             shuffle=False,
-            num_workers=int(ecfg["num_workers"]),
+            num_workers=ecfg.num_workers,
             collate_fn=collate_pairs,
         )
         task = bar.add_task(f"score {split}", total=len(loader))
-        keep = int(ecfg["examples"]) if split == example_split else 0
+        keep = ecfg.examples if split == example_split else 0
         accs, kept = score_batches(
             loader, generate, names, keep_examples=keep, on_batch=functools.partial(bar.advance, task)
         )
@@ -272,19 +273,19 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
     """Train the classifier on Sim, Sim + G and G only; accuracy (percent) on held-out ground truth."""
     import torch
 
-    from tnf.eval.classify import ClassifierConfig, LabelledImages, load_touch_images, run_rows, subset
+    from tnf.eval.classify import LabelledImages, load_touch_images, run_rows, subset
 
     ecfg, method = job.settings, job.method
-    ccfg = ecfg["classify"]
-    clf = ClassifierConfig.from_dict(ecfg["classifier"])
-    sensor = str(ccfg["sensor"] or job.sensor)
+    ccfg = ecfg.classify
+    clf = ecfg.classifier
+    sensor = ccfg.sensor or job.sensor
     source = str(job.objects["name"])
-    generated_run = str(ecfg["generated"] or ecfg["model"])
-    if ccfg["objects"]:
-        objects = [str(o) for o in ccfg["objects"]]
+    generated_run = str(ecfg.generated or ecfg.model)
+    if ccfg.objects:
+        objects = list(ccfg.objects)
     else:
         objects = [p[2] for p in store.items("touch", depth=3) if p[0] == sensor and p[1] == source]
-    if job.object_names and not ccfg["objects"]:
+    if job.object_names and not ccfg.objects:
         objects = [o for o in objects if o in set(job.object_names)]
     if len(objects) < 2:
         raise TnfError(
@@ -303,12 +304,12 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
             return LabelledImages(x, torch.full((len(x),), label, dtype=torch.long))
 
         # Every ground-truth touch of the Sim splits; each restart draws its own sim_per_object from them.
-        sim.append(labelled(load_touch_images(folder, size, list(ccfg["sim_splits"]), None, seed)))
-        test.append(labelled(load_touch_images(folder, size, list(ccfg["test_splits"]), ccfg["test_per_object"], seed)))
+        sim.append(labelled(load_touch_images(folder, size, list(ccfg.sim_splits), None, seed)))
+        test.append(labelled(load_touch_images(folder, size, list(ccfg.test_splits), ccfg.test_per_object, seed)))
         gfolder = store.path("generated", generated_run, source, obj)
         if (gfolder / "manifest.json").is_file():
             poses.append(read_json(gfolder / "manifest.json", "generated manifest").get("poses"))
-            x = load_touch_images(gfolder, size, None, ccfg["generated_per_object"], seed)
+            x = load_touch_images(gfolder, size, None, ccfg.generated_per_object, seed)
             gen.append(LabelledImages(x, torch.full((len(x),), label), torch.ones(len(x), dtype=torch.bool)))
         else:
             warnings.append(f"no generated touches for {obj} in {gfolder}")
@@ -319,7 +320,7 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
             "run `tnf generate` first, set evaluate.generated=RUN, or evaluate.classify.enabled=false"
         )
     gen_set, test_set = LabelledImages.concat(gen), LabelledImages.concat(test)
-    limit = ccfg["sim_per_object"]
+    limit = ccfg.sim_per_object
 
     def rows(restart_seed: int) -> dict[str, LabelledImages]:
         # The Sim set of one restart: its own draw of sim_per_object touches per object, shared by its rows, so
@@ -330,7 +331,7 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
             drawn.append(LabelledImages(s.images[idx], s.labels[idx]))
         sim_set = LabelledImages.concat(drawn)
         out = {"Sim": sim_set, f"Sim + {method}": LabelledImages.concat([sim_set, gen_set])}
-        if ccfg["generated_only"]:
+        if ccfg.generated_only:
             out[f"{method} only"] = gen_set
         return out
 

@@ -19,7 +19,9 @@ from tnf.errors import TnfError
 from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
 from tnf.eval.paper import METHOD_LABELS
 from tnf.eval.run import EvalJob, check_not_another_models, collect_sweep, evaluate_model, run_id
-from tnf.sim.base import simulator_key
+from tnf.eval.settings import EvaluateSettings
+from tnf.registry import from_dict
+from tnf.stages.settings import identity_config
 
 
 def run(cfg: Any) -> dict[str, Any]:
@@ -29,30 +31,22 @@ def run(cfg: Any) -> dict[str, Any]:
     from tnf.eval.report import write_report
 
     console = Console(highlight=False)
-    ecfg = cfg.evaluate
+    ecfg = from_dict(EvaluateSettings, cfg.evaluate, where="evaluate")
     store = ArtifactStore(cfg.data_root)
-    report_dir = store.path("reports", str(ecfg.name))
+    report_dir = store.path("reports", ecfg.name)
     runs_dir = report_dir / "runs"
-    if ecfg.table not in ("main", "transfer"):
-        raise TnfError(f"evaluate.table must be main or transfer, got {ecfg.table!r}")
     out: dict[str, Any] = {}
-    force = bool(ecfg.force)
+    force = ecfg.force
 
     if ecfg.sweep_dir:
-        n = collect_sweep(str(ecfg.sweep_dir), runs_dir, force)
+        n = collect_sweep(ecfg.sweep_dir, runs_dir, force)
         console.print(f"collected {n} run(s) from {ecfg.sweep_dir}")
 
     if ecfg.model:
         method = ecfg.method or _method_label(cfg)
         settings = cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))
-        # Everything that changes the numbers; not the report's name or notes, progress or the sweep folder, nor
-        # where the store lives (a store that is moved or mounted elsewhere keeps its finished results).
-        hashed = {k: v for k, v in settings.items() if k not in ("progress", "device", "evaluate", "data_root")}
-        report_only = ("name", "notes", "next", "sweep_dir", "force")
-        hashed["evaluate"] = {k: v for k, v in settings["evaluate"].items() if k not in report_only}
-        if settings.get("simulator") is not None:
-            hashed["simulator"] = simulator_key(settings["simulator"])
-        chash = config_hash(hashed)
+        # Everything that changes the numbers (a store that is moved or mounted elsewhere keeps its results).
+        chash = config_hash(identity_config(cfg))
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
         old = folder / RESULTS_FILE
         check_not_another_models(old, str(ecfg.model), method, cfg.seed, force)
@@ -63,7 +57,7 @@ def run(cfg: Any) -> dict[str, Any]:
             results = load_results([old])[0]
             results.pop("_path")
         else:
-            results, examples_png, figures = evaluate_model(_job(cfg, settings, method), store)
+            results, examples_png, figures = evaluate_model(_job(cfg, ecfg, settings, method), store)
             results["config_hash"] = chash
             # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile. Nothing
             # of this run is in the row's folder until here, so a refused run leaves the other model's intact.
@@ -88,14 +82,8 @@ def run(cfg: Any) -> dict[str, Any]:
         files = find_results(runs_dir)
         if not files:
             raise nothing
-        notes = ecfg.get("notes")
-        next_step = ecfg.get("next")
         tables = write_report(
-            load_results(files),
-            report_dir,
-            name=str(ecfg.name),
-            notes=str(notes) if notes else None,
-            next_step=str(next_step) if next_step else None,
+            load_results(files), report_dir, name=ecfg.name, notes=ecfg.notes or None, next_step=ecfg.next or None
         )
     _print_summary(console, tables, report_dir)
     out["report"] = report_dir / "report.md"
@@ -109,12 +97,13 @@ def _method_label(cfg: Any) -> str:
     return METHOD_LABELS.get(name, name)
 
 
-def _job(cfg: Any, settings: dict[str, Any], method: str) -> Any:
-    """The evaluation of ``evaluate.model`` as plain values (``settings``: the whole config as plain data)."""
+def _job(cfg: Any, ecfg: EvaluateSettings, settings: dict[str, Any], method: str) -> Any:
+    """The evaluation of ``evaluate.model`` (``ecfg``: the ``evaluate`` section; ``settings``: the whole config as
+    plain data)."""
 
     datasets = cfg.data.get("datasets")
     return EvalJob(
-        settings=settings["evaluate"],
+        settings=ecfg,
         method=method,
         seed=int(cfg.seed),
         device=str(cfg.device),

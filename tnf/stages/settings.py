@@ -57,9 +57,13 @@ def schema() -> dict[str, Any]:
     return out
 
 
+RUN_ONLY = ("progress", "device", "data_root")
+"""Run-wide settings that change how a run goes or where its store lives, never what it makes: no artifact key
+holds them (``identity_config``)."""
 TYPED = {
     "touch": "tnf.sim.items:TouchSettings",
     "generate": "tnf.generators.settings:GenerateSettings",
+    "evaluate": "tnf.eval.settings:EvaluateSettings",
 }
 """The sections validated into their settings dataclass (``module:class``), as the stage itself does."""
 
@@ -73,6 +77,30 @@ def settings_class(section: str) -> type | None:
     module, _, name = TYPED[section].partition(":")
     cls: type = getattr(importlib.import_module(module), name)
     return cls
+
+
+def identity_config(cfg: Any) -> dict[str, Any]:
+    """The whole config as an artifact key records it: each typed section as its settings (``tnf.artifacts.identity``
+    leaves out what does not make the artifact), the simulator by ``simulator_key``, the other sections and
+    run-wide settings as plain data, without ``RUN_ONLY``."""
+    from omegaconf import OmegaConf
+
+    from tnf.registry import from_dict
+    from tnf.sim.base import simulator_key
+
+    plain = OmegaConf.to_container(cfg, resolve=True) if OmegaConf.is_config(cfg) else dict(cfg)
+    assert isinstance(plain, dict)
+    out: dict[str, Any] = {}
+    for key, value in plain.items():
+        if key in RUN_ONLY:
+            continue
+        cls = settings_class(str(key))
+        if cls is not None:
+            value = from_dict(cls, value, where=str(key))
+        elif key == "simulator" and value is not None:
+            value = simulator_key(value)
+        out[str(key)] = value
+    return out
 
 
 def check_settings(cfg: Any) -> None:
