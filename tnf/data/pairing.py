@@ -20,6 +20,7 @@ from tnf.data.forces import touch_forces
 from tnf.data.preprocess import SIZE, crop_origin, gel_size_m
 from tnf.data.prior import DepthPrior
 from tnf.data.render import Framing, TouchItem, render_pairs_for_touches
+from tnf.data.settings import PairSettings
 from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
 from tnf.data.store import PairWriter, open_pairs, write_manifest
 from tnf.errors import TnfError
@@ -29,19 +30,18 @@ from tnf.scenes import load_scene
 from tnf.sim.base import simulator_key
 
 ASSEMBLE_CHUNK = 256  # pairs copied per step while assembling (bounds memory)
-SCENE_SOURCES = ("fitted", "mesh")
 
 
 @dataclass
 class PairJob:
-    """What ``tnf pair`` makes: plain values, built from the run's config by the stage.
+    """What ``tnf pair`` makes, built from the run's config by the stage.
 
     ``settings`` is the ``pair`` section; ``sensor``, ``scene``, ``simulator`` and ``objects`` are the config
     nodes of those groups as plain dicts; ``shard`` is ``(index, count)`` of a job in a sweep over object
     shards, or None for a run over every object (which also assembles the dataset).
     """
 
-    settings: dict[str, Any]
+    settings: PairSettings
     name: str
     data_root: str
     source: Any
@@ -55,15 +55,6 @@ class PairJob:
     device: str
     progress: bool
     shard: tuple[int, int] | None = None
-
-    def __post_init__(self) -> None:
-        self.check(self.settings)
-
-    @staticmethod
-    def check(settings: dict[str, Any]) -> None:
-        """A one-line TnfError for a bad ``pair`` section."""
-        if settings["scene_source"] not in SCENE_SOURCES:
-            raise TnfError(f"pair.scene_source must be 'fitted' or 'mesh', got {settings['scene_source']!r}")
 
 
 def capture_camera(cam: dict[str, Any], path: Path) -> tuple[tuple[float, float], int, int]:
@@ -95,10 +86,10 @@ def make_pairs(job: PairJob) -> None:
     framing = _framing(p, inputs, sensor)
     cache_keys = _cache_keys(job, inputs, framing)
     # A finished dataset made from the same inputs needs nothing, not even its (deleted) render caches.
-    novel = choose_novel_objects(names, p["novel_objects"], int(p["num_novel_objects"]), job.seed)
+    novel = choose_novel_objects(names, p.novel_objects, p.num_novel_objects, job.seed)
     dataset_key = {"objects": names, "novel_objects": novel, "caches": cache_keys, "source": src}
     touch_force = None
-    if p.get("force"):  # pair.force: each pair's touch force (force.npy), read from the touch manifests
+    if p.force:  # pair.force: each pair's touch force (force.npy), read from the touch manifests
         touch_force = touch_forces({o: inputs[o]["item"] for o in names})
         dataset_key["force"] = touch_force.record
     if store.is_done("pairs", job.name, config=dataset_key):
@@ -135,7 +126,7 @@ def _check_inputs(job: PairJob, store: Any, sensor_name: str, sensor_dict: dict[
         focal, w, h = capture_camera(cam, transforms)
         scene_dir = store.path("scenes", scene_name, src, obj)
         scene_hash = None
-        if job.settings["scene_source"] == "fitted":
+        if job.settings.scene_source == "fitted":
             if not (scene_dir / "scene.pt").is_file():
                 raise TnfError(
                     f"object {obj!r} has touches but no fitted {scene_name} scene ({scene_dir}); "
@@ -146,18 +137,18 @@ def _check_inputs(job: PairJob, store: Any, sensor_name: str, sensor_dict: dict[
     return inputs
 
 
-def _framing(p: dict[str, Any], inputs: dict[str, Any], sensor: Any) -> Any:
+def _framing(p: PairSettings, inputs: dict[str, Any], sensor: Any) -> Any:
     """The crop and depth settings; the reference distance is the touches' median. Sets each input's
     ``crop_px`` (None for crops sized per view)."""
     import numpy as np
 
-    distance = p.get("footprint_distance")
+    distance = p.footprint_distance
     if distance is None:
         all_d = np.concatenate([i["item"].contact_distances() for i in inputs.values()])
         all_d = all_d[np.isfinite(all_d) & (all_d > 0)]
         if len(all_d):
             distance = float(np.median(all_d))
-        elif p["crop_px"] is None:
+        elif p.crop_px is None:
             raise TnfError(
                 "no touch records a contact in front of its start pose; cannot size the crop (set pair.crop_px)"
             )
@@ -181,8 +172,8 @@ def _cache_keys(job: PairJob, inputs: dict[str, Any], framing: Any) -> dict[str,
     cache_keys: dict[str, dict[str, Any]] = {}
     for obj, i in inputs.items():
         key = {
-            "scene_source": p["scene_source"],
-            "scene": str(job.scene["name"]) if p["scene_source"] == "fitted" else "mesh",
+            "scene_source": p.scene_source,
+            "scene": str(job.scene["name"]) if p.scene_source == "fitted" else "mesh",
             "scene_hash": i["scene_hash"],
             "touch_hash": i["item"].manifest.get("config_hash"),
             "touches": len(i["item"].touches),
@@ -191,10 +182,10 @@ def _cache_keys(job: PairJob, inputs: dict[str, Any], framing: Any) -> dict[str,
             "focal": list(i["focal"]),
             "size": SIZE,
         }
-        if p["prior"]:
+        if p.prior:
             assert job.simulator is not None
             key["prior"] = _plain_json(simulator_key(job.simulator))
-        if p["points"]:
+        if p.points:
             key["points"] = True
         cache_keys[obj] = key
     return cache_keys
@@ -215,12 +206,12 @@ def _render_caches(
     import numpy as np
 
     p, src = job.settings, job.source.name
-    optional = tuple(k for k in ("prior", "points") if p[k])
+    optional = tuple(k for k in ("prior", "points") if getattr(p, k))
     n_render = sum(len(inputs[o]["item"].touches) for o in todo)
     if todo:
-        console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p['scene_source']})")
+        console.print(f"pair: rendering {n_render} touches of {len(todo)} object(s) on {device} ({p.scene_source})")
     prior = None
-    if p["prior"]:
+    if p.prior:
         assert job.simulator is not None
         prior = DepthPrior(sensor, job.simulator, framing, device=warp_device(device))
         console.print(f"pair: with the prior, {job.simulator['name']}'s image of each depth crop (pair.prior)")
@@ -228,7 +219,7 @@ def _render_caches(
         task = bar.add_task(f"render {job.name}", total=n_render)
         for obj in todo:
             i = inputs[obj]
-            scene = _load_scene(p["scene_source"], i["scene_dir"], job.source, obj, device)
+            scene = _load_scene(p.scene_source, i["scene_dir"], job.source, obj, device)
             arrays = render_pairs_for_touches(
                 scene,
                 i["item"],
@@ -236,10 +227,10 @@ def _render_caches(
                 framing,
                 focal=i["focal"],
                 device=device,
-                render_batch=int(p["render_batch"]),
-                render_chunk=p.get("render_chunk"),
+                render_batch=p.render_batch,
+                render_chunk=p.render_chunk,
                 on_batch=lambda k: bar.advance(task, k),
-                with_points=bool(p["points"]),
+                with_points=p.points,
             )
             del scene
             if prior is not None:
@@ -272,8 +263,8 @@ def _assemble(
     import numpy as np
 
     p, names, src = job.settings, job.names, job.source.name
-    optional = tuple(k for k in ("prior", "points") if p[k])
-    assembled = optional + (("force",) if p.get("force") else ())
+    optional = tuple(k for k in ("prior", "points") if getattr(p, k))
+    assembled = optional + (("force",) if p.force else ())
     caches = {o: store.path("pairs", ".cache", job.name, src, o) for o in names}
     counts = {o: len(inputs[o]["item"].touches) for o in names}
     n = sum(counts.values())
@@ -319,8 +310,8 @@ def _assemble(
                 start += counts[o]
         info = {"count": n, "counts": dict(split_counts), "counts_per_object": counts}
         _write_dataset_manifest(tmp, job, inputs, novel, touch_force, framing, sensor_name, sensor_dict, info)
-        _write_previews(tmp, names, int(p["previews"]), job.seed)
-    if not p["keep_cache"]:
+        _write_previews(tmp, names, p.previews, job.seed)
+    if not p.keep_cache:
         shutil.rmtree(store.path("pairs", ".cache", job.name), ignore_errors=True)
     _summary(console, store.path("pairs", job.name), n, split_counts, names, novel)
 
@@ -338,7 +329,7 @@ def _write_dataset_manifest(
 ) -> None:
 
     p, names = job.settings, job.names
-    fitted = p["scene_source"] == "fitted"
+    fitted = p.scene_source == "fitted"
     first = inputs[names[0]]["item"].manifest
     write_manifest(
         tmp,
@@ -354,11 +345,11 @@ def _write_dataset_manifest(
             "sensor": {"name": sensor_name, "config": sensor_dict},
             "simulator": _plain_json(first.get("config", {}).get("simulator", job.simulator)),
             "touch_config_hashes": {o: inputs[o]["item"].manifest.get("config_hash") for o in names},
-            "scene_source": p["scene_source"],
+            "scene_source": p.scene_source,
             # pair.prior: the simulator that made prior.npy from the depth crops (tnf.data.prior).
-            "prior": {"simulator": _plain_json(job.simulator)} if p["prior"] else None,
+            "prior": {"simulator": _plain_json(job.simulator)} if p.prior else None,
             # pair.points: points.npy holds each RGB-D pixel's surface point (tnf.data.render.crop_points).
-            "points": {"frame": "object", "unit": "m"} if p["points"] else None,
+            "points": {"frame": "object", "unit": "m"} if p.points else None,
             # pair.force: force.npy holds each pair's touch force; the touches' force range and bands.
             **({"force": touch_force.record} if touch_force is not None else {}),
             "scene": _plain_json(job.scene) if fitted else {"name": "mesh"},

@@ -12,6 +12,7 @@ patch the tactile image itself shows, so that the two images are pixel-aligned.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
@@ -33,6 +34,7 @@ from tnf.data.preprocess import (
     resize,
     resize_uint8,
 )
+from tnf.data.settings import PairSettings
 from tnf.errors import TnfError
 
 
@@ -213,8 +215,10 @@ class Framing:
             raise TnfError(f"view_size must be (width, height) > 0 metres, got {self.view_size}")
 
     @classmethod
-    def from_settings(cls, settings: Mapping[str, Any], **override: Any) -> Framing:
-        """From a ``pair`` config section or a dataset manifest's ``preprocess``."""
+    def from_settings(cls, settings: Mapping[str, Any] | PairSettings, **override: Any) -> Framing:
+        """From the ``pair`` section (``PairSettings`` or a config node) or a dataset manifest's ``preprocess``."""
+        if isinstance(settings, PairSettings):
+            settings = dataclasses.asdict(settings)
         keys = {f: settings[f] for f in cls.__dataclass_fields__ if settings.get(f) is not None}
         keys.update({k: v for k, v in override.items() if v is not None})
         for k in ("footprint_distance", "crop_margin", "depth_window"):

@@ -115,13 +115,14 @@ class PairWriter:
             self.arrays.clear()
 
 
-def dataset_name(pair: Mapping[str, Any], sensor: str, scene: str) -> str:
-    """``pair["name"]``, or ``<sensor>-<scene>`` (fitted scenes) / ``<sensor>-mesh`` (ground-truth mesh).
+def dataset_name(pair: Any, sensor: str, scene: str) -> str:
+    """``pair.name``, or ``<sensor>-<scene>`` (fitted scenes) / ``<sensor>-mesh`` (ground-truth mesh).
 
-    ``pair`` is the ``pair`` section; ``sensor`` and ``scene`` are the sensor's and the scene kind's names."""
-    if pair.get("name"):
-        return str(pair["name"])
-    return f"{sensor}-{scene if pair['scene_source'] == 'fitted' else 'mesh'}"
+    ``pair`` is the ``pair`` section (``PairSettings``, or its config node); ``sensor`` and ``scene`` are the
+    sensor's and the scene kind's names."""
+    if pair.name:
+        return str(pair.name)
+    return f"{sensor}-{scene if pair.scene_source == 'fitted' else 'mesh'}"
 
 
 def write_manifest(folder: str | os.PathLike[str], info: Mapping[str, Any]) -> None:

@@ -25,6 +25,7 @@ from tnf.data.pairing import capture_camera
 from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
 from tnf.data.prior import DepthPrior
 from tnf.data.render import Framing, TouchItem, render_rgbd_crops
+from tnf.data.settings import PairSettings
 from tnf.errors import TnfError
 from tnf.generators import load_generator
 from tnf.generators.settings import GenerateSettings
@@ -46,7 +47,7 @@ class GenerateJob:
     """
 
     settings: GenerateSettings
-    pair: dict[str, Any]
+    pair: PairSettings
     data_root: str
     source: Any
     names: list[str]
@@ -519,10 +520,10 @@ def _preprocessing(job: GenerateJob, store: Any) -> dict[str, Any]:
     # Without a dataset manifest, the pair section's settings; otherwise the dataset's (older datasets lack
     # crop_distance and crop_margin: they used fixed crops, with pair's margin).
     pair = job.pair
-    framing = {k: v for k, v in (pre or pair).items() if k != "crop_px"}
-    framing.setdefault("crop_margin", pair.get("crop_margin"))
+    framing = {k: v for k, v in (pre or dataclasses.asdict(pair)).items() if k != "crop_px"}
+    framing.setdefault("crop_margin", pair.crop_margin)
     return {
         "crop_px": crop if isinstance(crop, dict) else {},
-        "footprint_distance": pre.get("footprint_distance", pair.get("footprint_distance")),
+        "footprint_distance": pre.get("footprint_distance", pair.footprint_distance),
         "framing": framing,
     }

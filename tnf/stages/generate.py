@@ -25,6 +25,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     from omegaconf import OmegaConf
 
+    from tnf.data.settings import PairSettings
     from tnf.generators.generate import GenerateJob, GenerateSettings, generate
     from tnf.registry import from_dict
     from tnf.stages.train import model_run
@@ -38,7 +39,7 @@ def run(cfg: Any) -> dict[str, Any]:
         settings = dataclasses.replace(settings, model=model_run(cfg))
     job = GenerateJob(
         settings=settings,
-        pair=plain(cfg.pair),
+        pair=from_dict(PairSettings, cfg.pair, where="pair"),
         data_root=str(cfg.data_root),
         source=source,
         names=names,

@@ -24,18 +24,19 @@ def run(cfg: Any) -> None:
     from omegaconf import OmegaConf
 
     from tnf.data.pairing import PairJob, make_pairs
+    from tnf.data.settings import PairSettings
     from tnf.data.store import dataset_name
+    from tnf.registry import from_dict
 
     def plain(node: Any) -> Any:
         return OmegaConf.to_container(node, resolve=True) if node is not None else None
 
-    settings = plain(cfg.pair)
-    PairJob.check(settings)
+    settings = from_dict(PairSettings, cfg.pair, where="pair")
     seed_everything(int(cfg.seed))
     source, names = run_objects(cfg)
     job = PairJob(
         settings=settings,
-        name=dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name)),
+        name=dataset_name(settings, str(cfg.sensor.name), str(cfg.scene.name)),
         data_root=str(cfg.data_root),
         source=source,
         names=names,

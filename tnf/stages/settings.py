@@ -62,6 +62,7 @@ RUN_ONLY = ("progress", "device", "data_root")
 holds them (``identity_config``)."""
 TYPED = {
     "touch": "tnf.sim.items:TouchSettings",
+    "pair": "tnf.data.settings:PairSettings",
     "generate": "tnf.generators.settings:GenerateSettings",
     "evaluate": "tnf.eval.settings:EvaluateSettings",
 }
