@@ -1,11 +1,11 @@
 """Checks of the stage sections of a composed config (``touch``, ``train``, ...) before any stage works.
 
 The components (sensors, simulators, scenes, generators, object sources) are validated into their ``Config``
-dataclasses by the registry. The stage sections are plain YAML; their defaults (``conf/<section>/default.yaml``)
-are the schema: a setting whose default is an integer takes an integer (not ``1.5``, not ``"abc"``), and a
-non-negative one (a count, a size, a number of epochs) stays non-negative; a number takes a finite number; a
-switch takes true or false (one of ``NAMED_SWITCHES`` also a name); a list takes a list. Settings whose default
-is null take anything.
+dataclasses by the registry, and the sections of ``TYPED`` into their settings dataclasses, as their stages do.
+The other sections are plain YAML; their defaults (``conf/<section>/default.yaml``) are the schema: a setting
+whose default is an integer takes an integer (not ``1.5``, not ``"abc"``), and a non-negative one (a count, a size,
+a number of epochs) stays non-negative; a number takes a finite number; a switch takes true or false (one of
+``NAMED_SWITCHES`` also a name); a list takes a list. Settings whose default is null take anything.
 """
 
 from __future__ import annotations
@@ -38,8 +38,6 @@ TOP_LEVEL = ("seed", "progress")
 """Run-wide settings; their defaults in ``conf/base.yaml`` set their types."""
 NAMED_SWITCHES = {"train.compile": ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")}
 """Switches that also take one of these names (``train.compile``: torch.compile's modes)."""
-AT_LEAST_ONE = ("evaluate.classify.sim_per_object",)
-"""Whole numbers that must be at least 1 (0 would leave a classifier row with no images)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -147,8 +145,6 @@ def _check(value: Any, default: Any, where: str) -> None:
     elif isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             raise TnfError(f"{where}: expected a whole number, got {value!r}")
-        if where in AT_LEAST_ONE and value < 1:
-            raise TnfError(f"{where}: must be >= 1, got {value}")
         if default >= 0 > value:
             raise TnfError(f"{where}: must be >= 0, got {value}")
     elif isinstance(default, float):
