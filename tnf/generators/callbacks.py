@@ -9,26 +9,32 @@ Each callback holds one idea and works on a ``GeneratorSystem``:
 - ``ImageGrids``: writes an image grid of validation pairs each epoch and shows it in TensorBoard or W&B.
 
 ``conf/callbacks/default.yaml`` lists them by name with their settings (:func:`build_callbacks`);
-``callbacks.NAME=null`` on the command line leaves one out.
+``callbacks.NAME=null`` on the command line leaves one out. Every run also has ``LatestCheckpoint``
+(``last.ckpt``), which ``tnf.generators.training`` adds with ``best.ckpt``'s ``ModelCheckpoint``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from tnf.env import conf_dir
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.registry import FROM_YAML, from_dict, yaml_defaults
 
 log = logging.getLogger(__name__)
+
+#: Suffix of a checkpoint written but not yet in place (``LatestCheckpoint``).
+PENDING = ".pending"
 
 #: The option of the ``callbacks`` group that holds each callback's default settings.
 DEFAULTS = "callbacks/default"
@@ -253,6 +259,62 @@ class ImageGrids(Callback):
         Image.fromarray(grid).save(folder / f"epoch_{trainer.current_epoch:03d}.png")
         for logger in trainer.loggers:
             _log_image(logger, grid, trainer.global_step)
+
+
+class LatestCheckpoint(ModelCheckpoint):
+    """``ModelCheckpoint`` of the latest epoch that skips an epoch's write when its file is younger than
+    ``every_s`` seconds, except after the last epoch (so a finished run's checkpoint is its final state).
+
+    Lightning saves it at the end of an epoch, before it logs the epoch's training metrics. It is written to
+    ``last.ckpt.pending`` then, and renamed to ``last.ckpt`` when the next epoch starts or training ends, once
+    the loggers have written the epoch's rows: a run killed at any moment resumes from a checkpoint whose
+    epochs' rows are all in ``metrics.csv``, and ``last.ckpt`` is never a half-written file.
+    """
+
+    def __init__(self, *args: Any, every_s: float = 0.0, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.every_s = float(every_s)
+        self._pending: str | None = None  # the checkpoint written to <path>.pending, not yet renamed
+
+    def _due(self, trainer: Any) -> bool:
+        if self.every_s <= 0 or trainer.should_stop or trainer.current_epoch + 1 >= (trainer.max_epochs or 0):
+            return True
+        path = Path(self.dirpath or ".") / f"{self.filename}{self.FILE_EXTENSION}"
+        try:
+            due = time.time() - path.stat().st_mtime >= self.every_s
+        except FileNotFoundError:
+            due = True
+        # Process 0 decides for all: saving waits at a barrier, so DDP processes that judged the file's age
+        # differently would wait for each other for ever.
+        return bool(trainer.strategy.broadcast(due, src=0))
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
+        if self._due(trainer):
+            super().on_train_epoch_end(trainer, pl_module)
+
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        if self._due(trainer):
+            super().on_validation_end(trainer, pl_module)
+
+    def _save_checkpoint(self, trainer: Any, filepath: str) -> None:
+        super()._save_checkpoint(trainer, filepath + PENDING)
+        self._pending = filepath
+
+    def on_train_epoch_start(self, trainer: Any, pl_module: Any) -> None:
+        self._put_in_place(trainer)
+
+    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
+        self._put_in_place(trainer)
+
+    def _put_in_place(self, trainer: Any) -> None:
+        """Rename the pending checkpoint to its name, after the loggers have written what they hold."""
+        if self._pending is None:
+            return
+        for lg in trainer.loggers:
+            lg.save()
+        if trainer.is_global_zero:  # the process that wrote it
+            os.replace(self._pending + PENDING, self._pending)
+        self._pending = None
 
 
 def image_grid(batch: Mapping[str, torch.Tensor]) -> np.ndarray:

@@ -7,8 +7,8 @@ resumed run can be checked against it) and, once finished, ``manifest.json``.
 
 A run killed at any moment (``kill -9``) and started again resumes from ``last.ckpt``, and its ``metrics.csv``
 goes on from there: ``last.ckpt`` is in place only once the rows of its epochs are all in ``metrics.csv``
-(``LatestCheckpoint``), the rows the killed run logged after it are dropped on resuming (``keep_epochs``), and
-the CSV logger appends to the rows kept (``RunCSVLogger``).
+(``tnf.generators.callbacks.LatestCheckpoint``), the rows the killed run logged after it are dropped on
+resuming (``keep_epochs``), and the CSV logger appends to the rows kept (``RunCSVLogger``).
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ import csv
 import io
 import logging
 import os
-import time
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -32,71 +31,13 @@ from lightning.pytorch.loggers.logger import rank_zero_experiment
 from tnf import __version__
 from tnf.artifacts import MANIFEST, config_hash, read_json, write_bytes, write_json
 from tnf.errors import NonFiniteLoss, TnfError
+from tnf.generators.callbacks import PENDING, LatestCheckpoint
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
 
 RUN_FILE = "run.json"
 
 #: The run's metrics, one CSV row per logging event (Lightning's ``CSVLogger`` layout).
 METRICS = "metrics.csv"
-
-#: Suffix of a checkpoint written but not yet in place (``LatestCheckpoint``).
-PENDING = ".pending"
-
-
-class LatestCheckpoint(ModelCheckpoint):
-    """``ModelCheckpoint`` of the latest epoch that skips an epoch's write when its file is younger than
-    ``every_s`` seconds, except after the last epoch (so a finished run's checkpoint is its final state).
-
-    Lightning saves it at the end of an epoch, before it logs the epoch's training metrics. It is written to
-    ``last.ckpt.pending`` then, and renamed to ``last.ckpt`` when the next epoch starts or training ends, once
-    the loggers have written the epoch's rows: a run killed at any moment resumes from a checkpoint whose
-    epochs' rows are all in ``metrics.csv``, and ``last.ckpt`` is never a half-written file.
-    """
-
-    def __init__(self, *args: Any, every_s: float = 0.0, **kwargs: Any):
-        super().__init__(*args, **kwargs)
-        self.every_s = float(every_s)
-        self._pending: str | None = None  # the checkpoint written to <path>.pending, not yet renamed
-
-    def _due(self, trainer: Any) -> bool:
-        if self.every_s <= 0 or trainer.should_stop or trainer.current_epoch + 1 >= (trainer.max_epochs or 0):
-            return True
-        path = Path(self.dirpath or ".") / f"{self.filename}{self.FILE_EXTENSION}"
-        try:
-            due = time.time() - path.stat().st_mtime >= self.every_s
-        except FileNotFoundError:
-            due = True
-        # Process 0 decides for all: saving waits at a barrier, so DDP processes that judged the file's age
-        # differently would wait for each other for ever.
-        return bool(trainer.strategy.broadcast(due, src=0))
-
-    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
-        if self._due(trainer):
-            super().on_train_epoch_end(trainer, pl_module)
-
-    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
-        if self._due(trainer):
-            super().on_validation_end(trainer, pl_module)
-
-    def _save_checkpoint(self, trainer: Any, filepath: str) -> None:
-        super()._save_checkpoint(trainer, filepath + PENDING)
-        self._pending = filepath
-
-    def on_train_epoch_start(self, trainer: Any, pl_module: Any) -> None:
-        self._put_in_place(trainer)
-
-    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
-        self._put_in_place(trainer)
-
-    def _put_in_place(self, trainer: Any) -> None:
-        """Rename the pending checkpoint to its name, after the loggers have written what they hold."""
-        if self._pending is None:
-            return
-        for lg in trainer.loggers:
-            lg.save()
-        if trainer.is_global_zero:  # the process that wrote it
-            os.replace(self._pending + PENDING, self._pending)
-        self._pending = None
 
 
 class RunCSVLogger(CSVLogger):
@@ -239,7 +180,6 @@ def fit(
         raise TnfError(f"checkpoint_every_s must be >= 0 seconds (0: after every epoch), got {checkpoint_every_s}")
     import lightning as L
     from lightning.pytorch.callbacks import RichProgressBar
-    from torch.multiprocessing import ProcessRaisedException
 
     from tnf.generators.callbacks import WeightAverage, build_callbacks
 
@@ -251,40 +191,13 @@ def fit(
         )
     run_dir = Path(run_dir)
     ckpt_path = prepare_run_dir(run_dir, config, resume)
-    checkpoint = ModelCheckpoint(
-        dirpath=str(run_dir),
-        filename="best",
-        # L1, the loss the generators are trained on: SSIM favours an early, nearly uniform output on
-        # smooth tactile images, and picked such checkpoints as "best".
-        monitor="val_l1",
-        mode="min",
-        save_top_k=1,
-        # The weights only (a third of the size): best.ckpt is for generating and fine-tuning; resuming
-        # uses last.ckpt.
-        save_weights_only=True,
-        enable_version_counter=False,
-        auto_insert_metric_name=False,
-    )
-    # last.ckpt at the end of an epoch, at most every checkpoint_every_s seconds (Lightning's save_last writes
-    # it only when best.ckpt improves, so a resumed run would lose the epochs since the best one). A
-    # checkpoint with the optimiser's state is about 12 bytes per parameter (1 GB for tn_cgan at its paper
-    # size): written after each of many short epochs, the writes took longer than the training.
-    latest = LatestCheckpoint(
-        dirpath=str(run_dir),
-        filename="last",
-        monitor=None,
-        save_top_k=1,
-        every_n_epochs=1,
-        enable_version_counter=False,
-        every_s=checkpoint_every_s,
-    )
     targs = dict(trainer_cfg)
     targs.setdefault("num_sanity_val_steps", 0)
     targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"), fixed_graph=system.generator.fixed_graph())
     on_gpu = str(targs.get("accelerator", "auto")) != "cpu"
     if on_gpu:
         targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
-    every: list[Any] = [checkpoint, latest, ProcessSetup(tf32=on_gpu), *extra]
+    every: list[Any] = [*checkpoints(run_dir, checkpoint_every_s), ProcessSetup(tf32=on_gpu), *extra]
     if progress:
         every.append(RichProgressBar(leave=True))
     _quiet_trainer_start()
@@ -300,6 +213,79 @@ def fit(
         log_every_n_steps=log_every_n_steps,
         **targs,
     )
+    _run(trainer, system, datamodule, ckpt_path, run_dir)
+    if trainer.interrupted:
+        raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
+    summary = _summary(trainer, datamodule, run_dir, info)
+    if trainer.is_global_zero:
+        manifest = {
+            **summary,
+            "stage": "models",
+            "item": [run_dir.name],
+            "config": config,
+            "config_hash": config_hash(config),
+            "tnf_version": __version__,
+        }
+        write_json(run_dir / MANIFEST, manifest)
+    return summary
+
+
+def _summary(trainer: Any, datamodule: Any, run_dir: Path, info: Mapping[str, Any] | None) -> dict[str, Any]:
+    """A finished run's summary: ``info``, its pairs, epochs, steps, best and last validation metrics."""
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val_")}
+    # Read from last.ckpt rather than the trainer: with spawned DDP processes this process's trainer never
+    # trained, and only the callback metrics come back from them.
+    epochs, global_step, best = _progress(run_dir / "last.ckpt", monitor="val_l1")
+    return {
+        **dict(info or {}),
+        "train_pairs": _train_pairs(datamodule),
+        "epochs": epochs,
+        "global_step": global_step,
+        "best_val_l1": best,
+        "last": metrics,
+        "world_size": trainer.world_size,
+        "checkpoints": {"last": "last.ckpt", "best": "best.ckpt"},
+    }
+
+
+def checkpoints(run_dir: Path, every_s: float) -> list[ModelCheckpoint]:
+    """The run's checkpoint callbacks: ``best.ckpt`` (the weights of the epoch of lowest validation L1) and
+    ``last.ckpt`` (``LatestCheckpoint``: everything a resumed run needs, at most every ``every_s`` seconds)."""
+    best = ModelCheckpoint(
+        dirpath=str(run_dir),
+        filename="best",
+        # L1, the loss the generators are trained on: SSIM favours an early, nearly uniform output on
+        # smooth tactile images, and picked such checkpoints as "best".
+        monitor="val_l1",
+        mode="min",
+        save_top_k=1,
+        # The weights only (a third of the size): best.ckpt is for generating and fine-tuning; resuming
+        # uses last.ckpt.
+        save_weights_only=True,
+        enable_version_counter=False,
+        auto_insert_metric_name=False,
+    )
+    # last.ckpt at the end of an epoch, at most every every_s seconds (Lightning's save_last writes it only
+    # when best.ckpt improves, so a resumed run would lose the epochs since the best one). A checkpoint with
+    # the optimiser's state is about 12 bytes per parameter (1 GB for tn_cgan at its paper size): written
+    # after each of many short epochs, the writes took longer than the training.
+    latest = LatestCheckpoint(
+        dirpath=str(run_dir),
+        filename="last",
+        monitor=None,
+        save_top_k=1,
+        every_n_epochs=1,
+        enable_version_counter=False,
+        every_s=every_s,
+    )
+    return [best, latest]
+
+
+def _run(trainer: Any, system: Any, datamodule: Any, ckpt_path: Path | None, run_dir: Path) -> None:
+    """``trainer.fit``, from ``ckpt_path`` where given; its failures as one-line tnf errors that say where
+    training can resume from."""
+    from torch.multiprocessing import ProcessRaisedException
+
     with warnings.catch_warnings():
         quiet_advice()
         try:
@@ -323,33 +309,6 @@ def fit(
                 f"a data loader worker died ({str(e).splitlines()[0]}); {_last_good(run_dir)}; rerun the same "
                 "command to resume (data.num_workers=0 loads in the main process, which shows the cause)"
             ) from e
-    if trainer.interrupted:
-        raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("val_")}
-    # Read from last.ckpt rather than the trainer: with spawned DDP processes this process's trainer never
-    # trained, and only the callback metrics come back from them.
-    epochs, global_step, best = _progress(run_dir / "last.ckpt", monitor="val_l1")
-    summary = {
-        **dict(info or {}),
-        "train_pairs": _train_pairs(datamodule),
-        "epochs": epochs,
-        "global_step": global_step,
-        "best_val_l1": best,
-        "last": metrics,
-        "world_size": trainer.world_size,
-        "checkpoints": {"last": "last.ckpt", "best": "best.ckpt"},
-    }
-    if trainer.is_global_zero:
-        manifest = {
-            **summary,
-            "stage": "models",
-            "item": [run_dir.name],
-            "config": config,
-            "config_hash": config_hash(config),
-            "tnf_version": __version__,
-        }
-        write_json(run_dir / MANIFEST, manifest)
-    return summary
 
 
 def quiet_advice() -> None:
