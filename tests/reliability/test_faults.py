@@ -12,9 +12,9 @@ import torch
 from torch.utils.data import DataLoader, get_worker_info
 
 from tests.generators.synthetic import TensorPairs, make_pairs
-from tnf.errors import TnfError
+from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators import load_generator
-from tnf.generators.system import GeneratorSystem, NonFiniteLoss
+from tnf.generators.system import GeneratorSystem
 from tnf.generators.training import fit
 
 N_TRAIN = 4  # pairs per epoch; batches of 2
