@@ -20,6 +20,7 @@ LAYERS: list[tuple[str, ...]] = [
     (
         "tnf",
         "tnf.errors",
+        "tnf.settings",
         "tnf.registry",
         "tnf.artifacts",
         "tnf.env",
