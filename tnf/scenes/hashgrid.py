@@ -3,7 +3,8 @@
 The object sits in the cube [-bound, bound]^3 around the origin. Rays are marched with a fixed step
 (``samples_per_ray`` steps across the cube's diagonal); an occupancy grid, refreshed during training from
 the field's own density, removes samples in empty space before the network sees them, so only the few
-samples near the surface cost a hash-grid lookup. The encoding and the MLPs are in ``tnf.scenes.encoding``.
+samples near the surface cost a hash-grid lookup. The encoding and the MLPs are in ``tnf.scenes.encoding``, the
+march that renders without gradients in ``tnf.scenes.march``.
 """
 
 from __future__ import annotations
@@ -17,13 +18,11 @@ import torch
 
 from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.scenes.encoding import PRIMES, HashEncoding, gather_rows, mlp, spherical_harmonics
+from tnf.scenes.march import FieldFn, OccupancyMarch
 from tnf.scenes.render import (
-    EMPTY_OPACITY,
     FieldScene,
     RayOutput,
     distortion_loss,
-    interval_termination,
-    ray_aabb,
     ray_box,
     volume_render,
 )
@@ -32,7 +31,7 @@ from tnf.scenes.render import (
 __all__ = ["PRIMES", "HashEncoding", "HashGridScene", "gather_rows", "mlp", "spherical_harmonics"]
 
 
-class HashGridScene(FieldScene):
+class HashGridScene(OccupancyMarch, FieldScene):
     """Instant-NGP style hash-grid radiance field with an occupancy grid (pure PyTorch, CPU or CUDA)."""
 
     # Buffers registered in ``__init__`` (declared here for type checkers).
@@ -254,49 +253,15 @@ class HashGridScene(FieldScene):
     # -- rendering without gradients -----------------------------------------------------------------
     #: Rays per rendering chunk (32 frames of 128 x 128).
     default_chunk = 1 << 19
-    #: Transmittance below which a ray stops (early ray termination).
-    min_transmittance: float = 1e-4
-    #: Samples per ray whose occupancy a march round looks up at least (a cheap test, no network; the
-    #: PyTorch selection only: the Warp kernel looks as far as each ray needs).
-    march_window: int = 64
-    #: Occupied samples per ray a march round sends to the network at least.
-    march_samples: int = 16
-    #: Samples looked up per round over all rays; rounds with fewer rays left look further along each
-    #: (fewer rounds, which matters on a GPU). None: 2^25 on CUDA, 2^20 on the CPU. PyTorch selection only.
-    march_budget: int | None = None
-    #: Samples per network evaluation while rendering (bounds the hash encoding's memory).
-    field_chunk: int = 1 << 19
     #: Half precision (float16) for the hash table and MLPs while rendering: None = on CUDA only.
     render_half: bool | None = None
     #: The hash encoding by one Warp kernel while rendering (``hash_kernel``; far less memory traffic than
     #: the PyTorch encoding's [P, L, 8] tensors): None = wherever Warp runs, else the PyTorch encoding.
     render_kernel: bool | None = None
-    #: The march's sample selection by a Warp kernel (``hash_kernel.march_select``: one thread per ray, no
-    #: [rays, window] tensors): None = as ``render_kernel``, False = PyTorch (``_select_window``).
-    march_kernel: bool | None = None
     #: Compile the rendering field with ``torch.compile`` (fuses the hash encoding's element-wise work on
     #: CUDA); falls back to eager with a warning when compiling fails. Off by default: compiling takes
     #: a while on the first render.
     render_compile: bool = False
-
-    def _occupied_box(self) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """Corners [3], [3] (metres) of the box around the occupied cells; None when none is occupied.
-
-        Cached until the occupancy grid changes (training refreshes it; loading a checkpoint replaces it).
-        """
-        key = (self.occupied.data_ptr(), self.occupied._version, self.bound)
-        cached = getattr(self, "_box_cache", None)
-        if cached is not None and cached[0] == key:
-            return cached[1]
-        G = self.cfg.occupancy_resolution
-        cells = self.occupied.view(G, G, G).nonzero()
-        box = None
-        if cells.numel() > 0:
-            size = 2.0 * self.bound / G
-            box = (cells.amin(0) * size - self.bound, (cells.amax(0) + 1) * size - self.bound)
-            box = (box[0].float(), box[1].float())
-        self._box_cache = (key, box)
-        return box
 
     def _render_table(self, half: bool) -> torch.Tensor:
         """The hash table to render with: a float16 copy (kept until the table changes) or the table."""
@@ -352,6 +317,13 @@ class HashGridScene(FieldScene):
             self._compiled_field = fn
         return fn
 
+    def _march_field(self, device: torch.device) -> FieldFn:
+        """The field the march renders with on ``device``: ``_render_field`` in half precision where
+        ``render_half`` (None: on CUDA), with the hash table it needs looked up once."""
+        half = self.render_half if self.render_half is not None else device.type == "cuda"
+        table = self._render_table(half)
+        return lambda pos, sh: self._eval_field(pos, sh, table, half)
+
     def _eval_field(self, pos, sh, table, half) -> tuple[torch.Tensor, torch.Tensor]:
         fn = self._field_fn()
         if fn is self._render_field:
@@ -363,140 +335,6 @@ class HashGridScene(FieldScene):
             warnings.warn(msg, stacklevel=2)
             self.render_compile = False
             return self._render_field(pos, sh, table, half)
-
-    @torch.no_grad()
-    def _march(self, origins, dirs, near, far, offset, bg) -> RayOutput:
-        """The quadrature of ``volume_render`` over the same samples as the differentiable pass (sample n of
-        a ray at ``near + (n + offset) * step_size``), evaluating only what can change the result.
-
-        Rays that miss the box around the occupied cells are empty. The others are marched in rounds: a
-        round finds the next ``march_samples`` occupied samples of every ray (twice as many each round; a
-        Warp kernel steps along each ray, the PyTorch fallback looks up a window of at least
-        ``march_window`` samples at once), sends them to the network in one batch, composites them in order,
-        and drops the rays whose transmittance fell below ``min_transmittance`` or that left the box. So the
-        network sees only occupied samples in front of each ray's surface, and the count of operations depends
-        on the rounds, not the samples.
-
-        Returns rgb [R, 3], depth [R] (distance), opacity [R] and t_stop [R], the distance after which the
-        remaining samples carry less than ``min_transmittance`` of the light (inf for rays that never stop).
-        """
-        R, N, dt = origins.shape[0], self.cfg.samples_per_ray, self.step_size
-        dev = origins.device
-        # Per ray: transmittance, accumulated colour (3) and accumulated distance.
-        acc = torch.zeros(R, 5, device=dev)
-        acc[:, 0] = 1.0
-        t_stop = torch.full((R,), float("inf"), device=dev)
-        self.march_stats["rays"] += R
-        box = self._occupied_box()
-        if box is not None and R > 0:
-            half = self.render_half if self.render_half is not None else dev.type == "cuda"
-            table = self._render_table(half)
-            budget = self.march_budget if self.march_budget is not None else 1 << (25 if dev.type == "cuda" else 20)
-            G, b = self.cfg.occupancy_resolution, self.bound
-            cell_stride = torch.tensor([G * G, G, 1], device=dev, dtype=torch.int32)
-            kernel = self._use_kernel(dev, self.march_kernel)
-            if kernel:
-                from tnf.scenes import hash_kernel
-
-                occ_u8 = self.occupied.to(torch.uint8)
-            # Sample numbers [first, end) of each ray that lie in the occupied box, with a sample of margin:
-            # samples outside it are in empty cells, which the dense pass skips too.
-            box_in, box_out = ray_aabb(origins, dirs, box[0], box[1])
-            off = offset[:, 0]
-            first = (((box_in - near) / dt - off).floor() - 1).clamp(0, N)
-            end = (((torch.minimum(box_out, far) - near) / dt - off).ceil() + 1).clamp(0, N)
-            act = ((box_out > box_in) & (end > first)).nonzero()[:, 0]
-            # What a round needs of each active ray, packed so that dropping rays is one indexing per
-            # tensor: ray = origin (3), direction (3), near, far, offset, the direction's spherical
-            # harmonics (16); state = next and end sample numbers (floats: exact below 2^24), then ``acc``.
-            o, d = origins[act], dirs[act]
-            ray = torch.cat([o, d, near[act, None], far[act, None], off[act, None], spherical_harmonics(d)], 1)
-            state = torch.cat([first[act, None], end[act, None], acc[act]], dim=1)
-            stats = self.march_stats
-            stats["marched_rays"] += act.numel()
-            rounds = 0
-            while act.numel() > 0:
-                A = act.numel()
-                stats["rounds"] += 1
-                # Rays still going after a round are seldom opaque: each round sends twice the samples
-                # of the last (so at most twice what a ray needs), and looks further when few rays are left.
-                W = int(min(N, max(self.march_window, budget // A)))
-                K = int(min(N if kernel else W, self.march_samples << min(rounds, 16)))
-                rounds += 1
-                o, d, off_a, sh = ray[:, 0:3], ray[:, 3:6], ray[:, 8:9], ray[:, 9:]
-                tr = state[:, 2]
-                if kernel:
-                    # One thread per ray steps to its next K occupied samples (no window: it looks as far as
-                    # it needs); the next sample number is advanced in place.
-                    t_sel, count = hash_kernel.march_select(ray, state, occ_u8, b, dt, K)
-                    ai, slot = (torch.arange(K, device=dev) < count[:, None]).nonzero(as_tuple=True)
-                    t_chosen = t_sel[ai, slot]
-                else:
-                    ai, slot, t_chosen = self._select_window(ray, state, W, K, cell_stride)
-                stats["samples"] += ai.numel()
-                tau = torch.zeros(A, K, device=dev)
-                rgb = torch.zeros(A, K, 3, device=dev)
-                ts = torch.zeros(A, K, device=dev)
-                for c in range(0, ai.numel(), self.field_chunk):
-                    a, k = ai[c : c + self.field_chunk], slot[c : c + self.field_chunk]
-                    tk = t_chosen[c : c + self.field_chunk]
-                    sg, rg = self._eval_field(o[a] + tk.unsqueeze(-1) * d[a], sh[a], table, half)
-                    tau[a, k] = sg * dt
-                    rgb[a, k] = rg
-                    ts[a, k] = tk
-                # Eq. 1 over the K slots, continuing the transmittance the ray brought into this round.
-                csum = tau.cumsum(1)
-                local = torch.exp(-(csum - tau)) * tr[:, None]
-                w = (1.0 - torch.exp(-tau)) * local
-                state[:, 3:6] += (w.unsqueeze(-1) * rgb).sum(1)
-                # Expected termination distance as in ``volume_render`` (each interval begins offset steps
-                # before its sample; empty slots have zero weight).
-                state[:, 6] += (w * (ts - off_a * dt + dt * interval_termination(tau))).sum(1)
-                state[:, 2] = tr * torch.exp(-csum[:, -1])
-                opaque = state[:, 2] < self.min_transmittance
-                # Where an opaque ray stopped: its first sample after which the transmittance is too low.
-                below = local * torch.exp(-tau) < self.min_transmittance
-                stop = ts.gather(1, below.float().argmax(1, keepdim=True))[:, 0]
-                acc[act] = state[:, 2:]
-                t_stop[act] = torch.where(opaque, stop, t_stop[act])
-                go = (~opaque & (state[:, 0] < state[:, 1])).nonzero()[:, 0]
-                act, ray, state = act[go], ray[go], state[go]
-        trans, acc_rgb, acc_t = acc[:, 0], acc[:, 1:4], acc[:, 4]
-        opacity = 1.0 - trans
-        depth = acc_t / opacity.clamp_min(1e-10)
-        depth = torch.where(opacity > EMPTY_OPACITY, depth, torch.zeros_like(depth))
-        rgb_out = acc_rgb + trans.unsqueeze(-1) * bg
-        return {"rgb": rgb_out, "depth": depth, "opacity": opacity, "t_stop": t_stop}
-
-    def _select_window(
-        self, ray: torch.Tensor, state: torch.Tensor, W: int, K: int, cell_stride: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """A march round's samples in PyTorch: each ray's first K occupied samples among its next W.
-
-        Returns the ray of each chosen sample (row of ``ray``), its slot (rank among the ray's chosen ones) and
-        its distance; advances ``state[:, 0]`` (next sample number) past the K-th chosen sample, or past the
-        window when it held fewer. ``ray`` and ``state`` as in ``_march``.
-        """
-        dt, G, b = self.step_size, self.cfg.occupancy_resolution, self.bound
-        o, d, n0, n1, off_a = ray[:, 0:3], ray[:, 3:6], ray[:, 6:7], ray[:, 7:8], ray[:, 8:9]
-        ptr, end_a = state[:, 0:1], state[:, 1:2]
-        ar = torch.arange(W, device=ray.device, dtype=torch.float32)
-        j = ptr + ar  # [A, W] sample numbers
-        t = n0 + (j + off_a) * dt
-        # Occupancy of each sample: the arithmetic of ``_cell_index``.
-        pos = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
-        cell = ((pos + b) / (2.0 * b) * G).to(torch.int32).clamp_(0, G - 1)
-        occ = self.occupied[(cell * cell_stride).sum(-1)] & (j < end_a) & (t < n1)
-        del pos, cell
-        # The first K occupied samples of each ray, in order: slot = their rank among them.
-        rank = occ.cumsum(1, dtype=torch.int32)
-        sel = occ & (rank <= K)
-        ai, si = sel.nonzero(as_tuple=True)
-        slot = (rank[ai, si] - 1).long()
-        # The next round starts after the K-th occupied sample, or after the window if it had fewer.
-        last = torch.where(sel, ar + 1, 0).amax(1)
-        state[:, 0] += torch.where(rank[:, -1] > K, last, W)
-        return ai, slot, t[ai, si]
 
     def param_groups(self, lr: float) -> list[dict]:
         """Optimizer groups: the hash table without weight decay, the MLPs with a little (Instant-NGP)."""
