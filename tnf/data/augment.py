@@ -9,6 +9,7 @@ from typing import Any, Literal, overload
 
 import torch
 
+from tnf.data.settings import AUGMENTATIONS
 from tnf.errors import TnfError
 from tnf.registry import SENSORS
 
@@ -16,12 +17,6 @@ log = logging.getLogger(__name__)
 
 Batch = dict[str, torch.Tensor]
 """A batch of pairs: key -> ``[B, ...]`` tensor."""
-
-
-AUGMENTATIONS = ("mirror", "jitter")
-"""What ``data.augment`` may list: ``mirror``, the sensor's own mirror symmetry (``Sensor.mirror_channels``:
-pairs flipped left-right with the tactile and background channels reordered, as real as the simulated ones);
-``jitter``, +-10 % brightness and contrast of the RGB image."""
 
 
 def check_augment(augment: Sequence[str] | None) -> tuple[str, ...]:

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ from tnf.data.dataset import (
     collate_pairs,
     to_float_batch,
 )
+from tnf.data.settings import DataSettings
 from tnf.data.store import open_pairs
 from tnf.errors import TnfError
 
@@ -194,15 +196,14 @@ class PairDataModule(L.LightningDataModule):
 
 
 def datamodule_from_config(
-    data: Mapping[str, Any], seed: int, data_root: Any, datasets: Sequence[str] | None = None
+    data: DataSettings, seed: int, data_root: Any, datasets: Sequence[str] | None = None
 ) -> PairDataModule:
-    """A ``PairDataModule`` from the ``data`` section (plain data: every key of it), the seed and the data
-    root; ``datasets`` replaces ``data["datasets"]``."""
-    d = dict(data)
-    names = d.pop("datasets")
+    """A ``PairDataModule`` from the ``data`` section (every setting of it), the seed and the data root;
+    ``datasets`` replaces ``data.datasets``."""
+    settings = {f.name: getattr(data, f.name) for f in dataclasses.fields(data) if f.name != "datasets"}
     return PairDataModule(
-        list(datasets) if datasets is not None else names,
+        list(datasets) if datasets is not None else [str(d) for d in data.datasets or []],
         seed=seed,
         data_root=data_root,
-        **d,
+        **settings,
     )

@@ -1,5 +1,5 @@
 """Settings of the data stages, as validated dataclasses: ``PairSettings`` (the ``pair`` section, read by
-``tnf.data.pairing``).
+``tnf.data.pairing``) and ``DataSettings`` (the ``data`` section, read by ``tnf.data.datamodule``).
 
 Kept apart from the modules that use them, which import torch, so that every stage checks every section before
 any work without importing it.
@@ -10,7 +10,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from tnf.registry import FROM_YAML, at_least, yaml_defaults, yaml_field
+from tnf.data.splits import SPLITS
+from tnf.registry import FROM_YAML, SettingError, at_least, yaml_defaults, yaml_field
+
+AUGMENTATIONS = ("mirror", "jitter")
+"""What ``data.augment`` may list: ``mirror``, the sensor's own mirror symmetry (``Sensor.mirror_channels``:
+pairs flipped left-right with the tactile and background channels reordered, as real as the simulated ones);
+``jitter``, +-10 % brightness and contrast of the RGB image (``tnf.data.augment.augment_batch``)."""
 
 
 @dataclass
@@ -63,3 +69,47 @@ class PairSettings:
     def validate(self) -> None:
         at_least(self, 0, "num_novel_objects", "previews")
         at_least(self, 1, "render_batch", "render_chunk")  # crop_px and render_px: checked by Framing
+
+
+@dataclass
+@yaml_defaults("data/default")
+class DataSettings:
+    """The ``data`` section: which paired datasets a generator trains on and how their batches are served."""
+
+    datasets: list[str | None] | None = FROM_YAML
+    """Datasets to serve: names under ``<data_root>/pairs/`` or folder paths, several mixed; null (or a null
+    entry): the dataset ``tnf pair`` builds with the current settings."""
+    batch_size: int = FROM_YAML
+    """Pairs per batch."""
+    num_workers: int = yaml_field(identity=False)
+    """DataLoader worker processes (0: load in the main process)."""
+    per_object: int | None = FROM_YAML
+    """At most this many touches per object and dataset (all frames of each kept touch); null keeps all."""
+    extra_touches: int = FROM_YAML
+    """With ``per_object``: this many more touches per dataset, drawn from all objects' other touches."""
+    augment: list[str] = FROM_YAML
+    """Augmentations of the training batches, any of ``AUGMENTATIONS``."""
+    pin_memory: bool = yaml_field(identity=False)
+    """Page-locked batches for faster host-to-GPU copies."""
+    train_splits: list[str] = FROM_YAML
+    """Splits served by the training loader (of ``SPLITS``)."""
+    val_splits: list[str] = FROM_YAML
+    """Splits served by the validation loader (of ``SPLITS``)."""
+    drop_last: bool = FROM_YAML
+    """Drop the last incomplete training batch."""
+    convert_on_device: bool = FROM_YAML
+    """Serve compact batches (uint8 images, float16 depth) and convert them to float on the training device
+    (where training batches are augmented, so a part of what a run draws)."""
+
+    def validate(self) -> None:
+        at_least(self, 1, "batch_size", "per_object")
+        at_least(self, 0, "num_workers", "extra_touches")
+        if self.extra_touches and self.per_object is None:
+            raise SettingError("extra_touches", "adds to data.per_object's touches: give data.per_object too")
+        unknown = [a for a in self.augment if a not in AUGMENTATIONS]
+        if unknown:
+            raise SettingError("augment", f"unknown augmentation {unknown[0]!r}; known: {', '.join(AUGMENTATIONS)}")
+        for name in ("train_splits", "val_splits"):
+            wrong = [s for s in getattr(self, name) if s not in SPLITS]
+            if wrong:
+                raise SettingError(name, f"unknown split {wrong[0]!r}; splits: {', '.join(SPLITS)}")

@@ -61,6 +61,7 @@ holds them (``identity_config``)."""
 TYPED = {
     "touch": "tnf.sim.items:TouchSettings",
     "pair": "tnf.data.settings:PairSettings",
+    "data": "tnf.data.settings:DataSettings",
     "generate": "tnf.generators.settings:GenerateSettings",
     "evaluate": "tnf.eval.settings:EvaluateSettings",
 }

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple, cast
 
-from tnf.artifacts import ArtifactStore
+from tnf.artifacts import ArtifactStore, identity
+from tnf.data.settings import DataSettings
 from tnf.errors import TnfError
-from tnf.registry import config_to_dict
+from tnf.registry import config_to_dict, from_dict
 from tnf.runtime import seed_everything
 
 
@@ -98,7 +99,7 @@ def run_config(cfg: Any, section: str, unhashed: tuple[str, ...] = (), **extra: 
     skip = ("resume", "force", "run_name", "checkpoint_every_s", *unhashed)
     return {
         **extra,
-        "data": run_section(cfg.data, ()),
+        "data": identity(data_settings(cfg)),
         section: run_section(cfg[section], skip),
         "precision": str(cfg.trainer.precision),
         "seed": int(cfg.seed),
@@ -139,7 +140,12 @@ def datamodule_from_cfg(cfg: Any, datasets: Any = None) -> Any:
     from tnf.data import datamodule_from_config
 
     names = dataset_names(cfg) if datasets is None else [str(x) for x in datasets]
-    return datamodule_from_config(run_section(cfg.data, ()), int(cfg.seed), cfg.data_root, names)
+    return datamodule_from_config(data_settings(cfg), int(cfg.seed), cfg.data_root, names)
+
+
+def data_settings(cfg: Any) -> DataSettings:
+    """The ``data`` section of ``cfg`` as its settings (checked)."""
+    return from_dict(DataSettings, cfg.data, where="data")
 
 
 def dataset_names(cfg: Any) -> list[str]:
@@ -147,7 +153,7 @@ def dataset_names(cfg: Any) -> list[str]:
     dataset of this config."""
     from tnf.data.store import dataset_name
 
-    listed = cfg.data.datasets
+    listed = data_settings(cfg).datasets
     if listed is None:  # the dataset `tnf pair` builds with this config
         listed = [None]
     default = dataset_name(cfg.pair, str(cfg.sensor.name), str(cfg.scene.name))
