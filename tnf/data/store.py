@@ -157,19 +157,25 @@ class PairArrays:
         return list(self.manifest["objects"])
 
 
+def check_format(manifest: Any, folder: str | os.PathLike[str]) -> None:
+    """Refuse the ``manifest`` of the dataset in ``folder`` unless it is a JSON object of this ``FORMAT_VERSION``
+    (a TnfError that says to rebuild it)."""
+    if not isinstance(manifest, dict):
+        raise TnfError(f"dataset manifest {Path(folder) / MANIFEST} is not a JSON object; rebuild it with `tnf pair`")
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise TnfError(
+            f"dataset {folder} has format version {manifest.get('format_version')!r}, this tnf reads "
+            f"{FORMAT_VERSION}; rebuild it with `tnf pair`"
+        )
+
+
 def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
     """Open a dataset folder (``<root>/pairs/<name>``) memory-mapped; TnfError when it is not one."""
     folder = Path(folder)
     if not (folder / MANIFEST).is_file():
         raise TnfError(f"not a paired dataset (no {MANIFEST}): {folder}; build one with `tnf pair`")
     manifest = read_json(folder / MANIFEST, "dataset manifest")
-    if not isinstance(manifest, dict):
-        raise TnfError(f"dataset manifest {folder / MANIFEST} is not a JSON object; rebuild it with `tnf pair`")
-    if manifest.get("format_version") != FORMAT_VERSION:
-        raise TnfError(
-            f"dataset {folder} has format version {manifest.get('format_version')!r}, this tnf reads "
-            f"{FORMAT_VERSION}; rebuild it with `tnf pair`"
-        )
+    check_format(manifest, folder)
     objects = manifest.get("objects")
     if not isinstance(objects, list) or not objects or not all(isinstance(o, str) for o in objects):
         raise TnfError(f"dataset {folder}: the manifest's 'objects' must be a non-empty list of object names")

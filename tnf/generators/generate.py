@@ -12,7 +12,6 @@ scene's depth; null where no surface lies in the gel's footprint).
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,15 +25,16 @@ from tnf.data.preprocess import SIZE, gel_size_m, resize_uint8
 from tnf.data.prior import DepthPrior
 from tnf.data.render import Framing, TouchItem, render_rgbd_crops
 from tnf.data.settings import PairSettings
+from tnf.data.store import check_format
 from tnf.errors import TnfError
 from tnf.generators import load_generator
+from tnf.generators.poses import pose_cone, pose_source, read_poses, sample_poses
 from tnf.generators.settings import GenerateSettings
 from tnf.registry import SENSORS
 from tnf.runtime import progress, resolve_device, warp_device
 from tnf.scenes import load_scene
 from tnf.sim.base import simulator_key
 from tnf.sim.forces import requested_forces
-from tnf.sim.touch import sphere_directions, start_poses
 
 
 @dataclass
@@ -78,71 +78,6 @@ class _Model:
     vocabulary: list[str]
     device: str
     prior: Any = None  # the DepthPrior of a model that takes it, built with the first object's framing
-
-
-def read_poses(path: str | os.PathLike[str]) -> np.ndarray:
-    """Camera-to-world poses [N, 4, 4] (metres, OpenGL) from ``.npy`` or ``.json`` (list, or ``{"poses": ...}``)."""
-    p = Path(path).expanduser()
-    if not p.is_file():
-        raise TnfError(f"generate.poses_file not found: {p}")
-    try:
-        if p.suffix == ".npy":
-            poses = np.load(p)
-        else:
-            data = json.loads(p.read_text())
-            poses = np.asarray(data["poses"] if isinstance(data, dict) else data, dtype=np.float64)
-    except (ValueError, KeyError, TypeError) as e:
-        raise TnfError(f"generate.poses_file {p}: cannot read poses ({e})") from None
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
-        raise TnfError(f"generate.poses_file {p}: expected [N, 4, 4] camera-to-world poses, got {poses.shape}")
-    return poses
-
-
-def sample_poses(
-    n: int,
-    radius: float,
-    up: Any,
-    random_roll: bool,
-    seed: int,
-    cone: tuple[Any, float] | None = None,
-) -> np.ndarray:
-    """``n`` poses on the sphere of ``radius`` metres, looking at the origin: [n, 4, 4] c2w.
-
-    Directions are uniform on the whole sphere, or with ``cone`` = (axis, half-angle in degrees) uniform inside
-    that cone (``generate.directions=novel_view``: the touch stage's held-out cone)."""
-
-    rng = np.random.default_rng(seed)
-    if cone is None:
-        dirs = sphere_directions(rng, n, (0.0, 0.0, 1.0), 0.0, inside=False)
-    else:
-        dirs = sphere_directions(rng, n, cone[0], float(cone[1]), inside=True)
-    return start_poses(rng, dirs, radius, up=list(up), random_roll=random_roll)
-
-
-def pose_source(settings: GenerateSettings, sim: bool = False) -> dict[str, Any]:
-    """Where the poses of generated touches came from, for their manifest: ``{"directions": "sphere"}``,
-    ``{"directions": "novel_view", "cone_axis": [x, y, z], "cone_deg": d}``, ``{"directions": "file"}`` or
-    ``{"directions": "sim"}`` (the simulated touches' own poses)."""
-    if sim:
-        return {"directions": "sim"}
-    if settings.poses_file:
-        return {"directions": "file"}
-    cone = pose_cone(settings)
-    if cone is None:
-        return {"directions": "sphere"}
-    return {"directions": "novel_view", "cone_axis": [float(a) for a in cone[0]], "cone_deg": cone[1]}
-
-
-def pose_cone(settings: GenerateSettings) -> tuple[list[float], float] | None:
-    """The cone that sampled directions come from (``generate.directions``): None for the whole sphere."""
-    if settings.directions == "sphere":
-        return None
-    if settings.cone_deg == 0.0:  # sphere_directions would draw from the whole sphere; it checks range and axis
-        raise TnfError(
-            "generate.directions=novel_view needs a held-out cone: generate.cone_deg (from touch.novel_view_cone) is 0"
-        )
-    return list(settings.cone_axis), settings.cone_deg
 
 
 def generate(job: GenerateJob) -> dict[str, Any]:
@@ -513,17 +448,16 @@ def _preprocessing(job: GenerateJob, store: Any) -> dict[str, Any]:
         if not (folder / MANIFEST).is_file():
             folder = store.path("pairs", str(name))
         if (folder / MANIFEST).is_file():
-            pre = read_json(folder / MANIFEST, "dataset manifest").get("preprocess", {}) or {}
+            manifest = read_json(folder / MANIFEST, "dataset manifest")
+            check_format(manifest, folder)
+            pre = manifest.get("preprocess", {}) or {}
         elif job.settings.dataset is not None:
             raise TnfError(f"generate.dataset: no paired dataset {name!r} (looked in {folder})")
     crop = pre.get("crop_px", {})
-    # Without a dataset manifest, the pair section's settings; otherwise the dataset's (older datasets lack
-    # crop_distance and crop_margin: they used fixed crops, with pair's margin).
-    pair = job.pair
-    framing = {k: v for k, v in (pre or dataclasses.asdict(pair)).items() if k != "crop_px"}
-    framing.setdefault("crop_margin", pair.crop_margin)
+    # The dataset's framing; without a dataset manifest, the pair section's.
+    framing = {k: v for k, v in (pre or dataclasses.asdict(job.pair)).items() if k != "crop_px"}
     return {
         "crop_px": crop if isinstance(crop, dict) else {},
-        "footprint_distance": pre.get("footprint_distance", pair.footprint_distance),
+        "footprint_distance": framing["footprint_distance"],
         "framing": framing,
     }
