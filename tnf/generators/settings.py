@@ -1,5 +1,5 @@
-"""Settings of the generator stages, as validated dataclasses: ``GenerateSettings`` (the ``generate`` section,
-read by ``tnf.generators.generate``).
+"""Settings of the generator stages, as validated dataclasses: ``TrainSettings`` (the ``train`` section, read by
+``tnf.stages.train``) and ``GenerateSettings`` (the ``generate`` section, read by ``tnf.generators.generate``).
 
 Kept apart from the modules that use them, which import torch, so that every stage checks every section
 before any work without importing it.
@@ -12,6 +12,51 @@ from typing import Literal
 
 from tnf.objects import TOUCH_SPLITS
 from tnf.registry import FROM_YAML, SettingError, at_least, yaml_defaults, yaml_field
+
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+"""torch.compile's modes, which ``train.compile`` also takes by name."""
+
+
+@dataclass
+@yaml_defaults("train/default")
+class TrainSettings:
+    """The ``train`` section: how long a generator trains, and how its run is checkpointed and logged."""
+
+    run_name: str | None = yaml_field(identity=False)
+    """Run folder name under ``<data_root>/models/``; null: the run id (``tnf.generators.names.run_id``)."""
+    epochs: int = FROM_YAML
+    """Training epochs in all."""
+    decay_epochs: int = FROM_YAML
+    """The last this many of the epochs decay the learning rate linearly to zero."""
+    ema_decay: float | None = FROM_YAML
+    """Decay per step of an exponential moving average of the generator's weights, which validates and
+    generates; null: none."""
+    resume: bool = yaml_field(identity=False)
+    """Continue an unfinished run from its ``last.ckpt`` (false: start it again)."""
+    force: bool = yaml_field(identity=False)
+    """Train again even when the run finished with the same settings."""
+    limit_train_batches: int | float | None = FROM_YAML
+    """Training batches per epoch: null all, an integer that many, a float in (0, 1] that fraction."""
+    limit_val_batches: int | float | None = FROM_YAML
+    """Validation batches per epoch (as ``limit_train_batches``)."""
+    checkpoint_every_s: float = yaml_field(identity=False)
+    """Least seconds between writes of ``last.ckpt`` at the end of an epoch (0: every epoch; always after the
+    last)."""
+    log_every_n_steps: int = FROM_YAML
+    """Steps between rows of logged training losses."""
+    grid_rows: int = FROM_YAML
+    """Validation pairs in each epoch's image grid."""
+    finite_check_every: int = FROM_YAML
+    """Steps between checks of the losses for NaN/Inf (also before each checkpoint)."""
+    compile: bool | Literal["default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"] = yaml_field(
+        identity=False
+    )
+    """Run the generator's networks through torch.compile: true (its default mode), false, or a mode of
+    ``COMPILE_MODES``; the same losses to float tolerance, faster on a GPU."""
+
+    def validate(self) -> None:
+        at_least(self, 0, "epochs", "decay_epochs", "checkpoint_every_s", "log_every_n_steps")
+        at_least(self, 0, "grid_rows", "finite_check_every")
 
 
 def _in_cone(settings: GenerateSettings) -> bool:

@@ -23,7 +23,7 @@ from typing import Any, cast
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
 from tnf.runtime import seed_everything
-from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config
+from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config, run_section
 
 
 def resolve_checkpoint(value: str, data_root: Any) -> Path:
@@ -83,7 +83,8 @@ def run(cfg: Any) -> dict[str, Any]:
         datasets, extra["presses"] = _press_dataset(cfg, store, real, ckpt, datasets, console)
     spec = dict(system.hparams["generator"])
     frozen = system.generator.freeze([str(x) for x in f.freeze]) if f.freeze else []
-    config = run_config(cfg, "finetune", ("checkpoint",), generator=spec, source=source, **extra)
+    unhashed = ("resume", "force", "run_name", "checkpoint_every_s", "checkpoint")
+    config = run_config(cfg, "finetune", run_section(f, unhashed), generator=spec, source=source, **extra)
     run_name = str(f.run_name or run_id(finetune_option(spec["name"]), datasets[0], cfg.seed, config))
     run_dir = store.path("models", run_name)
     if not f.force and store.is_done("models", run_name, config=config):

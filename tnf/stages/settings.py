@@ -4,8 +4,8 @@ The components (sensors, simulators, scenes, generators, object sources) are val
 dataclasses by the registry, and the sections of ``TYPED`` into their settings dataclasses, as their stages do.
 The other sections are plain YAML; their defaults (``conf/<section>/default.yaml``) are the schema: a setting
 whose default is an integer takes an integer (not ``1.5``, not ``"abc"``), and a non-negative one (a count, a size,
-a number of epochs) stays non-negative; a number takes a finite number; a switch takes true or false (one of
-``NAMED_SWITCHES`` also a name); a list takes a list. Settings whose default is null take anything.
+a number of epochs) stays non-negative; a number takes a finite number; a switch takes true or false; a list
+takes a list. Settings whose default is null take anything.
 """
 
 from __future__ import annotations
@@ -36,8 +36,6 @@ SECTIONS = (
 """Config sections with a ``default.yaml`` that sets every key's type."""
 TOP_LEVEL = ("seed", "progress")
 """Run-wide settings; their defaults in ``conf/base.yaml`` set their types."""
-NAMED_SWITCHES = {"train.compile": ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")}
-"""Switches that also take one of these names (``train.compile``: torch.compile's modes)."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -62,6 +60,7 @@ TYPED = {
     "touch": "tnf.sim.items:TouchSettings",
     "pair": "tnf.data.settings:PairSettings",
     "data": "tnf.data.settings:DataSettings",
+    "train": "tnf.generators.settings:TrainSettings",
     "generate": "tnf.generators.settings:GenerateSettings",
     "evaluate": "tnf.eval.settings:EvaluateSettings",
 }
@@ -139,10 +138,8 @@ def _check(value: Any, default: Any, where: str) -> None:
                 _check(value[k], d, f"{where}.{k}")
         return
     if isinstance(default, bool):
-        names = NAMED_SWITCHES.get(where, ())
-        if not isinstance(value, bool) and value not in names:
-            either = f"true, false or one of {', '.join(names)}" if names else "true or false"
-            raise TnfError(f"{where}: expected {either}, got {value!r}")
+        if not isinstance(value, bool):
+            raise TnfError(f"{where}: expected true or false, got {value!r}")
     elif isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             raise TnfError(f"{where}: expected a whole number, got {value!r}")

@@ -14,6 +14,7 @@ from typing import Any, NamedTuple, cast
 from tnf.artifacts import ArtifactStore, identity
 from tnf.data.settings import DataSettings
 from tnf.errors import TnfError
+from tnf.generators.settings import TrainSettings
 from tnf.registry import config_to_dict, from_dict
 from tnf.runtime import seed_everything
 
@@ -32,6 +33,8 @@ class TrainPlan(NamedTuple):
     skipped and ends the run id."""
     run_name: str
     """The run folder's name under ``models/``: ``train.run_name``, or the run id (``tnf.generators.names``)."""
+    settings: TrainSettings
+    """The ``train`` section."""
 
 
 def plan(cfg: Any) -> TrainPlan:
@@ -45,9 +48,10 @@ def plan(cfg: Any) -> TrainPlan:
     checked = generator_config(cast(dict[str, Any], OmegaConf.to_container(cfg.generator, resolve=True)))
     spec = {"name": checked[0], **config_to_dict(checked[1])}
     datasets = dataset_names(cfg)
-    config = run_config(cfg, "train", ("compile",), generator=spec)
-    name = cfg.train.run_name or run_id(generator_option(spec["name"]), datasets[0], cfg.seed, config)
-    return TrainPlan(checked, spec, datasets, config, str(name))
+    settings = from_dict(TrainSettings, cfg.train, where="train")
+    config = run_config(cfg, "train", settings, generator=spec)
+    name = settings.run_name or run_id(generator_option(spec["name"]), datasets[0], cfg.seed, config)
+    return TrainPlan(checked, spec, datasets, config, name, settings)
 
 
 def model_run(cfg: Any) -> str:
@@ -65,8 +69,7 @@ def run(cfg: Any) -> dict[str, Any]:
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
     console = Console(highlight=False, quiet=process_rank() != 0)
-    t = cfg.train
-    checked, spec, datasets, config, run_name = plan(cfg)
+    checked, spec, datasets, config, run_name, t = plan(cfg)
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
     if not t.force and store.is_done("models", run_name, config=config):
@@ -77,12 +80,12 @@ def run(cfg: Any) -> dict[str, Any]:
     dm = datamodule_from_cfg(cfg, datasets)
     system = GeneratorSystem(
         checked,
-        epochs=int(t.epochs),
-        decay_epochs=int(t.decay_epochs),
-        grid_rows=int(t.grid_rows),
-        finite_check_every=int(t.finite_check_every),
+        epochs=t.epochs,
+        decay_epochs=t.decay_epochs,
+        grid_rows=t.grid_rows,
+        finite_check_every=t.finite_check_every,
         ema_decay=t.ema_decay,
-        compile_nets=t.compile,  # false, true or a mode name (checked by tnf.stages.settings)
+        compile_nets=t.compile,
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
     info = {"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names}
@@ -91,16 +94,15 @@ def run(cfg: Any) -> dict[str, Any]:
     return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
 
-def run_config(cfg: Any, section: str, unhashed: tuple[str, ...] = (), **extra: Any) -> dict[str, Any]:
+def run_config(cfg: Any, section: str, settings: Any, **extra: Any) -> dict[str, Any]:
     """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
     run is skipped and ends the run id, ``tnf.generators.names.run_id``): ``extra`` (the generator spec, a
-    fine-tuning source), the data and run settings, precision and seed. ``unhashed`` names more of the
-    section's keys that do not change the model."""
-    skip = ("resume", "force", "run_name", "checkpoint_every_s", *unhashed)
+    fine-tuning source), the data settings and the run's ``settings`` (that section's, by
+    ``tnf.artifacts.identity``), precision and seed."""
     return {
         **extra,
         "data": identity(data_settings(cfg)),
-        section: run_section(cfg[section], skip),
+        section: identity(settings),
         "precision": str(cfg.trainer.precision),
         "seed": int(cfg.seed),
     }
@@ -109,8 +111,9 @@ def run_config(cfg: Any, section: str, unhashed: tuple[str, ...] = (), **extra: 
 def fit_section(
     cfg: Any, section: Any, system: Any, dm: Any, run_dir: Any, config: dict[str, Any], info: dict[str, Any]
 ) -> dict[str, Any]:
-    """Train ``system`` on ``dm`` into ``run_dir`` with the run settings of ``section`` (``cfg.train`` or
-    ``cfg.finetune``) and the ``trainer``, ``logger`` and ``callbacks`` groups; returns the run's summary."""
+    """Train ``system`` on ``dm`` into ``run_dir`` with the run settings of ``section`` (the ``train`` or
+    ``finetune`` section's settings) and the ``trainer``, ``logger`` and ``callbacks`` groups; returns the run's
+    summary."""
     from omegaconf import OmegaConf
 
     from tnf.generators.callbacks import build_callbacks
@@ -124,12 +127,12 @@ def fit_section(
         trainer_cfg=trainer_args(cfg),
         logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
         callbacks=build_callbacks(cast(dict[str, Any], OmegaConf.to_container(cfg.callbacks, resolve=True))),
-        resume=bool(section.resume) and not bool(section.force),
+        resume=section.resume and not section.force,
         progress=bool(cfg.progress),
         limit_train_batches=section.limit_train_batches,
         limit_val_batches=section.limit_val_batches,
-        log_every_n_steps=int(section.log_every_n_steps),
-        checkpoint_every_s=float(section.checkpoint_every_s),
+        log_every_n_steps=section.log_every_n_steps,
+        checkpoint_every_s=section.checkpoint_every_s,
         info=info,
     )
 
