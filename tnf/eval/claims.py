@@ -13,8 +13,8 @@ from tnf.eval.tables import (
     PRIMARY,
     TABLES,
     TEST_SET_NAMES,
-    _ordered_methods,
     fmt_stat,
+    ordered_methods,
 )
 
 
@@ -41,7 +41,7 @@ def checks(table: str, data: TableData) -> list[tuple[str, str, str]]:
         return data.image.get((ts, method), {}).get(metric)
 
     test_sets = sorted({k[0] for k in data.image} - {"all"}, key=lambda t: (t != "novel_view", t))
-    others = [m for m in _ordered_methods(table, data) if m != PRIMARY]
+    others = [m for m in ordered_methods(table, data) if m != PRIMARY]
     baselines = [m for m in others if not m.startswith(PRIMARY)]  # T-N+ is a variant of ours, not a baseline
     for ts in test_sets:
         name = TEST_SET_NAMES.get(ts, ts).lower()
@@ -74,7 +74,7 @@ def against_paper(table: str, data: TableData) -> list[tuple[str, str, str]]:
     ``FALLS SHORT``. The classification figure is the gain of ``Sim + <method>`` over ``Sim``.
     """
     paper = PAPER.get(table, {})
-    ours = [m for m in _ordered_methods(table, data) if m.startswith(PRIMARY)]
+    ours = [m for m in ordered_methods(table, data) if m.startswith(PRIMARY)]
     out: list[tuple[str, str, str]] = []
 
     def compare(what: str, a: Stat | None, b: tuple[float, float] | None, higher_better: bool, kind: str) -> None:
@@ -137,7 +137,7 @@ def verdict(tables: dict[str, TableData], next_step: str | None = None) -> str:
             parts.append(f"**Every claim of the paper that this run checks holds{label} ({count}).**")
         test_sets = sorted({k[0] for k in data.image} - {"all"}, key=lambda t: (t != "novel_view", t))
         image_failed = any("accuracy" not in c for c, _ in failed)
-        baselines = [m for m in _ordered_methods(table, data) if not m.startswith(PRIMARY)]
+        baselines = [m for m in ordered_methods(table, data) if not m.startswith(PRIMARY)]
         compared = [
             t for t in test_sets if (t, PRIMARY) in data.image and any((t, m) in data.image for m in [BG, *baselines])
         ]

@@ -222,9 +222,8 @@ def by_force(
     batch = ds.__getitems__(list(range(min(len(ds), 64))))
     areas = contact_area(batch["tactile"], batch["background"], threshold)
     row = int(torch.argmax((areas > 0).float()))  # the first with a contact (0 when none has one)
-    rows = ds.index[row : row + 1]
-    obj = ds.arrays.objects[int(ds.arrays.object_id[rows[0]])]
-    touch_index = int(ds.arrays.touch_index[rows[0]])
+    obj = ds.arrays.objects[int(ds.arrays.object_id[ds.index[row]])]
+    touch_index = int(ds.arrays.touch_index[ds.index[row]])
     sensor_name = str(manifest["sensor"]["name"])
     sensor = SENSORS.get(sensor_name)(SENSORS.config(sensor_name, manifest["sensor"]["config"]))
     source = OBJECTS.build(objects)
@@ -233,54 +232,75 @@ def by_force(
     touch = _touch(store, sensor_name, source.name, obj, touch_index)
     sim = SIMULATORS.build(simulator, sensor=sensor, device=warp_device(device))
     simulated = resimulate(sensor, sim, source.load(obj), np.asarray(touch["start_c2w"]), sweep, SIZE)
-    # The simulator's own growth with force on the figure split's first poses: what the generator's is measured
-    # against (a pose the simulator does not grow on cannot be asked of the generator).
     n_ref = min(bf.simulator_poses, len(ds))
     if n_ref > 0:
-        ref = ds.__getitems__(list(range(n_ref)))
-        starts: dict[str, list[tuple[int, np.ndarray]]] = {}
-        for i in range(n_ref):
-            o = ds.arrays.objects[int(ds.arrays.object_id[ds.index[i]])]
-            items = starts.setdefault(o, [])
-            items.append(
-                (
-                    i,
-                    np.asarray(
-                        _touch(store, sensor_name, source.name, o, int(ds.arrays.touch_index[ds.index[i]]))["start_c2w"]
-                    ),
-                )
-            )
-        ref_areas = np.zeros((n_ref, len(sweep)))
-        hit = np.ones(n_ref, bool)
-        for o, poses in starts.items():
-            c2w = np.repeat(np.stack([p for _, p in poses]), len(sweep), 0)
-            press = sim.press(source.load(o), c2w, np.tile(np.asarray(sweep, np.float32), len(poses)), seed=0)
-            img = torch.from_numpy(resize_uint8(press.images, SIZE)).permute(0, 3, 1, 2).float() / 127.5 - 1
-            a = contact_area(img, ref["background"][:1], threshold).numpy().reshape(len(poses), len(sweep))
-            for j, (i, _) in enumerate(poses):
-                ref_areas[i] = a[j]
-                hit[i] = bool(press.hit[j * len(sweep) : (j + 1) * len(sweep)].all())
-        grows = monotonic(ref_areas[hit])
-        out["simulator_monotonic"] = {"share": float(grows.mean()) if len(grows) else None, "n": int(hit.sum())}
+        out["simulator_monotonic"] = _simulator_monotonic(ds, n_ref, sim, source, store, sensor_name, sweep, threshold)
     one = {k: v[row : row + 1] for k, v in batch.items()}
+    generated, sweep_areas = _sweep_of_one(one, generate, simulated, sweep, threshold)
+    out["figure"] = {"split": split, "object": obj, "touch": touch_index, **sweep_areas}
+    img = sweep_figure(simulated, generated, sweep, f"{obj}, touch {touch_index} ({split})")
+    buf = io.BytesIO()
+    img.save(buf, "PNG")
+    return out, buf.getvalue()
+
+
+def _simulator_monotonic(
+    ds: Any,
+    n_ref: int,
+    sim: Any,
+    source: Any,
+    store: Any,
+    sensor_name: str,
+    sweep: list[float],
+    threshold: float,
+) -> dict[str, Any]:
+    """The simulator's own growth with force on the first ``n_ref`` poses of ``ds`` (a ``PairDataset``): what the
+    generator's is measured against (a pose the simulator does not grow on cannot be asked of the generator).
+
+    Each pose is pressed again at every force of ``sweep`` (newtons); returns ``{"share": the share of the poses
+    that hit at every force whose contact area grows with force (None without such poses), "n": their count}``."""
+    ref = ds.__getitems__(list(range(n_ref)))
+    starts: dict[str, list[tuple[int, np.ndarray]]] = {}
+    for i in range(n_ref):
+        o = ds.arrays.objects[int(ds.arrays.object_id[ds.index[i]])]
+        touch = _touch(store, sensor_name, source.name, o, int(ds.arrays.touch_index[ds.index[i]]))
+        starts.setdefault(o, []).append((i, np.asarray(touch["start_c2w"])))
+    ref_areas = np.zeros((n_ref, len(sweep)))
+    hit = np.ones(n_ref, bool)
+    for o, poses in starts.items():
+        c2w = np.repeat(np.stack([p for _, p in poses]), len(sweep), 0)
+        press = sim.press(source.load(o), c2w, np.tile(np.asarray(sweep, np.float32), len(poses)), seed=0)
+        img = torch.from_numpy(resize_uint8(press.images, SIZE)).permute(0, 3, 1, 2).float() / 127.5 - 1
+        a = contact_area(img, ref["background"][:1], threshold).numpy().reshape(len(poses), len(sweep))
+        for j, (i, _) in enumerate(poses):
+            ref_areas[i] = a[j]
+            hit[i] = bool(press.hit[j * len(sweep) : (j + 1) * len(sweep)].all())
+    grows = monotonic(ref_areas[hit])
+    return {"share": float(grows.mean()) if len(grows) else None, "n": int(hit.sum())}
+
+
+def _sweep_of_one(
+    one: dict[str, torch.Tensor],
+    generate: Callable[[dict[str, torch.Tensor]], torch.Tensor],
+    simulated: np.ndarray,
+    sweep: list[float],
+    threshold: float,
+) -> tuple[np.ndarray, dict[str, list[float]]]:
+    """The generator's images of the one-pair batch ``one`` at each force of ``sweep`` (newtons): [F, H, W, 3]
+    uint8, and the contact areas of them and of the simulator's ``simulated`` ones ([F, H, W, 3] uint8) at each
+    force (``{"simulated_area": [F], "generated_area": [F]}``)."""
     many = {k: v.expand(len(sweep), *v.shape[1:]) for k, v in one.items()}
     many["force"] = torch.tensor(sweep, dtype=torch.float32)
     with torch.no_grad():
         fake = generate(many).detach().float().cpu()
     generated = ((fake.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
-    bg = batch["background"][row : row + 1]
+    bg = one["background"]
     sim_t = torch.from_numpy(simulated).permute(0, 3, 1, 2).float() / 127.5 - 1
-    out["figure"] = {
-        "split": split,
-        "object": obj,
-        "touch": touch_index,
+    areas = {
         "simulated_area": contact_area(sim_t, bg, threshold).tolist(),
         "generated_area": contact_area(fake, bg, threshold).tolist(),
     }
-    img = sweep_figure(simulated, generated, sweep, f"{obj}, touch {touch_index} ({split})")
-    buf = io.BytesIO()
-    img.save(buf, "PNG")
-    return out, buf.getvalue()
+    return generated, areas
 
 
 def _touch(store: Any, sensor: str, source: str, obj: str, index: int) -> dict[str, Any]:

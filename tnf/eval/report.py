@@ -35,13 +35,13 @@ from tnf.eval.scoring import BG
 from tnf.eval.tables import (
     TABLES,
     TEST_SET_NAMES,
-    _csv,
-    _ordered_methods,
-    _pair,
-    _stat_cells,
     accuracy_rows,
+    csv_bytes,
     fmt_stat,
     image_rows,
+    ordered_methods,
+    paper_cells,
+    stat_cells,
 )
 
 # The tables' and the claims' names stay importable from here.
@@ -188,63 +188,7 @@ def render_markdown(
         "",
     ]
     for table in sorted(tables, key=lambda t: (t not in TABLES, t)):
-        data = tables[table]
-        num, title = TABLES.get(table, (table, table))
-        lines += [f"## Table {num}: {title}", "", f"### Table {num}a: image metrics against ground truth", ""]
-        lines += [
-            "| Test set | Method | SSIM ↑ (ours) | SSIM (paper) | MSE ↓ (ours) | MSE (paper) | seeds |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for r in image_rows(table, data):
-            o, p = r["ours"], r["paper"]
-            n = max((s.n for s in o.values()), default=0)
-            cells = [
-                TEST_SET_NAMES.get(r["test_set"], r["test_set"]),
-                r["method"],
-                fmt_stat(o.get("ssim"), "ssim"),
-                fmt_stat(p.get("ssim"), "ssim"),
-                fmt_stat(o.get("mse"), "mse"),
-                fmt_stat(p.get("mse"), "mse"),
-                str(n or "-"),
-            ]
-            lines.append("| " + " | ".join(cells) + " |")
-        lines += ["", f"### Table {num}b: object classification from one tactile image", ""]
-        lines += ["| Training set | Accuracy % ↑ (ours) | Accuracy % (paper) | seeds |", "|---|---|---|---|"]
-        for r in accuracy_rows(table, data):
-            n = r["ours"].n if r["ours"] else "-"
-            lines.append(f"| {r['row']} | {fmt_stat(r['ours'], 'acc')} | {fmt_stat(r['paper'], 'acc')} | {n} |")
-        lines += ["", "Test set: held-out ground-truth touches only; same classifier, schedule and test set per row."]
-        lines.append("")
-        for line in (batch_sampling(data.runs), generated_poses(data.runs)):
-            if line:
-                lines += [line, ""]
-        for caption, path in figures.get(table, []):
-            lines += [f"**{caption}**", "", f"![{caption}]({path})", ""]
-        cks = checks(table, data)
-        lines += [f"### Checks against the paper's claims (Table {num})", ""]
-        if cks:
-            lines += ["| Claim | Verdict | Ours |", "|---|---|---|"]
-            lines += [f"| {c} | {v} | {d} |" for c, v, d in cks]
-        else:
-            lines.append("No claim can be checked yet: the rows it compares are missing.")
-        figs_vs = against_paper(table, data)
-        if figs_vs:
-            lines += ["", f"### Against the paper's figures (Table {num})", ""]
-            lines += ["| Figure | Verdict | Ours vs paper |", "|---|---|---|"]
-            lines += [f"| {c} | {v} | {d} |" for c, v, d in figs_vs]
-            bg, bg_paper = data.image.get(("all", BG), {}), PAPER.get(table, {}).get("image", {}).get(("all", BG))
-            if bg and bg_paper:
-                lines += [
-                    "",
-                    f"BG, the same for any generator, scores SSIM {fmt_stat(bg.get('ssim'), 'ssim')} here against "
-                    f"the paper's {fmt_stat(bg_paper['ssim'], 'ssim')} and MSE {fmt_stat(bg.get('mse'), 'mse')} "
-                    f"against {fmt_stat(bg_paper['mse'], 'mse')}: how far this simulator's touches and background "
-                    "differ from the paper's, which the figures above inherit.",
-                ]
-        lines += ["", f"### Runs (Table {num})", "", "| Method | Seed | Model | Results |", "|---|---|---|---|"]
-        for run in sorted(data.runs, key=lambda r: (r["method"], r["seed"])):
-            lines.append(f"| {run['method']} | {run['seed']} | {run.get('model') or '-'} | {run.get('_rel', '')} |")
-        lines.append("")
+        lines += _table_section(table, tables[table], figures.get(table, []))
     runs = [r for t in tables.values() for r in t.runs]
     where = wall_times(timings, runs) + environments(runs)
     if where:
@@ -252,6 +196,87 @@ def render_markdown(
     if notes and notes.strip():
         lines += ["## Notes", "", notes.strip(), ""]
     return "\n".join(lines)
+
+
+def _table_section(table: str, data: TableData, figures: Sequence[tuple[str, str]]) -> list[str]:
+    """Markdown lines of one table's section: its image metrics (a), its classification accuracy (b), its
+    ``figures`` (caption, relative path), the paper's claims checked and its runs."""
+    num, title = TABLES.get(table, (table, table))
+    lines = [f"## Table {num}: {title}", "", *_image_table(num, table, data), *_accuracy_table(num, table, data)]
+    for caption, path in figures:
+        lines += [f"**{caption}**", "", f"![{caption}]({path})", ""]
+    lines += _claims_section(num, table, data)
+    lines += ["", f"### Runs (Table {num})", "", "| Method | Seed | Model | Results |", "|---|---|---|---|"]
+    for run in sorted(data.runs, key=lambda r: (r["method"], r["seed"])):
+        lines.append(f"| {run['method']} | {run['seed']} | {run.get('model') or '-'} | {run.get('_rel', '')} |")
+    lines.append("")
+    return lines
+
+
+def _image_table(num: str, table: str, data: TableData) -> list[str]:
+    """Markdown lines of table ``num``a: SSIM and MSE per test set and method, ours beside the paper's."""
+    lines = [f"### Table {num}a: image metrics against ground truth", ""]
+    lines += [
+        "| Test set | Method | SSIM ↑ (ours) | SSIM (paper) | MSE ↓ (ours) | MSE (paper) | seeds |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in image_rows(table, data):
+        o, p = r["ours"], r["paper"]
+        n = max((s.n for s in o.values()), default=0)
+        cells = [
+            TEST_SET_NAMES.get(r["test_set"], r["test_set"]),
+            r["method"],
+            fmt_stat(o.get("ssim"), "ssim"),
+            fmt_stat(p.get("ssim"), "ssim"),
+            fmt_stat(o.get("mse"), "mse"),
+            fmt_stat(p.get("mse"), "mse"),
+            str(n or "-"),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def _accuracy_table(num: str, table: str, data: TableData) -> list[str]:
+    """Markdown lines of table ``num``b: classification accuracy (%) per training set, ours beside the paper's,
+    then how the runs drew their batches and where their generated touches came from."""
+    lines = ["", f"### Table {num}b: object classification from one tactile image", ""]
+    lines += ["| Training set | Accuracy % ↑ (ours) | Accuracy % (paper) | seeds |", "|---|---|---|---|"]
+    for r in accuracy_rows(table, data):
+        n = r["ours"].n if r["ours"] else "-"
+        lines.append(f"| {r['row']} | {fmt_stat(r['ours'], 'acc')} | {fmt_stat(r['paper'], 'acc')} | {n} |")
+    lines += ["", "Test set: held-out ground-truth touches only; same classifier, schedule and test set per row."]
+    lines.append("")
+    for line in (batch_sampling(data.runs), generated_poses(data.runs)):
+        if line:
+            lines += [line, ""]
+    return lines
+
+
+def _claims_section(num: str, table: str, data: TableData) -> list[str]:
+    """Markdown lines: the paper's claims checked on table ``num`` (``checks``), then our figures against the
+    paper's (``against_paper``) with how far BG, the same for any generator, lies from the paper's."""
+    cks = checks(table, data)
+    lines = [f"### Checks against the paper's claims (Table {num})", ""]
+    if cks:
+        lines += ["| Claim | Verdict | Ours |", "|---|---|---|"]
+        lines += [f"| {c} | {v} | {d} |" for c, v, d in cks]
+    else:
+        lines.append("No claim can be checked yet: the rows it compares are missing.")
+    figs_vs = against_paper(table, data)
+    if figs_vs:
+        lines += ["", f"### Against the paper's figures (Table {num})", ""]
+        lines += ["| Figure | Verdict | Ours vs paper |", "|---|---|---|"]
+        lines += [f"| {c} | {v} | {d} |" for c, v, d in figs_vs]
+        bg, bg_paper = data.image.get(("all", BG), {}), PAPER.get(table, {}).get("image", {}).get(("all", BG))
+        if bg and bg_paper:
+            lines += [
+                "",
+                f"BG, the same for any generator, scores SSIM {fmt_stat(bg.get('ssim'), 'ssim')} here against "
+                f"the paper's {fmt_stat(bg_paper['ssim'], 'ssim')} and MSE {fmt_stat(bg.get('mse'), 'mse')} "
+                f"against {fmt_stat(bg_paper['mse'], 'mse')}: how far this simulator's touches and background "
+                "differ from the paper's, which the figures above inherit.",
+            ]
+    return lines
 
 
 def write_report(
@@ -293,7 +318,7 @@ def _write_tables(folder: Path, table: str, data: TableData) -> None:
     img_rows = image_rows(table, data)
     write_bytes(
         folder / f"table{num}a_image.csv",
-        _csv(
+        csv_bytes(
             [
                 "test_set",
                 "method",
@@ -311,10 +336,10 @@ def _write_tables(folder: Path, table: str, data: TableData) -> None:
                 [
                     r["test_set"],
                     r["method"],
-                    *(_stat_cells(r["ours"].get("ssim"))[:2]),
-                    *(_stat_cells(r["ours"].get("mse"))),
-                    *_pair(r["paper"].get("ssim")),
-                    *_pair(r["paper"].get("mse")),
+                    *(stat_cells(r["ours"].get("ssim"))[:2]),
+                    *(stat_cells(r["ours"].get("mse"))),
+                    *paper_cells(r["paper"].get("ssim")),
+                    *paper_cells(r["paper"].get("mse")),
                 ]
                 for r in img_rows
             ],
@@ -322,9 +347,9 @@ def _write_tables(folder: Path, table: str, data: TableData) -> None:
     )
     write_bytes(
         folder / f"table{num}b_accuracy.csv",
-        _csv(
+        csv_bytes(
             ["training_set", "accuracy_mean", "accuracy_se", "seeds", "paper_accuracy_mean", "paper_accuracy_se"],
-            [[r["row"], *_stat_cells(r["ours"]), *_pair(r["paper"])] for r in accuracy_rows(table, data)],
+            [[r["row"], *stat_cells(r["ours"]), *paper_cells(r["paper"])] for r in accuracy_rows(table, data)],
         ),
     )
 
@@ -333,7 +358,7 @@ def _table_figures(folder: Path, table: str, data: TableData) -> list[tuple[str,
     """Draw ``table``'s SSIM-per-object bar plots into ``folder``; returns (caption, path) of each figure, the
     methods' example figures included (a path relative to ``folder``)."""
     figs: list[tuple[str, str]] = []
-    methods = [*_ordered_methods(table, data), BG]
+    methods = [*ordered_methods(table, data), BG]
     for ts in sorted({k[0] for k in data.per_object}, key=lambda t: (t != "novel_view", t)):
         series = {m: data.per_object[(ts, m)] for m in methods if (ts, m) in data.per_object}
         if not series:
@@ -343,13 +368,12 @@ def _table_figures(folder: Path, table: str, data: TableData) -> list[tuple[str,
         png = f"ssim_per_object_{table}_{ts}.png"
         bar_plot(series, f"SSIM per object, {TEST_SET_NAMES.get(ts, ts).lower()}", (y_lo, 1.0)).save(folder / png)
         figs.append((f"SSIM per object ({TEST_SET_NAMES.get(ts, ts).lower()})", png))
-    for m in _ordered_methods(table, data):
+    for m in ordered_methods(table, data):
         runs = sorted((r for r in data.runs if r["method"] == m and r.get("examples")), key=lambda r: r["seed"])
         if runs and "_path" in runs[0]:
             ex = Path(runs[0]["_path"]).parent / runs[0]["examples"]
             if ex.is_file():
-                # Runs written before examples_split was recorded took their examples from novel_object.
-                split = str(runs[0].get("examples_split", "novel_object"))
+                split = str(runs[0]["examples_split"])
                 caption = (
                     f"{m}, {TEST_SET_NAMES.get(split, split).lower()} touches (seed {runs[0]['seed']}): RGB | "
                     "depth | generated | target | thresholded difference"

@@ -1,5 +1,5 @@
 """The report's tables: their names and test sets, the order of methods, and rows of formatted means with
-standard errors beside the paper's figures (``image_rows``, ``accuracy_rows``; CSV bytes with ``_csv``)."""
+standard errors beside the paper's figures (``image_rows``, ``accuracy_rows``; CSV bytes with ``csv_bytes``)."""
 
 from __future__ import annotations
 
@@ -49,7 +49,8 @@ def fmt_stat(st: Stat | tuple[float, float] | None, kind: str) -> str:
     return f"{_fmt(m, kind)} ± {_fmt(se, kind)}"
 
 
-def _ordered_methods(table: str, data: TableData) -> list[str]:
+def ordered_methods(table: str, data: TableData) -> list[str]:
+    """The methods of ``data`` in the table's order (``METHOD_ORDER``), then the others as they came."""
     order = [m for m in METHOD_ORDER.get(table, []) if m in data.methods]
     return order + [m for m in data.methods if m not in order]
 
@@ -57,7 +58,7 @@ def _ordered_methods(table: str, data: TableData) -> list[str]:
 def _row_methods(table: str, data: TableData) -> list[str]:
     """The paper's methods of this table (so its figures show even without a run of ours), then ours."""
     paper = METHOD_ORDER.get(table, [])
-    return paper + [m for m in _ordered_methods(table, data) if m not in paper]
+    return paper + [m for m in ordered_methods(table, data) if m not in paper]
 
 
 def image_rows(table: str, data: TableData) -> list[dict[str, Any]]:
@@ -89,7 +90,8 @@ def accuracy_rows(table: str, data: TableData) -> list[dict[str, Any]]:
     return [{"row": n, "ours": data.accuracy.get(n), "paper": paper.get(n)} for n in names]
 
 
-def _csv(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> bytes:
+def csv_bytes(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> bytes:
+    """A CSV file's bytes: ``header``, then ``rows`` (floats to 6 significant digits, None as an empty cell)."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(header)
@@ -98,9 +100,11 @@ def _csv(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> bytes:
     return buf.getvalue().encode()
 
 
-def _pair(p: tuple[float, float] | None) -> tuple[float | None, float | None]:
+def paper_cells(p: tuple[float, float] | None) -> tuple[float | None, float | None]:
+    """The cells of a paper's figure ``(value, spread)``: two empty cells when the paper gives none."""
     return (None, None) if p is None else p
 
 
-def _stat_cells(st: Stat | None) -> list[Any]:
+def stat_cells(st: Stat | None) -> list[Any]:
+    """The cells of one of our figures: mean, standard error and number of seeds (three empty cells if missing)."""
     return [None, None, None] if st is None else [st.mean, st.se, st.n]
