@@ -98,6 +98,8 @@ def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
     "additional 45 training images"); each variant's model gets its own run id: its transfer option names it,
     and the settings its hash covers differ."""
     from tnf.generators.names import finetune_option
+    from tnf.generators.settings import FinetuneSettings
+    from tnf.registry import from_dict
     from tnf.stages.train import run_config
     from tnf.testing import hydra_job
 
@@ -107,7 +109,8 @@ def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
             assert cfg.data.per_object == 5
             assert cfg.data.extra_touches == (45 if variant == "tn_plus" else 0)
             options[variant] = finetune_option("tn_cgan")
-            settings[variant] = run_config(cfg, "finetune", (), source=cfg.finetune.checkpoint)
+            finetune = from_dict(FinetuneSettings, cfg.finetune, where="finetune")
+            settings[variant] = run_config(cfg, "finetune", finetune, source=cfg.finetune.checkpoint)
     assert all(options[v].endswith(f"+{v}") for v in options) and len(set(options.values())) == 3
     assert settings["tn"] != settings["tn_plus"] != settings["fs"] != settings["tn"]
 

@@ -1,5 +1,6 @@
 """Settings of the generator stages, as validated dataclasses: ``TrainSettings`` (the ``train`` section, read by
-``tnf.stages.train``) and ``GenerateSettings`` (the ``generate`` section, read by ``tnf.generators.generate``).
+``tnf.stages.train``), ``FinetuneSettings`` (the ``finetune`` section, read by ``tnf.stages.finetune``) and
+``GenerateSettings`` (the ``generate`` section, read by ``tnf.generators.generate``).
 
 Kept apart from the modules that use them, which import torch, so that every stage checks every section
 before any work without importing it.
@@ -57,6 +58,70 @@ class TrainSettings:
     def validate(self) -> None:
         at_least(self, 0, "epochs", "decay_epochs", "checkpoint_every_s", "log_every_n_steps")
         at_least(self, 0, "grid_rows", "finite_check_every")
+
+
+@dataclass
+@yaml_defaults("finetune/default")
+class FinetuneSettings:
+    """The ``finetune`` section: continuing a trained generator (or training one from scratch) on a small
+    dataset of another sensor, or on real indenter presses."""
+
+    checkpoint: str | None = yaml_field(identity=False)
+    """Checkpoint to start from: a path, ``<run>/<file>`` under ``<data_root>/models/``, a run (its best.ckpt)
+    or a run family (``tnf.generators.names.run_family``); null: from scratch. A run's key records the file
+    it resolves to and its hash instead."""
+    run_name: str | None = yaml_field(identity=False)
+    """Run folder name under ``<data_root>/models/``; null: the run id (``tnf.generators.names.run_id``)."""
+    epochs: int = FROM_YAML
+    """Fine-tuning epochs in all."""
+    decay_epochs: int = FROM_YAML
+    """The last this many of the epochs decay the learning rate linearly to zero."""
+    lr: float | None = FROM_YAML
+    """Learning rate for fine-tuning; null: the generator's own."""
+    freeze: list[str] = FROM_YAML
+    """Parameter-name prefixes kept fixed; []: everything trains."""
+    ema_decay: float | None = FROM_YAML
+    """Decay per step of an exponential moving average of the generator's weights (as ``train.ema_decay``);
+    null: none."""
+    resume: bool = yaml_field(identity=False)
+    """Continue an unfinished fine-tuning run from its ``last.ckpt``."""
+    force: bool = yaml_field(identity=False)
+    """Train again even when the run finished with the same settings."""
+    limit_train_batches: int | float | None = FROM_YAML
+    """Training batches per epoch: null all, an integer that many, a float in (0, 1] that fraction."""
+    limit_val_batches: int | float | None = FROM_YAML
+    """Validation batches per epoch (as ``limit_train_batches``)."""
+    checkpoint_every_s: float = yaml_field(identity=False)
+    """Least seconds between writes of ``last.ckpt`` at the end of an epoch (0: every epoch; always after the
+    last)."""
+    log_every_n_steps: int = FROM_YAML
+    """Steps between rows of logged training losses."""
+    grid_rows: int = FROM_YAML
+    """Validation pairs in each epoch's image grid."""
+    finite_check_every: int = FROM_YAML
+    """Steps between checks of the losses for NaN/Inf."""
+    presses: str | None = FROM_YAML
+    """Real indenter presses to fine-tune on instead of ``data.datasets``: a press folder or ``taxim:SENSOR``;
+    null: the paired datasets."""
+    press_train: list[int] = FROM_YAML
+    """Presses whose real frames the generator trains on (default: ``calibrate.train``)."""
+    press_val: list[int] = FROM_YAML
+    """Validation presses; []: the training presses serve as validation pairs too."""
+    press_test: list[int] = FROM_YAML
+    """Held-out presses scored against their real frames after training (default: ``calibrate.test``)."""
+    press_depth_scale: float = FROM_YAML
+    """Factor on each press's depth (the calibration's depth factor)."""
+    press_reference: str = FROM_YAML
+    """Where depth 0.5 lies in a press's RGB-D: ``gel`` (the pressed gel's plane) or ``contact`` (the first
+    contact), checked by the stage (``tnf.real.generated.REFERENCES``)."""
+    press_sim_pairs: int = FROM_YAML
+    """Training pairs of the simulated dataset that join the press pairs (T-N+)."""
+
+    def validate(self) -> None:
+        at_least(self, 0, "epochs", "decay_epochs", "checkpoint_every_s", "log_every_n_steps")
+        at_least(self, 0, "grid_rows", "finite_check_every", "press_sim_pairs")
+        if not self.press_depth_scale > 0:
+            raise SettingError("press_depth_scale", f"must be > 0, got {self.press_depth_scale}")
 
 
 def _in_cone(settings: GenerateSettings) -> bool:

@@ -22,8 +22,10 @@ from typing import Any, cast
 
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
+from tnf.generators.settings import FinetuneSettings
+from tnf.registry import from_dict
 from tnf.runtime import seed_everything
-from tnf.stages.train import datamodule_from_cfg, dataset_names, fit_section, run_config, run_section
+from tnf.stages.train import data_settings, datamodule_from_cfg, dataset_names, fit_section, run_config
 
 
 def resolve_checkpoint(value: str, data_root: Any) -> Path:
@@ -57,22 +59,22 @@ def run(cfg: Any) -> dict[str, Any]:
     from tnf.generators.system import GeneratorSystem
 
     console = Console(highlight=False)
-    f = cfg.finetune
+    f = from_dict(FinetuneSettings, cfg.finetune, where="finetune")
     store = ArtifactStore(cfg.data_root)
     datasets = dataset_names(cfg)
-    real = _press_settings(cfg) if f.presses else None
+    real = _press_settings(cfg, f) if f.presses else None
     hp: dict[str, Any] = {
-        "epochs": int(f.epochs),
-        "decay_epochs": int(f.decay_epochs),
-        "grid_rows": int(f.grid_rows),
-        "finite_check_every": int(f.finite_check_every),
+        "epochs": f.epochs,
+        "decay_epochs": f.decay_epochs,
+        "grid_rows": f.grid_rows,
+        "finite_check_every": f.finite_check_every,
         "ema_decay": f.ema_decay,
     }
-    overrides = {"lr": float(f.lr)} if f.lr is not None else {}
+    overrides = {"lr": f.lr} if f.lr is not None else {}
     source: dict[str, Any] = {}
     ckpt: Path | None = None
     if f.checkpoint:
-        ckpt = resolve_checkpoint(str(f.checkpoint), cfg.data_root)
+        ckpt = resolve_checkpoint(f.checkpoint, cfg.data_root)
         system = GeneratorSystem.from_checkpoint(ckpt, "cpu", generator_overrides=overrides, **hp)
         source = {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": _file_hash(ckpt)}
     else:
@@ -82,10 +84,9 @@ def run(cfg: Any) -> dict[str, Any]:
     if real is not None:
         datasets, extra["presses"] = _press_dataset(cfg, store, real, ckpt, datasets, console)
     spec = dict(system.hparams["generator"])
-    frozen = system.generator.freeze([str(x) for x in f.freeze]) if f.freeze else []
-    unhashed = ("resume", "force", "run_name", "checkpoint_every_s", "checkpoint")
-    config = run_config(cfg, "finetune", run_section(f, unhashed), generator=spec, source=source, **extra)
-    run_name = str(f.run_name or run_id(finetune_option(spec["name"]), datasets[0], cfg.seed, config))
+    frozen = system.generator.freeze(f.freeze) if f.freeze else []
+    config = run_config(cfg, "finetune", f, generator=spec, source=source, **extra)
+    run_name = f.run_name or run_id(finetune_option(spec["name"]), datasets[0], cfg.seed, config)
     run_dir = store.path("models", run_name)
     if not f.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true)")
@@ -126,26 +127,18 @@ def run(cfg: Any) -> dict[str, Any]:
     return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
 
-def _press_settings(cfg: Any) -> dict[str, Any]:
-    """The checked ``finetune.press*`` settings, the press folder and the sensor (one-line errors first)."""
-    from omegaconf import OmegaConf
-
+def _press_settings(cfg: Any, f: FinetuneSettings) -> dict[str, Any]:
+    """The checked ``finetune.press*`` settings (``f``: the ``finetune`` section), the press folder and the
+    sensor (one-line errors first)."""
     from tnf.real.finetune import check_split
-    from tnf.real.generated import REFERENCES, press_indices
+    from tnf.real.generated import REFERENCES
     from tnf.real.presses import resolve_presses
     from tnf.registry import SENSORS, split_spec
 
-    f = cfg.finetune
-    split = {}
-    for key in ("press_train", "press_val", "press_test"):
-        value = OmegaConf.to_container(f[key], resolve=True) if OmegaConf.is_list(f[key]) else f[key]
-        split[key] = press_indices(value, f"finetune.{key}")
-    check_split(split["press_train"], split["press_val"], split["press_test"], "finetune")
-    if str(f.press_reference) not in REFERENCES:
+    check_split(f.press_train, f.press_val, f.press_test, "finetune")
+    if f.press_reference not in REFERENCES:
         raise TnfError(f"finetune.press_reference must be one of {', '.join(REFERENCES)}, got {f.press_reference!r}")
-    if not float(f.press_depth_scale) > 0:
-        raise TnfError(f"finetune.press_depth_scale must be > 0, got {f.press_depth_scale}")
-    if cfg.data.per_object is not None:
+    if data_settings(cfg).per_object is not None:
         raise TnfError(
             "data.per_object subsamples the touches of each object; with finetune.presses every training press "
             "is used: set data.per_object=null (finetune.press_train chooses the presses)"
@@ -156,12 +149,12 @@ def _press_settings(cfg: Any) -> dict[str, Any]:
     return {
         "presses": presses,
         "sensor": sensor,
-        "train": split["press_train"],
-        "val": split["press_val"],
-        "test": split["press_test"],
-        "depth_scale": float(f.press_depth_scale),
-        "reference": str(f.press_reference),
-        "sim_pairs": int(f.press_sim_pairs),
+        "train": f.press_train,
+        "val": f.press_val,
+        "test": f.press_test,
+        "depth_scale": f.press_depth_scale,
+        "reference": f.press_reference,
+        "sim_pairs": f.press_sim_pairs,
     }
 
 

@@ -61,6 +61,7 @@ TYPED = {
     "pair": "tnf.data.settings:PairSettings",
     "data": "tnf.data.settings:DataSettings",
     "train": "tnf.generators.settings:TrainSettings",
+    "finetune": "tnf.generators.settings:FinetuneSettings",
     "generate": "tnf.generators.settings:GenerateSettings",
     "evaluate": "tnf.eval.settings:EvaluateSettings",
 }

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple, cast
 from tnf.artifacts import ArtifactStore, identity
 from tnf.data.settings import DataSettings
 from tnf.errors import TnfError
-from tnf.generators.settings import TrainSettings
+from tnf.generators.settings import FinetuneSettings, TrainSettings
 from tnf.registry import config_to_dict, from_dict
 from tnf.runtime import seed_everything
 
@@ -94,7 +94,7 @@ def run(cfg: Any) -> dict[str, Any]:
     return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
 
-def run_config(cfg: Any, section: str, settings: Any, **extra: Any) -> dict[str, Any]:
+def run_config(cfg: Any, section: str, settings: TrainSettings | FinetuneSettings, **extra: Any) -> dict[str, Any]:
     """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
     run is skipped and ends the run id, ``tnf.generators.names.run_id``): ``extra`` (the generator spec, a
     fine-tuning source), the data settings and the run's ``settings`` (that section's, by
@@ -109,7 +109,13 @@ def run_config(cfg: Any, section: str, settings: Any, **extra: Any) -> dict[str,
 
 
 def fit_section(
-    cfg: Any, section: Any, system: Any, dm: Any, run_dir: Any, config: dict[str, Any], info: dict[str, Any]
+    cfg: Any,
+    section: TrainSettings | FinetuneSettings,
+    system: Any,
+    dm: Any,
+    run_dir: Any,
+    config: dict[str, Any],
+    info: dict[str, Any],
 ) -> dict[str, Any]:
     """Train ``system`` on ``dm`` into ``run_dir`` with the run settings of ``section`` (the ``train`` or
     ``finetune`` section's settings) and the ``trainer``, ``logger`` and ``callbacks`` groups; returns the run's
@@ -168,16 +174,11 @@ def dataset_names(cfg: Any) -> list[str]:
 
 def trainer_args(cfg: Any) -> dict[str, Any]:
     """Lightning Trainer arguments from the ``trainer`` group (accelerator, devices, precision, ...)."""
-    return {str(k): v for k, v in run_section(cfg.trainer, ()).items()}
-
-
-def run_section(section: Any, keys: tuple[str, ...] = ("resume", "force")) -> dict[str, Any]:
-    """A config section as plain data without the keys that do not change the result."""
     from omegaconf import OmegaConf
 
-    data = cast(dict[str, Any], OmegaConf.to_container(section, resolve=True))
+    data = OmegaConf.to_container(cfg.trainer, resolve=True)
     assert isinstance(data, dict)
-    return {k: v for k, v in data.items() if k not in keys}
+    return {str(k): v for k, v in data.items()}
 
 
 def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None:
