@@ -112,6 +112,32 @@ def load_transforms(
     path = Path(path)
     if path.is_dir():
         path = path / "transforms.json"
+    meta = _read_meta(path)
+    w, h = _field(meta, "w", path, int), _field(meta, "h", path, int)
+    intrinsics = _intrinsics(meta, path, w, h)
+    frames = meta["frames"]
+    if not isinstance(frames, list):
+        raise TnfError(f"{path}: 'frames' must be a list of frames, got {type(frames).__name__}")
+    if not frames:
+        raise TnfError(f"{path}: 'frames' is empty")
+    images, poses, depths = [], [], []
+    for i, fr in enumerate(frames):
+        if not isinstance(fr, dict):
+            raise TnfError(f"{path}: frame {i} must be an object with file_path and transform_matrix")
+        for key in ("file_path", "transform_matrix"):
+            if key not in fr:
+                raise TnfError(f"{path}: frame {i} is missing key {key!r}")
+        m, rel = _frame_pose(fr, i, path)
+        images.append(_frame_image(path, rel, i, w, h))
+        poses.append(m)
+        if "depth_file_path" in fr:
+            depths.append(_frame_depth(path.parent / _rel_path(fr, "depth_file_path", path, i), path, i, w, h))
+    depth = np.stack(depths) if len(depths) == len(frames) else None
+    return np.stack(images), np.stack(poses), intrinsics, w, h, depth
+
+
+def _read_meta(path: Path) -> dict[str, Any]:
+    """The JSON object of the transforms file ``path``, checked to hold ``w``, ``h`` and ``frames``."""
     if not path.is_file():
         raise TnfError(f"transforms file not found: {path}")
     try:
@@ -123,7 +149,13 @@ def load_transforms(
     for key in ("w", "h", "frames"):
         if key not in meta:
             raise TnfError(f"{path}: missing key {key!r}")
-    w, h = _field(meta, "w", path, int), _field(meta, "h", path, int)
+    return meta
+
+
+def _intrinsics(meta: dict[str, Any], path: Path, w: int, h: int) -> tuple[float, float, float, float]:
+    """``(fx, fy, cx, cy)`` in pixels of a ``w`` x ``h`` image: from ``fl_x``/``fl_y`` or ``camera_angle_x``/
+    ``camera_angle_y`` (radians; fy = fx when only x is given), the principal point the image centre unless
+    ``cx``/``cy`` are given."""
     if "fl_x" in meta:
         fx = _field(meta, "fl_x", path)
         fy = _field(meta, "fl_y", path) if "fl_y" in meta else fx
@@ -139,53 +171,52 @@ def load_transforms(
         raise TnfError(f"{path}: missing key 'fl_x' or 'camera_angle_x' (the focal length)")
     cx = _field(meta, "cx", path, positive=False) if "cx" in meta else w / 2
     cy = _field(meta, "cy", path, positive=False) if "cy" in meta else h / 2
-    frames = meta["frames"]
-    if not isinstance(frames, list):
-        raise TnfError(f"{path}: 'frames' must be a list of frames, got {type(frames).__name__}")
-    if not frames:
-        raise TnfError(f"{path}: 'frames' is empty")
-    images, poses, depths = [], [], []
-    for i, fr in enumerate(frames):
-        if not isinstance(fr, dict):
-            raise TnfError(f"{path}: frame {i} must be an object with file_path and transform_matrix")
-        for key in ("file_path", "transform_matrix"):
-            if key not in fr:
-                raise TnfError(f"{path}: frame {i} is missing key {key!r}")
-        try:
-            m = np.asarray(fr["transform_matrix"], dtype=np.float32)
-        except (ValueError, TypeError):
-            raise TnfError(f"{path}: frame {i} transform_matrix is not a 4x4 matrix of numbers") from None
-        if m.shape != (4, 4):
-            raise TnfError(f"{path}: frame {i} transform_matrix has shape {list(m.shape)}, expected [4, 4]")
-        if not np.isfinite(m).all():
-            raise TnfError(f"{path}: frame {i} transform_matrix holds NaN or infinite values")
-        rel = _rel_path(fr, "file_path", path, i)
-        problem = pose_problem(m)
-        if problem is not None:
-            raise TnfError(f"{path}: frame {i} ({rel!r}) transform_matrix is not a rigid camera pose: {problem}")
-        img_path = path.parent / rel
-        if not img_path.suffix and not img_path.is_file():
-            img_path = img_path.with_suffix(".png")  # instant-ngp files may omit the extension
-        if not img_path.is_file():
-            raise TnfError(f"{path}: frame {i} image not found: {img_path}")
-        arr = _read_image(img_path)
-        if arr.shape[:2] != (h, w):
-            raise TnfError(f"{img_path}: image is {arr.shape[1]}x{arr.shape[0]}, transforms file says {w}x{h}")
-        images.append(arr)
-        poses.append(m)
-        if "depth_file_path" in fr:
-            dp = path.parent / _rel_path(fr, "depth_file_path", path, i)
-            if not dp.is_file():
-                raise TnfError(f"{path}: frame {i} depth file not found: {dp}")
-            try:
-                d = np.load(dp).astype(np.float32)
-            except (OSError, ValueError, TypeError, EOFError) as e:  # not .npy, pickled objects, truncated
-                raise TnfError(f"{dp}: not a readable depth array (.npy float): {e}") from None
-            if d.shape != (h, w):
-                raise TnfError(f"{dp}: depth is {list(d.shape)}, expected [{h}, {w}]")
-            depths.append(d)
-    depth = np.stack(depths) if len(depths) == len(frames) else None
-    return np.stack(images), np.stack(poses), (fx, fy, cx, cy), w, h, depth
+    return fx, fy, cx, cy
+
+
+def _frame_pose(fr: dict[str, Any], i: int, path: Path) -> tuple[np.ndarray, str]:
+    """Frame ``i``'s ``transform_matrix`` as a [4, 4] float32 rigid camera-to-world pose, and its image's path
+    relative to the transforms file ``path``."""
+    try:
+        m = np.asarray(fr["transform_matrix"], dtype=np.float32)
+    except (ValueError, TypeError):
+        raise TnfError(f"{path}: frame {i} transform_matrix is not a 4x4 matrix of numbers") from None
+    if m.shape != (4, 4):
+        raise TnfError(f"{path}: frame {i} transform_matrix has shape {list(m.shape)}, expected [4, 4]")
+    if not np.isfinite(m).all():
+        raise TnfError(f"{path}: frame {i} transform_matrix holds NaN or infinite values")
+    rel = _rel_path(fr, "file_path", path, i)
+    problem = pose_problem(m)
+    if problem is not None:
+        raise TnfError(f"{path}: frame {i} ({rel!r}) transform_matrix is not a rigid camera pose: {problem}")
+    return m, rel
+
+
+def _frame_image(path: Path, rel: str, i: int, w: int, h: int) -> np.ndarray:
+    """Frame ``i``'s image ``rel`` (relative to the transforms file ``path``; ``.png`` when it names no extension
+    and no such file exists) as [h, w, 4] uint8 RGBA."""
+    img_path = path.parent / rel
+    if not img_path.suffix and not img_path.is_file():
+        img_path = img_path.with_suffix(".png")  # instant-ngp files may omit the extension
+    if not img_path.is_file():
+        raise TnfError(f"{path}: frame {i} image not found: {img_path}")
+    arr = _read_image(img_path)
+    if arr.shape[:2] != (h, w):
+        raise TnfError(f"{img_path}: image is {arr.shape[1]}x{arr.shape[0]}, transforms file says {w}x{h}")
+    return arr
+
+
+def _frame_depth(dp: Path, path: Path, i: int, w: int, h: int) -> np.ndarray:
+    """Frame ``i``'s depth file ``dp`` (``.npy``) as [h, w] float32 z-depth, metres."""
+    if not dp.is_file():
+        raise TnfError(f"{path}: frame {i} depth file not found: {dp}")
+    try:
+        d = np.load(dp).astype(np.float32)
+    except (OSError, ValueError, TypeError, EOFError) as e:  # not .npy, pickled objects, truncated
+        raise TnfError(f"{dp}: not a readable depth array (.npy float): {e}") from None
+    if d.shape != (h, w):
+        raise TnfError(f"{dp}: depth is {list(d.shape)}, expected [{h}, {w}]")
+    return d
 
 
 # A camera pose's rotation may deviate this much from orthonormal (max |R^T R - I|) and its last row this much

@@ -37,6 +37,7 @@ import hashlib
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -339,8 +340,6 @@ def import_touches(store: ArtifactStore, sensor: Any, source: ObjectSource, name
     penetration are null (not measured). Images must have the sensor's size (no resizing). Needs the object's
     imported capture (``tnf capture``). Skipped when already imported from the same files and settings.
     """
-    from PIL import Image
-
     if not isinstance(source, Captured):
         raise TnfError(f"object source {source.name!r} gives tactile frames but is not a 'captured' source")
     path = source.touches(name)
@@ -364,6 +363,31 @@ def import_touches(store: ArtifactStore, sensor: Any, source: ObjectSource, name
     _check_size(background, sensor, "the background")
     for t in touches:
         _check_size(t.image, sensor, "tactile image")
+    records = _touch_records(touches, capture, sensor, start_radius, path)
+    counts = {s: sum(r["split"] == s for r in records) for s in TOUCH_SPLITS}
+    info = {
+        "sensor": sensor.describe(),
+        "object": name,
+        "source": source.name,
+        "touches": records,
+        "counts": {**counts, "discarded": dict.fromkeys(TOUCH_SPLITS, 0)},
+        "width": sensor.width,
+        "height": sensor.height,
+        "intrinsics": list(sensor.intrinsics()),
+        "imported_from": str(path),
+        "start_radius": float(start_radius),
+    }
+    with store.writing("touch", *item, config=config, info=info) as tmp:
+        _copy_images(tmp, background, [t.image for t in touches], [r["image"] for r in records])
+    return f"touch {'/'.join(item)}: {len(records)} touches imported from {path}"
+
+
+def _touch_records(
+    touches: Sequence[RealTouch], capture: dict[str, Any], sensor: Any, start_radius: float, path: Path
+) -> list[dict[str, Any]]:
+    """The manifest entry of each imported touch of ``touches.json`` (``path``), as ``import_touches`` describes
+    it: poses [4, 4] camera-to-world in the capture's frame (metres; ``capture``: its manifest), the contact point
+    (metres) in front of the sensor's gel, force and penetration null."""
     shift = np.asarray(capture.get("world_offset_m", [0.0, 0.0, 0.0]), dtype=np.float64)
     # The gel's surface centre: the rim plane plus the undeformed gel's bulge, in front of the sensor's camera.
     gel_front = float(sensor.cfg.camera_distance) + float(np.max(sensor.gel_surface()))
@@ -391,30 +415,23 @@ def import_touches(store: ArtifactStore, sensor: Any, source: ObjectSource, name
                 "penetration": None,
             }
         )
-    counts = {s: sum(r["split"] == s for r in records) for s in TOUCH_SPLITS}
-    info = {
-        "sensor": sensor.describe(),
-        "object": name,
-        "source": source.name,
-        "touches": records,
-        "counts": {**counts, "discarded": dict.fromkeys(TOUCH_SPLITS, 0)},
-        "width": sensor.width,
-        "height": sensor.height,
-        "intrinsics": list(sensor.intrinsics()),
-        "imported_from": str(path),
-        "start_radius": float(start_radius),
-    }
-    with store.writing("touch", *item, config=config, info=info) as tmp:
-        (tmp / "images").mkdir()
-        with Image.open(background) as im:
-            im.convert("RGB").save(tmp / "background.png")
-        for t, r in zip(touches, records):
-            try:
-                with Image.open(t.image) as im:
-                    im.convert("RGB").save(tmp / r["image"], compress_level=1)
-            except OSError as e:  # truncated or corrupt past the header
-                raise TnfError(f"{t.image}: not a readable image ({e})") from None
-    return f"touch {'/'.join(item)}: {len(records)} touches imported from {path}"
+    return records
+
+
+def _copy_images(folder: Path, background: Path, images: Sequence[Path], names: Sequence[str]) -> None:
+    """Write ``background`` and each of ``images`` (as ``names``, relative to ``folder``) into ``folder`` as RGB
+    PNG files; a TnfError names an image that cannot be read."""
+    from PIL import Image
+
+    (folder / "images").mkdir()
+    with Image.open(background) as im:
+        im.convert("RGB").save(folder / "background.png")
+    for image, name in zip(images, names):
+        try:
+            with Image.open(image) as im:
+                im.convert("RGB").save(folder / name, compress_level=1)
+        except OSError as e:  # truncated or corrupt past the header
+            raise TnfError(f"{image}: not a readable image ({e})") from None
 
 
 def files_digest(folder: Path, skip: str | None = None) -> str:
