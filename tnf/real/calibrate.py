@@ -33,7 +33,7 @@ import numpy as np
 from tnf.errors import TnfError
 from tnf.real import realism, report
 from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, disk_masks, sphere_gaps
-from tnf.registry import FROM_YAML, SIMULATORS, yaml_defaults
+from tnf.registry import FROM_YAML, SIMULATORS, at_least, yaml_defaults
 from tnf.sensors.base import Sensor
 from tnf.sensors.calibration import Calibration, table_cells
 
@@ -86,6 +86,28 @@ class FitSettings:
             raise ValueError(f"depth_scales must be a non-empty list of numbers > 0, got {self.depth_scales}")
         if not self.blurs or not all(math.isfinite(b) and b >= 0 for b in self.blurs):
             raise ValueError(f"blurs must be a non-empty list of numbers >= 0, got {self.blurs}")
+
+
+@dataclass
+@yaml_defaults("calibrate/default")
+class CalibrateSettings:
+    """The ``calibrate`` section: which presses fit the sensor's optics, which score it, and how it is fitted."""
+
+    presses: str = FROM_YAML
+    """A press folder, or ``taxim:SENSOR`` for the recording the taxim package ships."""
+    name: str = FROM_YAML
+    """The calibration's folder under ``<data_root>/calibration/<sensor>/``."""
+    train: list[int] = FROM_YAML
+    """Presses the fit sees."""
+    test: list[int] = FROM_YAML
+    """Held-out presses the realism report scores."""
+    grid_presses: int = FROM_YAML
+    """Rows of the realism figure (held-out presses, cropped around the contact)."""
+    fit: FitSettings = FROM_YAML
+    """How the optics are fitted."""
+
+    def validate(self) -> None:
+        at_least(self, 0, "grid_presses")
 
 
 def press_surfaces(sensor: Sensor, simulator: dict[str, Any], sp: SensorPresses, radius_m: float) -> np.ndarray:

@@ -10,9 +10,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.artifacts import ArtifactStore
-from tnf.errors import TnfError
-from tnf.real.calibrate import FitSettings, calibrate_sensor, search_steps
+from tnf.artifacts import ArtifactStore, identity
+from tnf.real.calibrate import CalibrateSettings, calibrate_sensor, search_steps
 from tnf.real.presses import INDEX, resolve_presses
 from tnf.real.report import table
 from tnf.registry import SENSORS, from_dict, split_spec
@@ -23,25 +22,18 @@ from tnf.sim.base import simulator_key
 def run(cfg: Any) -> dict[str, Any] | None:
     import hashlib
 
-    from omegaconf import OmegaConf
     from rich.console import Console
 
     console = Console(highlight=False)
-    c = cfg.calibrate
+    c = from_dict(CalibrateSettings, cfg.calibrate, where="calibrate")
     store = ArtifactStore(cfg.data_root)
-    presses = resolve_presses(str(c.presses), cfg.data_root)
+    presses = resolve_presses(c.presses, cfg.data_root)
     # The sensor as it is before calibration: an experiment may already point sensor.calibration at this output.
     sensor_name, sensor_spec = split_spec(cfg.sensor, "sensor")
     sensor = SENSORS.build({"name": sensor_name, **sensor_spec, "calibration": None})
-    settings = from_dict(FitSettings, c.fit, where="calibrate.fit")
-    split: dict[str, list[int]] = {}
-    for k in ("train", "test"):
-        v = OmegaConf.to_container(c[k], resolve=True) if OmegaConf.is_list(c[k]) else c[k]
-        if not isinstance(v, list) or not all(isinstance(i, int) and not isinstance(i, bool) for i in v):
-            raise TnfError(f"calibrate.{k} must be a list of press numbers, got {v}")
-        split[k] = v
-    train, test = split["train"], split["test"]
-    name = str(c.name)
+    settings = c.fit
+    train, test = c.train, c.test
+    name = c.name
     digest = hashlib.sha256((presses.folder / INDEX).read_bytes()).hexdigest()[:16]
     spec_name, spec = split_spec(cfg.simulator, "simulator")
     simulator = {"name": spec_name, **spec}
@@ -50,7 +42,7 @@ def run(cfg: Any) -> dict[str, Any] | None:
         "presses_digest": digest,
         "sensor": sensor.describe(),
         "simulator": simulator_key(simulator),
-        "calibrate": OmegaConf.to_container(c, resolve=True),
+        "calibrate": identity(c),
     }
     item = ("calibration", sensor.name, name)
     where = store.path(*item)
@@ -63,7 +55,7 @@ def run(cfg: Any) -> dict[str, Any] | None:
         with store.writing(*item, config=config) as tmp:
             record = calibrate_sensor(
                 presses, sensor, simulator, train, test, settings, tmp,
-                grid_presses=int(c.grid_presses), on_step=lambda _: bar.advance(task),
+                grid_presses=c.grid_presses, on_step=lambda _: bar.advance(task),
             )  # fmt: skip
 
     for line in record["fit"]["edges"]:

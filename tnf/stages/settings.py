@@ -64,6 +64,7 @@ TYPED = {
     "finetune": "tnf.generators.settings:FinetuneSettings",
     "generate": "tnf.generators.settings:GenerateSettings",
     "evaluate": "tnf.eval.settings:EvaluateSettings",
+    "calibrate": "tnf.real.calibrate:CalibrateSettings",
 }
 """The sections validated into their settings dataclass (``module:class``), as the stage itself does."""
 
