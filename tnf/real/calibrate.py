@@ -220,6 +220,53 @@ class _Design:
         return out
 
 
+class _Search:
+    """The search over fall-off, depth factor and blur: each candidate's table fitted once and remembered."""
+
+    def __init__(
+        self, sensor: Sensor, sp: SensorPresses, simulator: dict[str, Any], radius_m: float, settings: FitSettings
+    ):
+        self.sensor, self.sp, self.simulator, self.radius, self.settings = sensor, sp, simulator, radius_m, settings
+        n = settings.table_size
+        self.reg = settings.smoothness * _smoothness(n) + settings.ridge * np.eye(n * n)
+        self.mid_blur = sorted(settings.blurs)[len(settings.blurs) // 2]
+        self.tried: list[dict[str, float]] = []
+        self.designs: dict[tuple[float, float], _Design] = {}
+        self.results: dict[tuple[float, float, float], tuple[np.ndarray, float]] = {}
+        self.on_step: Callable[[str], None] | None = None
+
+    def design(self, falloff: float, scale: float) -> _Design:
+        """The design of the presses at depth factor ``scale`` with fall-off ``falloff`` (the last one kept)."""
+        if (falloff, scale) not in self.designs:
+            spec = {**self.simulator, "falloff": float(falloff)}
+            scaled = dataclasses.replace(self.sp, depths=self.sp.depths * scale)
+            surfaces = press_surfaces(self.sensor, spec, scaled, self.radius)
+            self.designs.clear()  # one at a time: each holds a few hundred MB of crops
+            self.designs[falloff, scale] = _Design(self.sensor, self.sp, surfaces, self.settings)
+        return self.designs[falloff, scale]
+
+    def trial(self, falloff: float, scale: float, blur: float) -> float:
+        """The training region's MSE of one candidate."""
+        key = (falloff, scale, blur)
+        if key not in self.results:
+            self.results[key] = self.design(falloff, scale).fit(blur, self.settings, self.reg)
+            err = self.results[key][1]
+            self.tried.append(
+                {"falloff": float(falloff), "depth_scale": float(scale), "blur_sigma": float(blur), "region_mse": err}
+            )
+            if self.on_step is not None:
+                self.on_step(f"falloff {falloff:g}, depth x{scale:g}, blur {blur:g}: MSE {err:.1f}")
+        return self.results[key][1]
+
+    def search(self) -> tuple[float, float, float]:
+        """Fall-off at the first depth factor and the middle blur, then the depth factor, then the blur."""
+        st, mid = self.settings, self.mid_blur
+        f = min(st.falloffs, key=lambda f: self.trial(f, st.depth_scales[0], mid))
+        d = min(st.depth_scales, key=lambda d: self.trial(f, d, mid))
+        b = min(sorted(st.blurs, key=lambda b: b != mid), key=lambda b: self.trial(f, d, b))
+        return f, d, b
+
+
 def fit_calibration(
     presses: PressSet,
     sensor: Sensor,
@@ -244,51 +291,19 @@ def fit_calibration(
     t0 = time.perf_counter()
     if sensor.cfg.calibration is not None:  # fit from the hand-set optics, not from an earlier calibration
         sensor = type(sensor)(dataclasses.replace(sensor.cfg, calibration=None))
-    sp = at_sensor_size(presses, sensor, train)
-    radius = presses.radius_mm * 1e-3
-    n = settings.table_size
-    reg = settings.smoothness * _smoothness(n) + settings.ridge * np.eye(n * n)
-    mid_blur = sorted(settings.blurs)[len(settings.blurs) // 2]
-    tried: list[dict[str, float]] = []
-    designs: dict[tuple[float, float], _Design] = {}
-    results: dict[tuple[float, float, float], tuple[np.ndarray, float]] = {}
-
-    def trial(falloff: float, scale: float, blur: float) -> float:
-        key = (falloff, scale, blur)
-        if key not in results:
-            if (falloff, scale) not in designs:
-                spec = {**simulator, "falloff": float(falloff)}
-                scaled = dataclasses.replace(sp, depths=sp.depths * scale)
-                designs.clear()  # one at a time: each holds a few hundred MB of crops
-                designs[falloff, scale] = _Design(sensor, sp, press_surfaces(sensor, spec, scaled, radius), settings)
-            results[key] = designs[falloff, scale].fit(blur, settings, reg)
-            err = results[key][1]
-            tried.append(
-                {"falloff": float(falloff), "depth_scale": float(scale), "blur_sigma": float(blur), "region_mse": err}
-            )
-            if on_step is not None:
-                on_step(f"falloff {falloff:g}, depth x{scale:g}, blur {blur:g}: MSE {err:.1f}")
-        return results[key][1]
-
-    def search() -> tuple[float, float, float]:
-        f = min(settings.falloffs, key=lambda f: trial(f, settings.depth_scales[0], mid_blur))
-        d = min(settings.depth_scales, key=lambda d: trial(f, d, mid_blur))
-        b = min(sorted(settings.blurs, key=lambda b: b != mid_blur), key=lambda b: trial(f, d, b))
-        return f, d, b
-
-    falloff, scale, blur = search()
+    run = _Search(sensor, at_sensor_size(presses, sensor, train), simulator, presses.radius_mm * 1e-3, settings)
+    run.on_step = on_step
+    falloff, scale, blur = run.search()
     moved = np.zeros((len(train), 2))
     if settings.refine_radius > 0:
-        design = designs.get((falloff, scale)) or _Design(
-            sensor, sp, press_surfaces(sensor, {**simulator, "falloff": float(falloff)},
-                                       dataclasses.replace(sp, depths=sp.depths * scale), radius), settings
-        )  # fmt: skip
-        moved = design.shifts(results[falloff, scale, blur][0], blur, sp, settings.refine_radius)
-        sp = dataclasses.replace(sp, centers=sp.centers + moved)
-        designs.clear()
-        results.clear()
-        falloff, scale, blur = search()
-    table, err = results[falloff, scale, blur]
+        design = run.design(falloff, scale)
+        moved = design.shifts(run.results[falloff, scale, blur][0], blur, run.sp, settings.refine_radius)
+        run.sp = dataclasses.replace(run.sp, centers=run.sp.centers + moved)
+        run.designs.clear()
+        run.results.clear()
+        falloff, scale, blur = run.search()
+    sp, tried = run.sp, run.tried
+    table, err = run.results[falloff, scale, blur]
     cal = Calibration(
         table=table,
         max_slope=float(settings.max_slope),

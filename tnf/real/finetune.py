@@ -100,25 +100,8 @@ def write_press_pairs(
     if sim_pairs < 0 or (sim_pairs and sim is None):
         raise TnfError(f"sim_pairs={sim_pairs} needs a simulated dataset to draw from (and a count >= 0)")
     framing = (framing or Framing()).with_sensor(sensor)
-    val_rows = list(val) if val else list(train)
-    indices = list(train) + val_rows
-    sp = at_sensor_size(presses, sensor, indices)
-    radius = presses.radius_mm * 1e-3
-    views = press_rgbd(sensor, sp, radius, depth_scale, framing=framing, reference=reference, device=device)
-    tactile = resize_uint8(sp.frames, SIZE)
-    backgrounds = [resize_uint8(sp.background, SIZE)]
+    rows, backgrounds = _press_rows(presses, sensor, list(train), list(val), depth_scale, framing, reference, device)
     objects = [PRESS_OBJECT]
-    split = np.array([SPLITS.index("train")] * len(train) + [SPLITS.index("val")] * len(val_rows), np.int8)
-    rows: dict[str, np.ndarray] = {
-        "rgb": views.rgb,
-        "depth": views.depth,
-        "tactile": tactile,
-        "background_index": np.zeros(len(indices), np.int32),
-        "object_id": np.zeros(len(indices), np.int32),
-        "split": split,
-        "touch_index": np.asarray(indices, np.int32),
-        "sensor_id": np.zeros(len(indices), np.int16),
-    }
     sim_record = None
     if sim_pairs:
         assert sim is not None
@@ -140,21 +123,57 @@ def write_press_pairs(
         "reference": reference,
     }
     info = {"count": n, "counts": counts, "presses": record, "sim": sim_record}
-    write_manifest(
-        out,
-        {
-            "name": out.name,
-            "objects": objects,
-            "sensors": [sensor.name],
-            "novel_objects": [],
-            **info,
-            "sensor": sensor.describe(),
-            "scene_source": "mesh",
-            "scene": {"name": "mesh", "indenter": {"shape": "sphere", "radius_mm": presses.radius_mm}},
-            "preprocess": {**dataclasses.asdict(framing), "crop_px": {}, "size": SIZE},
-        },
-    )
+    write_manifest(out, _press_manifest(out.name, objects, sensor, presses.radius_mm, framing, info))
     return info
+
+
+def _press_rows(
+    presses: PressSet,
+    sensor: Sensor,
+    train: list[int],
+    val: list[int],
+    depth_scale: float,
+    framing: Framing,
+    reference: str,
+    device: str,
+) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
+    """The pair arrays of presses ``train`` then ``val`` (the training presses again when ``val`` is empty):
+    RGB-D of the indenter at each press, the real frames at 128 px, and the backgrounds list."""
+    val_rows = val or train
+    indices = train + val_rows
+    sp = at_sensor_size(presses, sensor, indices)
+    radius = presses.radius_mm * 1e-3
+    views = press_rgbd(sensor, sp, radius, depth_scale, framing=framing, reference=reference, device=device)
+    split = np.array([SPLITS.index("train")] * len(train) + [SPLITS.index("val")] * len(val_rows), np.int8)
+    rows = {
+        "rgb": views.rgb,
+        "depth": views.depth,
+        "tactile": resize_uint8(sp.frames, SIZE),
+        "background_index": np.zeros(len(indices), np.int32),
+        "object_id": np.zeros(len(indices), np.int32),
+        "split": split,
+        "touch_index": np.asarray(indices, np.int32),
+        "sensor_id": np.zeros(len(indices), np.int16),
+    }
+    return rows, [resize_uint8(sp.background, SIZE)]
+
+
+def _press_manifest(
+    name: str, objects: list[str], sensor: Sensor, radius_mm: float, framing: Framing, info: dict[str, Any]
+) -> dict[str, Any]:
+    """The manifest of a press dataset: a paired dataset whose scene is the indenter (a sphere of
+    ``radius_mm``) rendered with the mesh scene."""
+    return {
+        "name": name,
+        "objects": objects,
+        "sensors": [sensor.name],
+        "novel_objects": [],
+        **info,
+        "sensor": sensor.describe(),
+        "scene_source": "mesh",
+        "scene": {"name": "mesh", "indenter": {"shape": "sphere", "radius_mm": radius_mm}},
+        "preprocess": {**dataclasses.asdict(framing), "crop_px": {}, "size": SIZE},
+    }
 
 
 def _with_sim_pairs(
@@ -190,6 +209,38 @@ def _with_sim_pairs(
     }
     merged = {key: np.concatenate([rows[key], added[key]]) for key in rows}
     return merged, {"dataset": str(sim), "pairs": int(k), "rows": pick.tolist()}
+
+
+def _check_finetune(reference: str, steps: Any, batch_size: int, train: Sequence[int], val: Sequence[int]) -> None:
+    """One-line TnfErrors for ``finetune_on_presses``' arguments."""
+    if reference not in REFERENCES:
+        raise TnfError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise TnfError(f"steps must be a whole number >= 1, got {steps!r}")
+    if batch_size < 1:
+        raise TnfError(f"batch_size must be >= 1, got {batch_size}")
+    check_split(list(train), list(val))
+
+
+def _start_system(
+    ckpt: Path | None, generator: Mapping[str, Any] | None, lr: float | None, epochs: int, ema_decay: float | None
+) -> tuple[Any, dict[str, Any]]:
+    """The ``GeneratorSystem`` to fine-tune for ``epochs`` (the checkpoint's weights with fresh optimisers, or
+    ``generator`` from scratch) and the record of where it started."""
+    from tnf.generators.system import GeneratorSystem
+
+    hp: dict[str, Any] = {
+        "epochs": epochs,
+        "decay_epochs": epochs // 2,
+        "grid_rows": 4,
+        "finite_check_every": 50,
+        "ema_decay": ema_decay,
+    }
+    overrides = {"lr": float(lr)} if lr is not None else {}
+    if ckpt is None:
+        return GeneratorSystem({**dict(generator or {"name": "tn_cgan"}), **overrides}, **hp), {}
+    system = GeneratorSystem.from_checkpoint(ckpt, "cpu", generator_overrides=overrides, **hp)
+    return system, {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": file_hash(ckpt)}
 
 
 def finetune_on_presses(
@@ -239,58 +290,28 @@ def finetune_on_presses(
         progress: show Lightning's progress bar.
     """
     from tnf.data import PairDataModule
-    from tnf.generators.system import GeneratorSystem
     from tnf.generators.training import fit
     from tnf.runtime import seed_everything
 
-    if reference not in REFERENCES:
-        raise TnfError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise TnfError(f"steps must be a whole number >= 1, got {steps!r}")
-    if batch_size < 1:
-        raise TnfError(f"batch_size must be >= 1, got {batch_size}")
-    check_split(list(train), list(val))
+    _check_finetune(reference, steps, batch_size, train, val)
     out = Path(out)
     ckpt = Path(checkpoint) if checkpoint is not None else None
     if ckpt is not None and not ckpt.is_file():
         raise TnfError(f"checkpoint not found: {ckpt}")
     if framing is None:
         framing = checkpoint_framing(ckpt) if ckpt is not None else Framing()
-    n_train = len(train) + int(sim_pairs)
-    epochs = max(1, math.ceil(steps / math.ceil(n_train / batch_size)))
-    hp: dict[str, Any] = {
-        "epochs": epochs,
-        "decay_epochs": epochs // 2,
-        "grid_rows": 4,
-        "finite_check_every": 50,
-        "ema_decay": ema_decay,
-    }
-    overrides = {"lr": float(lr)} if lr is not None else {}
-    if ckpt is not None:
-        system = GeneratorSystem.from_checkpoint(ckpt, "cpu", generator_overrides=overrides, **hp)
-        source: dict[str, Any] = {"checkpoint": str(ckpt.resolve()), "checkpoint_hash": file_hash(ckpt)}
-    else:
-        system = GeneratorSystem({**dict(generator or {"name": "tn_cgan"}), **overrides}, **hp)
-        source = {}
+    epochs = max(1, math.ceil(steps / math.ceil((len(train) + int(sim_pairs)) / batch_size)))
+    system, source = _start_system(ckpt, generator, lr, epochs, ema_decay)
     frozen = system.generator.freeze([str(x) for x in freeze]) if freeze else []
     config = {
-        "generator": dict(system.hparams["generator"]),
-        "source": source,
+        "generator": dict(system.hparams["generator"]), "source": source,
         "presses": {"folder": str(presses.folder), "digest": presses_digest(presses)},
-        "train": list(train),
-        "val": list(val),
-        "steps": int(steps),
-        "batch_size": int(batch_size),
-        "lr": lr,
-        "sensor": sensor.describe(),
-        "framing": dataclasses.asdict(framing.with_sensor(sensor)),
-        "depth_scale": float(depth_scale),
-        "reference": reference,
+        "train": list(train), "val": list(val), "steps": int(steps), "batch_size": int(batch_size), "lr": lr,
+        "sensor": sensor.describe(), "framing": dataclasses.asdict(framing.with_sensor(sensor)),
+        "depth_scale": float(depth_scale), "reference": reference,
         "sim": {"dataset": str(sim), "pairs": int(sim_pairs)} if sim_pairs else None,
-        "freeze": list(freeze),
-        "ema_decay": ema_decay,
-        "seed": int(seed),
-    }
+        "freeze": list(freeze), "ema_decay": ema_decay, "seed": int(seed),
+    }  # fmt: skip
     pairs = out / "pairs"
     if pairs.exists():
         shutil.rmtree(pairs)
@@ -301,26 +322,13 @@ def finetune_on_presses(
     seed_everything(int(seed))
     dm = PairDataModule([pairs], batch_size=batch_size, seed=int(seed), convert_on_device=True)
     info = {
-        "generator": system.hparams["generator"]["name"],
-        "datasets": [str(pairs)],
-        "source": source,
-        "frozen": frozen,
-        "object_names": dm.object_names,
-        "presses": record["presses"],
-    }
+        "generator": system.hparams["generator"]["name"], "datasets": [str(pairs)], "source": source,
+        "frozen": frozen, "object_names": dm.object_names, "presses": record["presses"],
+    }  # fmt: skip
     fit(
-        system,
-        dm,
-        out,
-        config=config,
-        trainer_cfg=dict(trainer or CPU_TRAINER),
-        logger_cfg={"name": "csv"},
-        resume=True,
-        progress=progress,
-        log_every_n_steps=1,
-        checkpoint_every_s=60.0,
-        info=info,
-    )
+        system, dm, out, config=config, trainer_cfg=dict(trainer or CPU_TRAINER), logger_cfg={"name": "csv"},
+        resume=True, progress=progress, log_every_n_steps=1, checkpoint_every_s=60.0, info=info,
+    )  # fmt: skip
     return out / "last.ckpt"
 
 
