@@ -266,13 +266,13 @@ def test_tnf_evaluate_draws_a_share_of_each_mixed_batch_from_the_ground_truth(da
 
     _touch_data(data_root)
     masks = []
-    real_train = classify.train_classifier
+    real_train = classify.train_classifiers
 
-    def spy(images, labels, *args, **kwargs):
-        masks.append(None if (g := args[-1] if len(args) == 6 else kwargs.get("generated")) is None else g.clone())
-        return real_train(images, labels, *args, **kwargs)
+    def spy(sets, *args, **kwargs):
+        masks.extend(s.generated.clone() for s in sets)
+        return real_train(sets, *args, **kwargs)
 
-    monkeypatch.setattr(classify, "train_classifier", spy)
+    monkeypatch.setattr(classify, "train_classifiers", spy)
     over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.model=fake", "evaluate.splits=[]", "seed=0"]
     over.append("evaluate.classifier.steps=8")
     uniform = run(compose("evaluate", [*over, "evaluate.name=uniform"]))["results"]
