@@ -7,8 +7,9 @@ of ``conf/calibrate/default.yaml``), all on the CPU:
    the hand-set optics, the calibration at 320x240 and rendered at the recording's 640x480.
 2. Taxim (its JAX backend, its own calibration of this sensor, with its shadows) at its native 640x480.
 3. T-N: ``tnf pipeline experiment=sim_gelsight_mini`` up to training (the Mini calibrated at 160x120 with the
-   same settings, four objects, T-N trained on the calibrated simulator's pairs), then the indenter rendered as
-   RGB-D at each held-out press's pose with the mesh scene and fed to that generator.
+   same settings, five objects with a 5 mm bearing ball among the training ones, T-N trained on the calibrated
+   simulator's pairs), then the indenter rendered as RGB-D at each held-out press's pose with the mesh scene and
+   fed to that generator.
 4. T-N fine-tuned on the real frames of presses 0-15 (``transfer=real``'s settings), the same network from
    scratch on those frames (FS), and T-N+ (simulated pairs kept in the mix).
 
@@ -176,7 +177,8 @@ def main() -> None:
         f"Held-out presses {test[0]}-{test[-1]} of the GelSight Mini recording in the `taxim` package. "
         f"tnf's calibration at 320x240: {fit_summary(info, settings, '320x240')[0]}",
         f"T-N: `tnf pipeline experiment=sim_gelsight_mini` (seed {args.seed}), the Mini calibrated at 160x120 with "
-        "the same settings; its touches of the indenter (a sphere of the recorded radius, the mesh scene) at each "
+        "the same settings, a 5 mm bearing ball among its training objects; its touches of the indenter (a sphere "
+        "of the recorded radius, the mesh scene) at each "
         "held-out press, 160x120, upsampled. Fine-tuned and FS: "
         f"{steps} batches at the generator's own learning rate on the real frames of presses "
         f"{train[0]}-{train[-1]} (`transfer=real`). T-N+ keeps 16 of the pipeline's simulated pairs in the mix.",
