@@ -14,7 +14,6 @@ import itertools
 import os
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
@@ -26,79 +25,8 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from tnf.artifacts import write_bytes
 from tnf.cameras import Views, camera_rays
 from tnf.errors import NonFiniteLoss, TnfError
-from tnf.registry import FROM_YAML, yaml_defaults
 from tnf.scenes.render import FieldScene, composite
-
-# Defaults per scene kind where one value does not suit both (fit settings of null pick these).
-KIND_DEFAULTS: dict[str, dict[str, Any]] = {
-    "hashgrid": {"steps": 3000, "batch_rays": 4096, "lr": 1e-2},
-    "nerf": {"steps": 30000, "batch_rays": 2048, "lr": 5e-4},
-}
-
-
-@dataclass
-@yaml_defaults("fit/default")
-class FitSettings:
-    """How to fit one scene (the ``fit`` config section)."""
-
-    steps: int | None = FROM_YAML
-    """Training steps (ray batches); null: the scene kind's default (hashgrid 3000, nerf 30000)."""
-    batch_rays: int | None = FROM_YAML
-    """Rays per training batch; null: the scene kind's default (hashgrid 4096, nerf 2048)."""
-    lr: float | None = FROM_YAML
-    """Adam learning rate at the start; null: the scene kind's default (hashgrid 1e-2, nerf 5e-4)."""
-    lr_final_factor: float = FROM_YAML
-    """Learning rate at the last step as a fraction of lr (exponential decay)."""
-    random_background: bool = FROM_YAML
-    """Composite each training ray's RGBA target over a random colour (teaches empty space to be empty)."""
-    checkpoint_every: int = FROM_YAML
-    """Steps between resumable checkpoints (0: none)."""
-    eval_views: int | None = FROM_YAML
-    """Held-out views to evaluate (null: all of transforms_test.json)."""
-    preview_views: int = FROM_YAML
-    """Held-out views shown in preview.png."""
-    chunk: int | None = FROM_YAML
-    """Rays per rendering chunk during evaluation (bounds memory); null: the scene kind's default."""
-    log_every: int = FROM_YAML
-    """Steps between loss records in the training log."""
-    carve: bool = FROM_YAML
-    """Start the occupancy grid from the visual hull of the training views' alpha masks (skips empty space)."""
-    distortion_weight: float = FROM_YAML
-    """Weight of the distortion loss (Mip-NeRF 360) that gathers each ray's weights on one surface; scenes
-    that report it (hashgrid) only. The colour loss alone leaves the density profile behind an opaque
-    surface free, and a spread-out profile biases the expected depth away from the camera
-    (docs/decisions/fit_distortion.md)."""
-    distortion_start: float = FROM_YAML
-    """Fraction of the steps fitted by colour alone before the distortion loss starts: it gathers each ray's
-    weights on the surface the colour has formed by then, rather than on a guess of the first steps."""
-
-    def validate(self) -> None:
-        for k in ("steps", "batch_rays"):
-            v = getattr(self, k)
-            if v is not None and v < 1:
-                raise ValueError(f"{k} must be >= 1, got {v}")
-        if self.lr is not None and self.lr <= 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.log_every < 1:
-            raise ValueError(f"log_every must be >= 1, got {self.log_every}")
-        if self.checkpoint_every < 0:
-            raise ValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
-        if self.distortion_weight < 0:
-            raise ValueError(f"distortion_weight must be >= 0, got {self.distortion_weight}")
-        if not 0 <= self.distortion_start < 1:
-            raise ValueError(f"distortion_start must be in [0, 1), got {self.distortion_start}")
-        if not 0 < self.lr_final_factor <= 1:
-            raise ValueError(f"lr_final_factor must be in (0, 1], got {self.lr_final_factor}")
-
-    def resolved(self, kind: str) -> FitSettings:
-        """A copy with null fields replaced by the scene kind's defaults."""
-        d = KIND_DEFAULTS.get(kind, KIND_DEFAULTS["hashgrid"])
-        out = FitSettings(**self.__dict__)
-        for k, v in d.items():
-            if getattr(out, k) is None:
-                setattr(out, k, v)
-        return out
-
+from tnf.scenes.settings import FitSettings
 
 #: Version of the resume checkpoint's ``tnf`` entry; a checkpoint of another version is not resumed from.
 RESUME_FORMAT = 1

@@ -42,7 +42,7 @@ def selected_objects(cfg: Any, store: Any, source: str) -> list[str]:
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Fit every selected object; returns one summary row per object."""
     from tnf.scenes.fit import fit_object
-    from tnf.scenes.system import FitSettings
+    from tnf.scenes.settings import FitSettings
 
     settings = from_dict(FitSettings, cfg.fit, where="fit")
     kind, params = split_spec(cfg.scene, "scene")
