@@ -49,7 +49,8 @@ def plain(x: Any) -> Any:
 def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T:
     """Build dataclass ``cls`` from ``data``, checking keys and value types.
 
-    Unknown keys, values of the wrong type and fields left ``FROM_YAML`` are errors that name the key.
+    Unknown keys, values of the wrong type and fields left ``FROM_YAML`` are errors that name the key as
+    ``<where>.<key>`` (the key alone where ``where`` is empty: run-wide settings at the top of the config).
     """
     data = plain(data)
     if not isinstance(data, dict):
@@ -58,11 +59,12 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise TnfError(f"{where}: unknown key {unknown[0]!r}; valid keys: {', '.join(sorted(fields))}")
+    prefix = f"{where}." if where else ""  # where "": the settings at the top of the config, named alone
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for k, v in data.items():
         try:
-            kwargs[k] = _coerce(v, hints[k], f"{where}.{k}")
+            kwargs[k] = _coerce(v, hints[k], f"{prefix}{k}")
         except TnfError as e:
             hint = fields[k].metadata.get(HINT)
             raise (TnfError(f"{e}{hint}") if hint else e) from None
@@ -78,7 +80,7 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
         try:
             check()
         except SettingError as e:
-            raise TnfError(f"{where}.{e.field}: {e.message}") from None
+            raise TnfError(f"{prefix}{e.field}: {e.message}") from None
         except (ValueError, AssertionError) as e:
             raise TnfError(f"{where}: {e}") from None
     return obj
@@ -143,7 +145,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     if origin is dict or tp is dict:
         if not isinstance(value, Mapping):
             raise TnfError(f"{where}: expected a mapping, got {value!r}")
-        return dict(value)
+        inner = args[1] if len(args) == 2 else Any
+        return {k: _coerce(v, inner, f"{where}.{k}") for k, v in value.items()}
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
         if isinstance(value, tp):
             return value
@@ -237,9 +240,10 @@ def yaml_defaults(
     """
 
     def apply(cls: type[T]) -> type[T]:
-        path = Path(conf if conf is not None else conf_dir()) / f"{option}.yaml"
+        root = Path(conf if conf is not None else conf_dir())
+        path = root / f"{option}.yaml"
         where = f"{path}" + (f" ({node})" if node else "")
-        values = _yaml_values(path, node, where)
+        values = _yaml_values(path, node, where)  # interpolations still as written
         hints = typing.get_type_hints(cls)
         own = inspect.get_annotations(cls)
         declared = [k for k in own if typing.ClassVar not in (hints[k], typing.get_origin(hints[k]))]
@@ -262,6 +266,10 @@ def yaml_defaults(
         for k in values:
             if k not in names and not partial and not (k == "name" and node is None):
                 raise TnfError(f"{where}: key {k!r} is no field of {cls.__qualname__}")
+        for k in names:  # the fields' values only: a partial file's other keys may interpolate anything
+            v = values[k]
+            if isinstance(v, str) and "${" in v:
+                values[k] = _section_default(root, v, f"{where}: {k}")
         annotations = dict(own)
         for k in names:
             value = _coerce(values[k], hints[k], f"{where}: {k}")
@@ -322,11 +330,7 @@ def _yaml_values(path: Path, node: str | None, where: str) -> dict[str, Any]:
     values = loaded.get(node) if node is not None and isinstance(loaded, dict) else loaded
     if not isinstance(values, dict):
         raise TnfError(f"{where}: expected a mapping of settings, got {values!r}")
-    out = {str(k): v for k, v in values.items()}
-    for k, v in out.items():
-        if isinstance(v, str) and "${" in v:
-            out[k] = _section_default(path.parent.parent, v, f"{where}: {k}")
-    return out
+    return {str(k): v for k, v in values.items()}
 
 
 def _section_default(conf: Path, value: str, where: str) -> Any:

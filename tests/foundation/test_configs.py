@@ -172,13 +172,16 @@ def test_a_sensor_config_sets_no_values_of_its_own():
     )
 
 
-def test_run_wide_settings_take_their_types_from_base_yaml():
+def test_run_wide_settings_take_their_defaults_from_base_yaml():
     from omegaconf import OmegaConf
 
-    from tnf.stages.settings import TOP_LEVEL, schema
+    from tnf.registry import defaults_source
+    from tnf.stages.settings import TOP_LEVEL, RunSettings
 
     base = OmegaConf.load(CONF / "base.yaml")
-    assert {k: schema()[k] for k in TOP_LEVEL} == {k: base[k] for k in TOP_LEVEL} == {"seed": 0, "progress": True}
+    assert defaults_source(RunSettings) == str(CONF / "base.yaml")
+    assert {k: getattr(RunSettings(), k) for k in TOP_LEVEL} == {k: base[k] for k in TOP_LEVEL}
+    assert {k: base[k] for k in TOP_LEVEL} == {"seed": 0, "progress": True}
 
 
 def test_the_transfer_variants_start_from_the_digit_model_the_pipeline_names():

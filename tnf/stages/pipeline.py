@@ -16,14 +16,46 @@ import copy
 import importlib
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from tnf.artifacts import ArtifactStore, write_json
-from tnf.errors import TnfError
+from tnf.registry import FROM_YAML, SettingError, from_dict, yaml_defaults
 from tnf.runtime import resolve_device
 
 ORDER = ("calibrate", "capture", "fit-scene", "touch", "pair", "train", "finetune", "generate", "evaluate")
+
+
+@dataclass
+@yaml_defaults("pipeline/default")
+class PipelineSettings:
+    """The ``pipeline`` section: which stages ``tnf pipeline`` runs and how long they are expected to take."""
+
+    stages: list[str] = FROM_YAML
+    """Stages to run, names of ``ORDER``; they run in that order whatever the order given."""
+    expected_s: dict[str, float] | None = FROM_YAML
+    """Seconds each stage is expected to take, by stage name, for the estimate of the time left; null: none
+    until a run of this experiment in the same store has finished (its times replace these)."""
+
+    def validate(self) -> None:
+        unknown = [s for s in self.stages if s not in ORDER]
+        if unknown:
+            raise SettingError("stages", f"unknown stage {unknown[0]!r}; stages: {', '.join(ORDER)}")
+        if "train" in self.stages and "finetune" in self.stages:
+            raise SettingError("stages", "give train (a new model) or finetune (sensor transfer), not both")
+        for stage, seconds in (self.expected_s or {}).items():
+            if seconds < 0:
+                raise SettingError(f"expected_s.{stage}", f"must be >= 0, got {seconds}")
+
+    def ordered(self) -> list[str]:
+        """The stages to run, in pipeline order (``ORDER``)."""
+        return [s for s in ORDER if s in self.stages]
+
+
+def pipeline_settings(cfg: Any) -> PipelineSettings:
+    """``cfg.pipeline`` validated into :class:`PipelineSettings`."""
+    return from_dict(PipelineSettings, cfg.pipeline, where="pipeline")
 
 
 def run(cfg: Any) -> dict[str, Any]:
@@ -31,14 +63,7 @@ def run(cfg: Any) -> dict[str, Any]:
     from rich.console import Console
 
     console = Console(highlight=False)
-    stages = [str(s) for s in cfg.pipeline.stages]
-    unknown = [s for s in stages if s not in ORDER]
-    if unknown:
-        raise TnfError(f"pipeline.stages: unknown stage {unknown[0]!r}; stages: {', '.join(ORDER)}")
-    stages = [s for s in ORDER if s in stages]  # always in pipeline order
-
-    if "train" in stages and "finetune" in stages:
-        raise TnfError("pipeline.stages: give train (a new model) or finetune (sensor transfer), not both")
+    stages = pipeline_settings(cfg).ordered()
     cfg = copy.deepcopy(cfg)  # the caller's config stays as it was
     OmegaConf.resolve(cfg)
     # The model the generate and evaluate stages use: the one train or finetune returns; without either stage,
@@ -111,15 +136,7 @@ def expected_times(cfg: Any) -> dict[str, float]:
             done.append((path.stat().st_mtime, record["stages"]))
     if done:
         return {str(k): float(v) for k, v in max(done, key=lambda d: d[0])[1].items()}
-    given = cfg.pipeline.get("expected_s") or {}
-    if not hasattr(given, "items"):
-        raise TnfError(f"pipeline.expected_s: give seconds per stage, e.g. {{train: 170}}, got {given!r}")
-    out = {}
-    for stage, seconds in given.items():
-        if isinstance(seconds, bool) or not isinstance(seconds, int | float) or not 0 <= seconds < float("inf"):
-            raise TnfError(f"pipeline.expected_s.{stage}: give seconds (a number >= 0), got {seconds!r}")
-        out[str(stage)] = float(seconds)
-    return out
+    return {str(stage): seconds for stage, seconds in (pipeline_settings(cfg).expected_s or {}).items()}
 
 
 def time_left(todo: list[str], done: dict[str, float], expected: dict[str, float]) -> float | None:

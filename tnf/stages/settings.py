@@ -1,76 +1,59 @@
 """Checks of the stage sections of a composed config (``touch``, ``train``, ...) before any stage works.
 
 The components (sensors, simulators, scenes, generators, object sources) are validated into their ``Config``
-dataclasses by the registry, and the sections of ``TYPED`` into their settings dataclasses, as their stages do.
-The other sections are plain YAML; their defaults (``conf/<section>/default.yaml``) are the schema: a setting
-whose default is an integer takes an integer (not ``1.5``, not ``"abc"``), and a non-negative one (a count, a size,
-a number of epochs) stays non-negative; a number takes a finite number; a switch takes true or false; a list
-takes a list. Settings whose default is null take anything.
+dataclasses by the registry; each stage section (``TYPED``) into its settings dataclass, as its stage does; the
+run-wide settings (``TOP_LEVEL``) into :class:`RunSettings`. Every setting is checked against its field's type and
+its class's ``validate()``; none by guessing from a default's value.
 """
 
 from __future__ import annotations
 
-import functools
-import math
-from collections.abc import Mapping
-from pathlib import Path
+import dataclasses
+from dataclasses import dataclass
 from typing import Any
 
-from tnf.env import conf_dir
-from tnf.errors import TnfError
+from tnf.registry import FROM_YAML, at_least, yaml_defaults, yaml_field
 from tnf.runtime import check_memory
 
-SECTIONS = (
-    "capture",
-    "fit",
-    "touch",
-    "pair",
-    "train",
-    "finetune",
-    "generate",
-    "evaluate",
-    "data",
-    "calibrate",
-    "pipeline",
-)
-"""Config sections with a ``default.yaml`` that sets every key's type."""
-TOP_LEVEL = ("seed", "progress")
-"""Run-wide settings; their defaults in ``conf/base.yaml`` set their types."""
+
+@dataclass
+@yaml_defaults("base", partial=True)
+class RunSettings:
+    """The run-wide settings of ``conf/base.yaml`` that are checked before a run: those at the top of the config,
+    shared by every stage."""
+
+    seed: int = FROM_YAML
+    """Seed for everything random in a run (object split, poses, training); >= 0."""
+    progress: bool = yaml_field(identity=False)
+    """Show progress bars."""
+
+    def validate(self) -> None:
+        at_least(self, 0, "seed")
 
 
-@functools.lru_cache(maxsize=1)
-def schema() -> dict[str, Any]:
-    """``{section: defaults}`` from ``conf/<section>/default.yaml``, plus the run-wide settings (``conf/base.yaml``)."""
-    from omegaconf import OmegaConf
-
-    base = OmegaConf.to_container(OmegaConf.load(Path(conf_dir()) / "base.yaml"), resolve=False)
-    assert isinstance(base, dict)
-    out: dict[str, Any] = {k: base[k] for k in TOP_LEVEL}
-    for section in SECTIONS:
-        path = Path(conf_dir()) / section / "default.yaml"
-        if path.is_file():
-            out[section] = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
-    return out
-
-
+TOP_LEVEL = tuple(f.name for f in dataclasses.fields(RunSettings))
+"""Run-wide settings checked as :class:`RunSettings` (their defaults are in ``conf/base.yaml``)."""
 RUN_ONLY = ("progress", "device", "data_root")
 """Run-wide settings that change how a run goes or where its store lives, never what it makes: no artifact key
 holds them (``identity_config``)."""
 TYPED = {
+    "capture": "tnf.capture.settings:CaptureConfig",
+    "fit": "tnf.scenes.settings:FitSettings",
     "touch": "tnf.sim.items:TouchSettings",
     "pair": "tnf.data.settings:PairSettings",
-    "data": "tnf.data.settings:DataSettings",
     "train": "tnf.generators.settings:TrainSettings",
     "finetune": "tnf.generators.settings:FinetuneSettings",
     "generate": "tnf.generators.settings:GenerateSettings",
     "evaluate": "tnf.eval.settings:EvaluateSettings",
+    "data": "tnf.data.settings:DataSettings",
     "calibrate": "tnf.real.calibrate:CalibrateSettings",
+    "pipeline": "tnf.stages.pipeline:PipelineSettings",
 }
-"""The sections validated into their settings dataclass (``module:class``), as the stage itself does."""
+"""Every stage section and its settings dataclass (``module:class``), which the stage validates it into too."""
 
 
 def settings_class(section: str) -> type | None:
-    """The settings dataclass of ``section`` (``TYPED``), or None for a section checked by its defaults' types."""
+    """The settings dataclass of ``section`` (``TYPED``), or None for a section that is no stage's."""
     import importlib
 
     if section not in TYPED:
@@ -105,56 +88,33 @@ def identity_config(cfg: Any) -> dict[str, Any]:
 
 
 def check_settings(cfg: Any) -> None:
-    """Raise a one-line TnfError naming the first setting of ``cfg`` whose value does not fit its default's type."""
+    """Raise a one-line TnfError naming the first setting of ``cfg`` whose value its settings class refuses: the
+    run-wide settings first (``RunSettings``), then each stage section of ``TYPED`` that ``cfg`` has, in that
+    order. ``cfg`` is a composed config or a mapping holding some of its sections."""
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     from tnf.registry import from_dict
 
-    for key, default in schema().items():
+    def value(key: str) -> Any:
+        try:
+            node = cfg[key]
+            return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
+        except OmegaConfBaseException:  # an interpolation only a running Hydra job resolves: left to the stage
+            return _UNRESOLVED
+
+    run_wide = {k: value(k) for k in TOP_LEVEL if k in cfg}
+    from_dict(RunSettings, {k: v for k, v in run_wide.items() if v is not _UNRESOLVED}, where="")
+    for key in TYPED:
         if key not in cfg:
             continue
-        value = cfg[key]
-        if OmegaConf.is_config(value):
-            try:
-                value = OmegaConf.to_container(value, resolve=True)
-            except OmegaConfBaseException:  # an interpolation only a running Hydra job resolves: left to the stage
-                continue
+        section = value(key)
         cls = settings_class(key)
-        if cls is not None:
-            from_dict(cls, value, where=key)
-        else:
-            _check(value, default, key)
+        if section is not _UNRESOLVED and cls is not None:
+            from_dict(cls, section, where=key)
 
 
-def _check(value: Any, default: Any, where: str) -> None:
-    if default is None or (isinstance(default, str) and default.startswith("${")):
-        return  # anything goes, or an interpolation whose type the default does not show
-    if isinstance(default, Mapping):
-        if value is None:
-            return
-        if not isinstance(value, Mapping):
-            raise TnfError(f"{where}: expected a section of settings, got {value!r}")
-        for k, d in default.items():
-            if k in value:
-                _check(value[k], d, f"{where}.{k}")
-        return
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise TnfError(f"{where}: expected true or false, got {value!r}")
-    elif isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise TnfError(f"{where}: expected a whole number, got {value!r}")
-        if default >= 0 > value:
-            raise TnfError(f"{where}: must be >= 0, got {value}")
-    elif isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise TnfError(f"{where}: expected a number, got {value!r}")
-        if not math.isfinite(value):
-            raise TnfError(f"{where}: expected a finite number, got {value!r}")
-    elif isinstance(default, list):
-        if value is not None and not isinstance(value, list):
-            raise TnfError(f"{where}: expected a list, got {value!r}")
+_UNRESOLVED = object()
 
 
 # Bytes that one unit of each size setting needs at the least (a lower bound: a refusal is never wrong).
