@@ -156,7 +156,7 @@ def test_generate_feeds_a_prior_model_the_prior_of_its_renders(mesh_pairs):
     system = load_generator(root / "models" / "prior" / "best.ckpt", "cpu")
     with torch.no_grad():
         expect = ((system.generate(batch).clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1)
-    images = np.stack([np.asarray(Image.open(folder / t["image"])) for t in item.touches])
+    images = np.stack([np.asarray(Image.open(folder / t.image)) for t in item.touches])
     assert np.abs(images.astype(int) - expect.numpy().astype(int)).max() <= 1
     # The prior shows a press here (the sphere is touched), and the model's images follow it.
     assert np.abs(prior.astype(int) - background.astype(int)).mean() > 2

@@ -6,6 +6,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from tnf.touches import TouchRecord, as_matrix
+
 
 def tactile_image(label: int, rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray:
     """A Digit-like image: a bluish background with an indentation blob whose shape depends on ``label``
@@ -29,6 +31,8 @@ def write_touch_folder(folder: Path, obj: str, label: int, splits: dict[str, int
         for _ in range(n):
             i = len(touches)
             Image.fromarray(tactile_image(label, rng)).save(folder / "images" / f"{i:05d}.png")
-            touches.append({"index": i, "split": split, "image": f"images/{i:05d}.png", "object": obj})
+            touches.append(
+                TouchRecord(index=i, split=split, image=f"images/{i:05d}.png", start_c2w=as_matrix(np.eye(4))).to_json()
+            )
     (folder / "manifest.json").write_text(json.dumps({"object": obj, "touches": touches}))
     return folder

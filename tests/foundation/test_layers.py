@@ -29,6 +29,7 @@ LAYERS: list[tuple[str, ...]] = [
         "tnf.cameras",
         "tnf.metrics",
         "tnf.sensors",
+        "tnf.touches",
     ),
     ("tnf.objects",),
     ("tnf.capture",),

@@ -45,13 +45,13 @@ def test_generate_writes_a_touch_dataset(data_root, trained_model):
     assert out["written"] == {"ball": 5}
     item = TouchItem.load(folder)  # what `tnf pair` and the evaluation read
     assert len(item.touches) == 5
-    assert {t["split"] for t in item.touches} == {"train"}
+    assert {t.split for t in item.touches} == {"train"}
     poses = item.start_poses()
     assert np.allclose(np.linalg.norm(poses[:, :3, 3], axis=1), 0.1)
     # Each camera looks at the object centre, so its centre ray hits the sphere at 0.04 m from the centre.
-    pts = np.array([t["contact_point"] for t in item.touches])
+    pts = np.array([t.contact_point for t in item.touches])
     assert np.allclose(np.linalg.norm(pts, axis=1), 0.04, atol=2e-3)
-    img = np.asarray(Image.open(folder / item.touches[0]["image"]))
+    img = np.asarray(Image.open(folder / item.touches[0].image))
     assert img.shape == (128, 128, 3) and img.dtype == np.uint8 and img.std() > 0
     assert (folder / "background.png").is_file()
     manifest = json.loads((folder / "manifest.json").read_text())
@@ -186,7 +186,7 @@ def test_mirror_averaged_generation(data_root, trained_model, capsys):
         args = [*GEN, f"generate.model={trained_model}", "generate.n_poses=3", f"generate.run_name={run_name}"]
         out = generate.run(compose("generate", [*args, *extra]))
         folder = data_root / "generated" / run_name / "builtin" / "ball"
-        return out, [np.asarray(Image.open(folder / t["image"])) for t in TouchItem.load(folder).touches]
+        return out, [np.asarray(Image.open(folder / t.image)) for t in TouchItem.load(folder).touches]
 
     _, plain = images("plain")
     out, averaged = images("averaged", "generate.mirror_average=true")

@@ -31,15 +31,15 @@ def touch_forces(items: Mapping[str, Any]) -> TouchForces:
     plans = {}
     for obj, item in items.items():
         touches = item.touches
-        out = np.zeros(max((int(t["index"]) for t in touches), default=-1) + 1)
+        out = np.zeros(max((t.index for t in touches), default=-1) + 1)
         for t in touches:
-            f = t.get("force")
+            f = t.force
             if isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f) or f <= 0:
                 raise TnfError(
-                    f"object {obj!r}: touch {t['index']} in {item.folder / 'manifest.json'} records no positive "
+                    f"object {obj!r}: touch {t.index} in {item.folder / 'manifest.json'} records no positive "
                     f"force ({f!r}); pair.force needs touches made by `tnf touch`"
                 )
-            out[int(t["index"])] = float(f)
+            out[t.index] = float(f)
         by_object[obj] = out
         plans[obj] = item.manifest.get("force_range")
     distinct = {repr(v) for v in plans.values()}

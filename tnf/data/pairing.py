@@ -235,9 +235,9 @@ def _render_caches(
             del scene
             if prior is not None:
                 # Each touch's recorded force (imported touches may record none: touch.force then).
-                forces = [t.get("force") or float(job.touch_force) for t in i["item"].touches]
+                forces = [t.force or float(job.touch_force) for t in i["item"].touches]
                 arrays["prior"] = prior(arrays["depth"], np.asarray(forces, np.float32))
-            labels = [t["split"] for t in i["item"].touches]
+            labels = [t.split for t in i["item"].touches]
             assign_splits(labels, novel_object=False)  # validates the labels before caching
             with store.writing(
                 "pairs", ".cache", job.name, src, obj, config=cache_keys[obj], info={"splits": labels}

@@ -36,6 +36,7 @@ from tnf.data.preprocess import (
 )
 from tnf.data.settings import PairSettings
 from tnf.errors import TnfError
+from tnf.touches import TouchRecord, touch_records_of
 
 
 @dataclass
@@ -44,53 +45,25 @@ class TouchItem:
 
     folder: Path
     manifest: dict[str, Any]
+    touches: list[TouchRecord]  # the manifest's ``touches``, in order
 
     @classmethod
     def load(cls, folder: str | os.PathLike[str]) -> TouchItem:
         folder = Path(folder)
         manifest = read_json(folder / MANIFEST, "touch manifest")
-        touches = manifest.get("touches") if isinstance(manifest, dict) else None
-        if not isinstance(touches, list):
-            raise TnfError(f"touch manifest {folder / MANIFEST} has no 'touches' list; rerun `tnf touch`")
-        where = folder / MANIFEST
-        for i, t in enumerate(touches):
-            if not isinstance(t, dict):
-                raise TnfError(f"touch manifest {where}: touch {i} is not an object; rerun `tnf touch`")
-            for key in ("index", "split", "image", "start_c2w"):
-                if key not in t:
-                    raise TnfError(f"touch manifest {where}: a touch lacks {key!r}; rerun `tnf touch`")
-            if not isinstance(t["image"], str) or not isinstance(t["split"], str):
-                raise TnfError(f"touch manifest {where}: touch {i} 'image' and 'split' must be strings")
-            try:
-                pose = np.asarray(t["start_c2w"], dtype=np.float64)
-            except (ValueError, TypeError):
-                pose = np.zeros(0)
-            if pose.shape != (4, 4) or not np.isfinite(pose).all():
-                raise TnfError(f"touch manifest {where}: touch {i} start_c2w must be a finite 4x4 matrix")
-            if t.get("contact_point") is not None:
-                try:
-                    point = np.asarray(t["contact_point"], dtype=np.float64)
-                except (ValueError, TypeError):
-                    point = np.zeros(0)
-                if point.shape != (3,):
-                    raise TnfError(f"touch manifest {where}: touch {i} contact_point must be 3 numbers (metres)")
-        _check_images(folder, [folder / "background.png", *(folder / t["image"] for t in touches)])
-        return cls(folder, manifest)
-
-    @property
-    def touches(self) -> list[dict[str, Any]]:
-        return self.manifest["touches"]
+        touches = touch_records_of(manifest, folder / MANIFEST)
+        _check_images(folder, [folder / "background.png", *(folder / t.image for t in touches)])
+        return cls(folder, manifest, touches)
 
     def start_poses(self) -> np.ndarray:
         """[N, 4, 4] float64 camera-to-world start poses of the sensor."""
-        return np.asarray([t["start_c2w"] for t in self.touches], dtype=np.float64).reshape(-1, 4, 4)
+        return np.asarray([t.start_c2w for t in self.touches], dtype=np.float64).reshape(-1, 4, 4)
 
     def contact_distances(self) -> np.ndarray:
-        """[N] metres from the start pose to the contact point along the sensor's axis (-z)."""
+        """[N] metres from the start pose to the contact point along the sensor's axis (-z); the contact pose's
+        position stands in for a touch without a contact point; NaN for one without either."""
         poses = self.start_poses()
-        pts = np.asarray([t.get("contact_point", t.get("contact_c2w", np.eye(4))) for t in self.touches], float)
-        if pts.ndim == 3:  # only contact poses known: use their positions
-            pts = pts[:, :3, 3]
+        pts = np.asarray([_contact_point(t) for t in self.touches], dtype=np.float64).reshape(-1, 3)
         axis = -poses[:, :3, 2]
         return np.einsum("nk,nk->n", pts - poses[:, :3, 3], axis)
 
@@ -106,10 +79,17 @@ class TouchItem:
         from concurrent.futures import ThreadPoolExecutor
 
         def load(i: int) -> np.ndarray:
-            return resize_uint8(_read_png(self.folder / self.touches[i]["image"]), out)
+            return resize_uint8(_read_png(self.folder / self.touches[i].image), out)
 
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
             return np.stack(list(pool.map(load, rows)))
+
+
+def _contact_point(t: TouchRecord) -> Sequence[float]:
+    """A touch's contact point [3] (metres), its contact pose's position without one, else NaNs (unknown)."""
+    if t.contact_point is not None:
+        return t.contact_point
+    return [math.nan] * 3 if t.contact_c2w is None else [r[3] for r in t.contact_c2w[:3]]
 
 
 def _read_png(path: Path) -> np.ndarray:
@@ -426,5 +406,5 @@ def render_pairs_for_touches(
         "depth": depth_out,
         "tactile": item.tactile(rows) if rows else np.empty((0, SIZE, SIZE, 3), np.uint8),
         "background": item.background(),
-        "touch_index": np.asarray([item.touches[i]["index"] for i in rows], dtype=np.int32),
+        "touch_index": np.asarray([item.touches[i].index for i in rows], dtype=np.int32),
     }

@@ -18,18 +18,18 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tnf.artifacts import read_json
 from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.errors import TnfError
 from tnf.eval.settings import ClassifierConfig
 from tnf.metrics import exact_fp32_matmul
+from tnf.touches import read_touch_records
 
 
 class TactileClassifier(nn.Module):
@@ -475,16 +475,6 @@ def subset(n: int, limit: int | None, seed: int) -> np.ndarray:
 # ---- touch-format folders (the output of `tnf touch` and `tnf generate`) -------------------------------------
 
 
-def touch_records(folder: str | Path) -> list[dict[str, Any]]:
-    """The ``touches`` list of a touch-format folder's manifest (each has at least ``image``)."""
-    folder = Path(folder)
-    m = read_json(folder / "manifest.json", "touch manifest")
-    touches = m.get("touches", m.get("info", {}).get("touches"))
-    if not isinstance(touches, list):
-        raise TnfError(f"touch manifest {folder / 'manifest.json'} has no 'touches' list")
-    return touches
-
-
 def load_touch_images(
     folder: str | Path,
     size: int,
@@ -503,11 +493,11 @@ def load_touch_images(
     from PIL import Image
 
     folder = Path(folder)
-    recs = [t for t in touch_records(folder) if splits is None or t.get("split") in splits]
+    recs = [t for t in read_touch_records(folder) if splits is None or t.split in splits]
     recs = [recs[i] for i in subset(len(recs), limit, seed)]
     out = np.zeros((len(recs), size, size, 3), np.uint8)
     for i, t in enumerate(recs):
-        path = folder / t["image"]
+        path = folder / t.image
         try:
             with Image.open(path) as im:
                 # As the paired datasets do: every tactile image at 128 x 128 first, then the classifier's size.

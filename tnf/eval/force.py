@@ -36,6 +36,7 @@ from tnf.metrics import mse, ssim
 from tnf.registry import OBJECTS, SENSORS, SIMULATORS, split_spec
 from tnf.runtime import warp_device
 from tnf.sim.forces import BANDS, ForcePlan, check_force_value
+from tnf.touches import TouchRecord
 
 
 def contact_area(images: torch.Tensor, background: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -231,7 +232,7 @@ def by_force(
     store = ArtifactStore(data_root)
     touch = _touch(store, sensor_name, source.name, obj, touch_index)
     sim = SIMULATORS.build(simulator, sensor=sensor, device=warp_device(device))
-    simulated = resimulate(sensor, sim, source.load(obj), np.asarray(touch["start_c2w"]), sweep, SIZE)
+    simulated = resimulate(sensor, sim, source.load(obj), np.asarray(touch.start_c2w), sweep, SIZE)
     n_ref = min(bf.simulator_poses, len(ds))
     if n_ref > 0:
         out["simulator_monotonic"] = _simulator_monotonic(ds, n_ref, sim, source, store, sensor_name, sweep, threshold)
@@ -264,7 +265,7 @@ def _simulator_monotonic(
     for i in range(n_ref):
         o = ds.arrays.objects[int(ds.arrays.object_id[ds.index[i]])]
         touch = _touch(store, sensor_name, source.name, o, int(ds.arrays.touch_index[ds.index[i]]))
-        starts.setdefault(o, []).append((i, np.asarray(touch["start_c2w"])))
+        starts.setdefault(o, []).append((i, np.asarray(touch.start_c2w)))
     ref_areas = np.zeros((n_ref, len(sweep)))
     hit = np.ones(n_ref, bool)
     for o, poses in starts.items():
@@ -303,8 +304,8 @@ def _sweep_of_one(
     return generated, areas
 
 
-def _touch(store: Any, sensor: str, source: str, obj: str, index: int) -> dict[str, Any]:
-    """Touch ``index`` of an object's touch item (its manifest entry: start pose, force...)."""
+def _touch(store: Any, sensor: str, source: str, obj: str, index: int) -> TouchRecord:
+    """Touch ``index`` of an object's touch item (its record: start pose, force...)."""
 
     item = TouchItem.load(store.require("touch", sensor, source, obj, hint="run `tnf touch` first"))
-    return next(t for t in item.touches if int(t["index"]) == index)
+    return next(t for t in item.touches if t.index == index)

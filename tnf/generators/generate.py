@@ -35,6 +35,7 @@ from tnf.runtime import progress, resolve_device, warp_device
 from tnf.scenes import load_scene
 from tnf.sim.base import simulator_key
 from tnf.sim.forces import requested_forces
+from tnf.touches import TouchRecord, as_matrix, as_point
 
 
 @dataclass
@@ -186,7 +187,7 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
         seed = (job.seed * 1_000_003 + zlib.crc32(f"{src}/{obj}".encode())) % 2**31
         own = _own_touches(store, model.sensor.name, src, obj) if model.wanted == "sim" else None
         if own is not None:
-            poses = np.asarray([t["start_c2w"] for t in own], dtype=np.float64)
+            poses = np.asarray([t.start_c2w for t in own], dtype=np.float64)
         elif file_poses is not None:
             poses = file_poses
         else:
@@ -199,11 +200,11 @@ def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tup
     return jobs
 
 
-def _own_touches(store: Any, sensor: str, src: str, obj: str) -> list[dict[str, Any]]:
+def _own_touches(store: Any, sensor: str, src: str, obj: str) -> list[TouchRecord]:
     """``generate.touch_force=sim``: the object's simulated touches, each with its recorded force."""
 
     own = TouchItem.load(store.require("touch", sensor, src, obj, hint=f"run `tnf touch object={obj}` first")).touches
-    unknown = [t["index"] for t in own if not isinstance(t.get("force"), (int, float))]
+    unknown = [t.index for t in own if t.force is None]
     if unknown:
         raise TnfError(
             f"generate.touch_force=sim: touch {unknown[0]} of {obj!r} records no force (imported touches "
@@ -219,7 +220,7 @@ def _item_config(
     obj: str,
     framing: Any,
     file_poses: np.ndarray | None,
-    own: list[dict[str, Any]] | None,
+    own: list[TouchRecord] | None,
 ) -> dict[str, Any]:
     """What decides an object's images (its hash decides whether a finished item is reused)."""
     g, src = job.settings, job.source.name
@@ -238,7 +239,7 @@ def _item_config(
         "prior": _prior_key(job) if model.needs_prior else None,
     }
     if own is not None:  # generate.touch_force=sim: the touches' forces make the images too
-        config["touch_forces"] = [t["force"] for t in own]
+        config["touch_forces"] = [t.force for t in own]
     return config
 
 
@@ -260,7 +261,7 @@ def _generate_object(job: GenerateJob, store: Any, model: _Model, item: tuple[An
     per_pose = len(wanted) if isinstance(wanted, list) else 1
     # Each pose at each requested force: images pose-major (index = pose * forces + force's place).
     forces = (
-        np.asarray([t["force"] for t in own], np.float32)
+        np.asarray([t.force for t in own], np.float32)
         if own is not None
         else np.asarray(wanted if isinstance(wanted, list) else [np.nan], np.float32)
     )
@@ -270,7 +271,7 @@ def _generate_object(job: GenerateJob, store: Any, model: _Model, item: tuple[An
     # process generated before (a resumed run generates only the missing ones).
     torch.manual_seed(seed)
     scene = load_scene(scene_dir, model.device)
-    touches: list[dict[str, Any]] = []
+    touches: list[TouchRecord] = []
     # PNG encoding on a few threads (PIL releases the GIL), overlapping the next batch's rendering.
     with (
         store.writing("generated", model.run_name, job.source.name, obj, config=config, info={}) as tmp,
@@ -288,7 +289,7 @@ def _generate_object(job: GenerateJob, store: Any, model: _Model, item: tuple[An
             for i in range(b * k):
                 rel = f"images/{s * k + i:05d}.png"
                 saves.append(pool.submit(Image.fromarray(images[i]).save, tmp / rel))
-                split = str(own[s + i // k]["split"]) if own is not None else job.settings.split
+                split = own[s + i // k].split if own is not None else job.settings.split
                 touches.append(
                     _touch_record(s * k + i, s + i // k, split, rel, poses, contact[i // k], image_force[i], wanted)
                 )
@@ -372,33 +373,29 @@ def _touch_record(
     contact: float,
     force: float | None,
     wanted: Any,
-) -> dict[str, Any]:
-    """One generated image's entry in the manifest's ``touches`` (the format of ``tnf touch``)."""
+) -> TouchRecord:
+    """One generated image's record in the manifest's ``touches`` (the format of ``tnf touch``)."""
     pose = poses[p_i]
     hit = bool(np.isfinite(contact))
-    record = {
-        "index": index,
-        "split": split,
-        "image": rel,
-        "start_c2w": pose.tolist(),
+    return TouchRecord(
+        index=index,
+        split=split,
+        image=rel,
+        start_c2w=as_matrix(pose),
         # Where the gel first meets the surface, on the sensor's axis (-z).
-        "contact_point": (pose[:3, 3] - contact * pose[:3, 2]).tolist() if hit else None,
-        # The force the generator was asked for, newtons (null: a model without force).
-        "force": force,
-        "penetration": None,
-    }
-    if wanted is not None:
-        record["pose_index"] = p_i
-    return record
+        contact_point=as_point(pose[:3, 3] - contact * pose[:3, 2]) if hit else None,
+        # The force the generator was asked for, newtons (None: a model without force).
+        force=force,
+        penetration=None,
+        pose_index=p_i if wanted is not None else None,
+    )
 
 
-def _manifest(
-    job: GenerateJob, model: _Model, obj: str, touches: list[dict[str, Any]], per_pose: int
-) -> dict[str, Any]:
+def _manifest(job: GenerateJob, model: _Model, obj: str, touches: list[TouchRecord], per_pose: int) -> dict[str, Any]:
 
     g = job.settings
     return {
-        "touches": touches,
+        "touches": [t.to_json() for t in touches],
         "sensor": model.sensor.describe(),
         "object": obj,
         "source": job.source.name,

@@ -49,6 +49,7 @@ from tnf.cameras import Views, read_views
 from tnf.errors import TnfError
 from tnf.objects import TOUCH_SPLITS, ObjectSource
 from tnf.registry import FROM_YAML, config_to_dict, yaml_defaults
+from tnf.touches import TouchRecord, as_matrix, as_point
 
 if TYPE_CHECKING:  # pragma: no cover
     from tnf.artifacts import ArtifactStore
@@ -364,12 +365,12 @@ def import_touches(store: ArtifactStore, sensor: Any, source: ObjectSource, name
     for t in touches:
         _check_size(t.image, sensor, "tactile image")
     records = _touch_records(touches, capture, sensor, start_radius, path)
-    counts = {s: sum(r["split"] == s for r in records) for s in TOUCH_SPLITS}
+    counts = {s: sum(r.split == s for r in records) for s in TOUCH_SPLITS}
     info = {
         "sensor": sensor.describe(),
         "object": name,
         "source": source.name,
-        "touches": records,
+        "touches": [r.to_json() for r in records],
         "counts": {**counts, "discarded": dict.fromkeys(TOUCH_SPLITS, 0)},
         "width": sensor.width,
         "height": sensor.height,
@@ -378,20 +379,20 @@ def import_touches(store: ArtifactStore, sensor: Any, source: ObjectSource, name
         "start_radius": float(start_radius),
     }
     with store.writing("touch", *item, config=config, info=info) as tmp:
-        _copy_images(tmp, background, [t.image for t in touches], [r["image"] for r in records])
+        _copy_images(tmp, background, [t.image for t in touches], [r.image for r in records])
     return f"touch {'/'.join(item)}: {len(records)} touches imported from {path}"
 
 
 def _touch_records(
     touches: Sequence[RealTouch], capture: dict[str, Any], sensor: Any, start_radius: float, path: Path
-) -> list[dict[str, Any]]:
-    """The manifest entry of each imported touch of ``touches.json`` (``path``), as ``import_touches`` describes
+) -> list[TouchRecord]:
+    """The record of each imported touch of ``touches.json`` (``path``), as ``import_touches`` describes
     it: poses [4, 4] camera-to-world in the capture's frame (metres; ``capture``: its manifest), the contact point
     (metres) in front of the sensor's gel, force and penetration null."""
     shift = np.asarray(capture.get("world_offset_m", [0.0, 0.0, 0.0]), dtype=np.float64)
     # The gel's surface centre: the rim plane plus the undeformed gel's bulge, in front of the sensor's camera.
     gel_front = float(sensor.cfg.camera_distance) + float(np.max(sensor.gel_surface()))
-    records: list[dict[str, Any]] = []
+    records: list[TouchRecord] = []
     for i, t in enumerate(touches):
         contact = t.c2w.copy()
         contact[:3, 3] += shift
@@ -404,16 +405,16 @@ def _touch_records(
             )
         axis = -contact[:3, 2] / np.linalg.norm(contact[:3, 2])
         records.append(
-            {
-                "index": i,
-                "split": t.split,
-                "image": f"images/{i:05d}.png",
-                "start_c2w": start.tolist(),
-                "contact_c2w": contact.tolist(),
-                "contact_point": (contact[:3, 3] + gel_front * axis).tolist(),
-                "force": None,
-                "penetration": None,
-            }
+            TouchRecord(
+                index=i,
+                split=t.split,
+                image=f"images/{i:05d}.png",
+                start_c2w=as_matrix(start),
+                contact_c2w=as_matrix(contact),
+                contact_point=as_point(contact[:3, 3] + gel_front * axis),
+                force=None,
+                penetration=None,
+            )
         )
     return records
 

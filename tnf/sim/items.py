@@ -18,6 +18,7 @@ from tnf.registry import FROM_YAML, SIMULATORS, SettingError, at_least, yaml_def
 from tnf.runtime import progress
 from tnf.sim.forces import force_sampler
 from tnf.sim.touch import collect
+from tnf.touches import TouchRecord, as_matrix, as_point
 
 SPLITS = ("train", "val", "novel_view")
 
@@ -145,7 +146,7 @@ def _simulate_item(
     item_bytes: int,
     pool: Any,
     advance: Any,
-) -> tuple[list[dict[str, Any]], dict[str, int]]:
+) -> tuple[list[TouchRecord], dict[str, int]]:
     """One object's item: every split's touches, written as they come; returns the touches and the discarded
     count of each split."""
     import numpy as np
@@ -154,7 +155,7 @@ def _simulate_item(
     mesh = source.load(name)
     seed = (job.seed * 1_000_003 + zlib.crc32(f"{source.name}/{name}".encode())) % 2**31
     rng = np.random.default_rng(seed)
-    touches: list[dict[str, Any]] = []
+    touches: list[TouchRecord] = []
     discarded = {}
     item = ("touch", sensor.name, source.name, name)
     info: dict[str, Any] = {}
@@ -176,22 +177,21 @@ def _simulate_item(
                 index = len(touches)
                 rel = f"images/{index:05d}.png"
                 writes.append(pool.submit(_write_png, tmp / rel, r.images[i]))
+                target = None if got.target_force is None or plan is None else float(got.target_force[i])
                 touches.append(
-                    {
-                        "index": index,
-                        "split": split,
-                        "image": rel,
-                        "start_c2w": got.start_c2w[i].tolist(),
-                        "contact_c2w": r.contact_c2w[i].tolist(),
-                        "contact_point": r.contact_point[i].astype(float).tolist(),
-                        "force": float(r.force[i]),
-                        "penetration": float(r.penetration[i]),
-                    }
+                    TouchRecord(
+                        index=index,
+                        split=split,
+                        image=rel,
+                        start_c2w=as_matrix(got.start_c2w[i]),
+                        contact_c2w=as_matrix(r.contact_c2w[i]),
+                        contact_point=as_point(r.contact_point[i].astype(float)),
+                        force=float(r.force[i]),
+                        penetration=float(r.penetration[i]),
+                        force_target=target,
+                        force_band=None if target is None or plan is None else plan.band_of([target])[0],
+                    )
                 )
-                if got.target_force is not None and plan is not None:
-                    target = float(got.target_force[i])
-                    touches[-1]["force_target"] = target
-                    touches[-1]["force_band"] = plan.band_of([target])[0]
                 advance()
         for w in writes:
             w.result()  # every image is on disk (or its error raised) before the item is finalised
@@ -200,7 +200,7 @@ def _simulate_item(
                 "sensor": sensor.describe(),
                 "object": name,
                 "source": source.name,
-                "touches": touches,
+                "touches": [t.to_json() for t in touches],
                 "counts": {**{s: counts[s] for s in SPLITS}, "discarded": discarded},
                 "width": sensor.width,
                 "height": sensor.height,
