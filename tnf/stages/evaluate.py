@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, cast
 
 from tnf.artifacts import ArtifactStore, config_hash, exclusive, write_bytes, write_json
+from tnf.data.settings import DataSettings
 from tnf.errors import TnfError
 from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
 from tnf.eval.paper import METHOD_LABELS
@@ -101,7 +102,7 @@ def _job(cfg: Any, ecfg: EvaluateSettings, settings: dict[str, Any], method: str
     """The evaluation of ``evaluate.model`` (``ecfg``: the ``evaluate`` section; ``settings``: the whole config as
     plain data)."""
 
-    datasets = cfg.data.get("datasets")
+    datasets = from_dict(DataSettings, cfg.data, where="data").datasets
     return EvalJob(
         settings=ecfg,
         method=method,
