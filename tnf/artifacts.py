@@ -22,7 +22,7 @@ import socket
 import tempfile
 import time
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -220,6 +220,24 @@ def read_json(path: str | os.PathLike[str], what: str = "file") -> Any:
         raise TnfError(f"cannot read {what} {path}: {e.strerror}") from None
 
 
+def manifest_record(
+    stage: str, item: Sequence[str], config: Mapping[str, Any], info: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """The manifest of a finished item: ``info``, then the stage, the item's path parts, the config that made it
+    and its hash (``config_hash``), when, and the tnf and cache versions. Every item's manifest is this record,
+    whether the store wrote it (``ArtifactStore.writing``) or a stage finished the item in place (a model run)."""
+    return {
+        **dict(info or {}),
+        "stage": stage,
+        "item": list(item),
+        "config": _jsonable(config),
+        "config_hash": config_hash(config),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "tnf_version": _version(),
+        "cache_version": CACHE_VERSION,
+    }
+
+
 class ArtifactStore:
     """Item folders under ``root``, each finished by a manifest that records its config."""
 
@@ -282,18 +300,7 @@ class ArtifactStore:
             extra_path = tmp / MANIFEST
             if extra_path.is_file():  # the body may leave fields for the manifest
                 extra = read_json(extra_path, "manifest")
-            manifest = {
-                **extra,
-                **dict(info or {}),
-                "stage": stage,
-                "item": list(item),
-                "config": _jsonable(config),
-                "config_hash": config_hash(config),
-                "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                "tnf_version": _version(),
-                "cache_version": CACHE_VERSION,
-            }
-            write_json(tmp / MANIFEST, manifest)
+            write_json(tmp / MANIFEST, manifest_record(stage, item, config, {**extra, **dict(info or {})}))
             _replace_dir(tmp, final)
         except BaseException as e:
             full = _disk_full(e)

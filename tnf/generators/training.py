@@ -28,8 +28,7 @@ from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 
-from tnf import __version__
-from tnf.artifacts import MANIFEST, config_hash, read_json, write_bytes, write_json
+from tnf.artifacts import MANIFEST, config_hash, manifest_record, read_json, write_bytes, write_json
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.callbacks import PENDING, LatestCheckpoint
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
@@ -218,15 +217,7 @@ def fit(
         raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
     summary = _summary(trainer, datamodule, run_dir, info)
     if trainer.is_global_zero:
-        manifest = {
-            **summary,
-            "stage": "models",
-            "item": [run_dir.name],
-            "config": config,
-            "config_hash": config_hash(config),
-            "tnf_version": __version__,
-        }
-        write_json(run_dir / MANIFEST, manifest)
+        write_json(run_dir / MANIFEST, manifest_record("models", [run_dir.name], config, summary))
     return summary
 
 
