@@ -335,9 +335,12 @@ def _yaml_values(path: Path, node: str | None, where: str) -> dict[str, Any]:
 
 def _section_default(conf: Path, value: str, where: str) -> Any:
     """The default that the interpolation ``value`` of another section's setting (``${touch.radius}``) stands for:
-    its value in ``<conf>/<section>/default.yaml``. Any other interpolation is an error."""
+    its value in ``<conf>/<section>/default.yaml``; an environment variable's (``${oc.env:NAME,fallback}``): its
+    value when the class is defined, else the fallback. Any other interpolation is an error."""
     from omegaconf import OmegaConf
 
+    if re.fullmatch(r"\$\{oc\.env:[^${}]+\}", value):
+        return OmegaConf.create({"v": value}).v
     match = re.fullmatch(r"\$\{(\w+)\.([\w.]+)\}", value)
     path = conf / match[1] / "default.yaml" if match else None
     if match is None or path is None or not path.is_file():

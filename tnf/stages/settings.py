@@ -26,6 +26,10 @@ class RunSettings:
     """Seed for everything random in a run (object split, poses, training); >= 0."""
     progress: bool = yaml_field(identity=False)
     """Show progress bars."""
+    device: str = yaml_field(identity=False)
+    """Where stages compute: ``auto`` (CUDA when available, else the CPU), ``cpu``, ``cuda`` or ``cuda:N``."""
+    data_root: str = yaml_field(identity=False)
+    """The artifact store's folder: where a run's items live, never what they are."""
 
     def validate(self) -> None:
         at_least(self, 0, "seed")
@@ -33,9 +37,9 @@ class RunSettings:
 
 TOP_LEVEL = tuple(f.name for f in dataclasses.fields(RunSettings))
 """Run-wide settings checked as :class:`RunSettings` (their defaults are in ``conf/base.yaml``)."""
-RUN_ONLY = ("progress", "device", "data_root")
+RUN_ONLY = tuple(f.name for f in dataclasses.fields(RunSettings) if not f.metadata.get("identity", True))
 """Run-wide settings that change how a run goes or where its store lives, never what it makes: no artifact key
-holds them (``identity_config``)."""
+holds them (``identity_config``). Their fields say so (``yaml_field(identity=False)``)."""
 TYPED = {
     "capture": "tnf.capture.settings:CaptureConfig",
     "fit": "tnf.scenes.settings:FitSettings",
