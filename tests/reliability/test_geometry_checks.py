@@ -17,6 +17,7 @@ from tnf.cameras import POSE_ROTATION_TOL, load_transforms, pose_problem
 from tnf.capture import CaptureConfig, camera_poses
 from tnf.cli import main
 from tnf.errors import TnfError
+from tnf.objects import WARN_SIZE
 from tnf.registry import OBJECTS
 
 BAD = 2  # the frame that gets the bad pose (not the first, so that the index in the message is checked)
@@ -182,7 +183,8 @@ def test_builtin_size_errors_and_every_builtin_object_is_plausible(caplog):
         src = OBJECTS.build({"name": "builtin"})
         sizes = {n: float(src.load(n).extents.max()) for n in src.names()}
     assert not caplog.records, [r.getMessage() for r in caplog.records]
-    assert all(0.01 <= s <= 1.0 for s in sizes.values()), sizes
+    assert all(WARN_SIZE[0] <= s <= 1.0 for s in sizes.values()), sizes  # the bearing ball is 5 mm
+    assert min(sizes, key=sizes.__getitem__) == "bearing_ball"
     with pytest.raises(TnfError, match=r"builtin object 'mug'.* with objects.scale=1000, implausible"):
         OBJECTS.build({"name": "builtin", "scale": 1000.0}).load("mug")
 
