@@ -224,7 +224,13 @@ class _Search:
     """The search over fall-off, depth factor and blur: each candidate's table fitted once and remembered."""
 
     def __init__(
-        self, sensor: Sensor, sp: SensorPresses, simulator: dict[str, Any], radius_m: float, settings: FitSettings
+        self,
+        sensor: Sensor,
+        sp: SensorPresses,
+        simulator: dict[str, Any],
+        radius_m: float,
+        settings: FitSettings,
+        on_step: Callable[[str], None] | None = None,
     ):
         self.sensor, self.sp, self.simulator, self.radius, self.settings = sensor, sp, simulator, radius_m, settings
         n = settings.table_size
@@ -233,7 +239,7 @@ class _Search:
         self.tried: list[dict[str, float]] = []
         self.designs: dict[tuple[float, float], _Design] = {}
         self.results: dict[tuple[float, float, float], tuple[np.ndarray, float]] = {}
-        self.on_step: Callable[[str], None] | None = None
+        self.on_step = on_step
 
     def design(self, falloff: float, scale: float) -> _Design:
         """The design of the presses at depth factor ``scale`` with fall-off ``falloff`` (the last one kept)."""
@@ -291,8 +297,8 @@ def fit_calibration(
     t0 = time.perf_counter()
     if sensor.cfg.calibration is not None:  # fit from the hand-set optics, not from an earlier calibration
         sensor = type(sensor)(dataclasses.replace(sensor.cfg, calibration=None))
-    run = _Search(sensor, at_sensor_size(presses, sensor, train), simulator, presses.radius_mm * 1e-3, settings)
-    run.on_step = on_step
+    sp = at_sensor_size(presses, sensor, train)
+    run = _Search(sensor, sp, simulator, presses.radius_mm * 1e-3, settings, on_step)
     falloff, scale, blur = run.search()
     moved = np.zeros((len(train), 2))
     if settings.refine_radius > 0:
