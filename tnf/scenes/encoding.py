@@ -85,12 +85,16 @@ class HashEncoding(nn.Module):
         idx = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
         return idx + self.level_offset.view(1, -1, 1, 1, 1)
 
-    def forward(self, x: torch.Tensor, table: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, table: torch.Tensor | None = None, offset: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Features [P, L * F] at positions x [P, 3] in [0, 1]^3.
 
         ``table``: rows read instead of the trainable table, without gradients (rendering passes a
         half-precision copy); the output has its dtype. Cell coordinates stay float32 either way: the
-        finest levels need more bits than half precision has.
+        finest levels need more bits than half precision has. ``offset``: [P] integer rows added to every
+        row sample p reads (``tnf.scenes.batched``: where its object's levels start in a table that stacks
+        several objects' tables).
         """
         P = x.shape[0]
         scaled = x.clamp(0.0, 1.0).unsqueeze(1) * self.res.view(1, -1, 1)  # [P, L, 3]
@@ -99,6 +103,8 @@ class HashEncoding(nn.Module):
         base = torch.minimum(base, self.res.view(1, -1, 1) - 1).to(torch.int32)
         frac = scaled - base
         idx = self.corner_index(base)  # [P, L, 2, 2, 2]
+        if offset is not None:
+            idx = idx + offset.to(torch.int64 if self.table.shape[0] > 2**31 - 1 else idx.dtype).view(-1, 1, 1, 1, 1)
         # Trilinear weights, broadcast the same way as the corners.
         w = [torch.stack([1.0 - frac[..., a], frac[..., a]], dim=-1) for a in range(3)]
         weights = w[0][..., :, None, None] * w[1][..., None, :, None] * w[2][..., None, None, :]

@@ -264,14 +264,9 @@ def fit_object(
     Writes ``scene.pt``, ``metrics.json`` and ``preview.png``; returns the metrics. ``size_m``: the object's
     size for the relative depth error (default: the extent of the ground-truth depth points).
     """
-    from PIL import Image
-
-    capture_dir, out_dir = Path(capture_dir), Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    capture_dir = Path(capture_dir)
     kind, _ = split_spec(scene_spec, "scene")
     train = read_views(capture_dir / "transforms.json")
-    test_file = capture_dir / "transforms_test.json"
-    test = read_views(test_file, settings.eval_views) if test_file.is_file() else None
     torch.manual_seed(seed)
     scene = build_scene(scene_spec, train)
     if settings.carve and hasattr(scene, "carve"):
@@ -280,6 +275,30 @@ def fit_object(
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     info = fit_scene(scene, train, settings, kind, device, resume_path, on_step, seed)
+    return write_fit(scene, kind, train, capture_dir, out_dir, settings, info, device, size_m)
+
+
+def write_fit(
+    scene: FieldScene,
+    kind: str,
+    train: Views,
+    capture_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    settings: FitSettings,
+    info: dict[str, Any],
+    device: str = "cpu",
+    size_m: float | None = None,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Evaluate a fitted ``scene`` on the held-out views of ``capture_dir`` and write ``scene.pt``,
+    ``metrics.json`` and ``preview.png`` into ``out_dir``; returns the metrics. ``info``: what ``fit_scene``
+    returned; ``extra``: more metrics (``tnf.scenes.batched`` adds the group's figures)."""
+    from PIL import Image
+
+    capture_dir, out_dir = Path(capture_dir), Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    test_file = capture_dir / "transforms_test.json"
+    test = read_views(test_file, settings.eval_views) if test_file.is_file() else None
     size = size_m or object_size(train)
     metrics: dict[str, Any] = {
         "scene": kind,
@@ -290,6 +309,7 @@ def fit_object(
         "object_size_m": size,
         "train_views": len(train),
         "resolution": [train.width, train.height],
+        **(extra or {}),
     }
     if test is not None:
         ev = evaluate_scene(scene, test, settings.chunk, size)

@@ -7,13 +7,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from tnf.registry import FROM_YAML, yaml_defaults
+from tnf.registry import FROM_YAML, yaml_defaults, yaml_field
 
 # Defaults per scene kind where one value does not suit both (fit settings of null pick these).
 KIND_DEFAULTS: dict[str, dict[str, Any]] = {
     "hashgrid": {"steps": 3000, "batch_rays": 4096, "lr": 1e-2},
     "nerf": {"steps": 30000, "batch_rays": 2048, "lr": 5e-4},
 }
+
+
+def _batched(settings: FitSettings) -> bool:
+    """Whether ``batch_objects`` is part of the identity: when it fits objects together (above 1)."""
+    return settings.batch_objects > 1
 
 
 @dataclass
@@ -52,7 +57,16 @@ class FitSettings:
     """Fraction of the steps fitted by colour alone before the distortion loss starts: it gathers each ray's
     weights on the surface the colour has formed by then, rather than on a guess of the first steps."""
 
+    batch_objects: int = yaml_field(identity=_batched)
+    """Objects fitted together in one process (``tnf.scenes.batched``; hashgrid only): each training step takes
+    ``batch_rays`` rays of each of them through one forward, backward and optimiser step, which keeps a GPU
+    busy where one object's small steps leave it idle. 1: each object alone (``tnf.scenes.fit.fit_scene``).
+    Part of a scene's identity when above 1: a batched fit equals the separate one only up to float
+    rounding (batched matrix products), so its scenes are not the separately fitted ones bit for bit."""
+
     def validate(self) -> None:
+        if self.batch_objects < 1:
+            raise ValueError(f"batch_objects must be >= 1, got {self.batch_objects}")
         for k in ("steps", "batch_rays"):
             v = getattr(self, k)
             if v is not None and v < 1:

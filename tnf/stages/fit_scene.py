@@ -8,17 +8,20 @@ Objects: ``object=NAME``, else ``object_names``, else every captured object of t
 after the other in this process. ``shard=I shards=N`` fits every N-th of them from number I: the sweep
 ``-m shards=N 'shard=range(N)'`` fits them as N jobs of the Hydra launcher (docs/cluster.md). Objects already
 fitted with the same settings and capture are skipped; an interrupted fit resumes from its last checkpoint.
+``fit.batch_objects=K`` (hash grids) fits the objects to do in groups of K, each group in one training loop
+(``tnf.scenes.batched``); an interrupted group resumes from the group's checkpoint.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from typing import Any
 
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
-from tnf.registry import SCENES, config_to_dict, from_dict, split_spec
+from tnf.registry import SCENES, from_dict, split_spec
 from tnf.runtime import job_device, progress, resolve_device, seed_everything
 from tnf.stages import run_shard, shard_share
 
@@ -60,49 +63,123 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             "capture", source, name, hint=f"run `tnf capture object={name}` first (objects={source})"
         )
     rows: list[dict[str, Any]] = []
+    todo: list[dict[str, Any]] = []  # per object still to fit: name, item, spec, config, size
+    for name in names:
+        capture_manifest = store.manifest("capture", source, name) or {}
+        spec = {"name": kind, **params}
+        if spec.get("bound") is None and capture_manifest.get("radius_m"):
+            # The capture knows the object's bounding sphere: the tightest cube that holds it.
+            spec["bound"] = 1.02 * float(capture_manifest["radius_m"])
+        config = {
+            "scene": spec,
+            # The dataclass, so that fields out of the identity (``batch_objects`` of 1) stay out of the key.
+            "fit": settings,
+            "seed": cfg.seed,
+            "capture": capture_manifest.get("config_hash"),
+        }
+        item = (kind, source, name)
+        if store.is_done("scenes", *item, config=config):
+            rows.append({"object": name, "status": "skipped (done)"})
+            continue
+        todo.append(
+            {"name": name, "item": item, "spec": spec, "config": config, "size": _object_size(capture_manifest)}
+        )
+    steps = settings.resolved(kind).steps
+    together = settings.batch_objects
+    if together > 1 and kind != "hashgrid":
+        raise TnfError(
+            f"fit.batch_objects={together} fits hashgrid scenes together, not {kind}; set fit.batch_objects=1"
+        )
     with progress(cfg.progress) as p:
-        for name in names:
-            item = (kind, source, name)
-            capture_manifest = store.manifest("capture", source, name) or {}
-            spec = {"name": kind, **params}
-            if spec.get("bound") is None and capture_manifest.get("radius_m"):
-                # The capture knows the object's bounding sphere: the tightest cube that holds it.
-                spec["bound"] = 1.02 * float(capture_manifest["radius_m"])
-            config = {
-                "scene": spec,
-                "fit": config_to_dict(settings),
-                "seed": cfg.seed,
-                "capture": capture_manifest.get("config_hash"),
-            }
-            if store.is_done("scenes", *item, config=config):
-                rows.append({"object": name, "status": "skipped (done)"})
-                continue
-            seed_everything(cfg.seed)
-            steps = settings.resolved(kind).steps
-            task = p.add_task(f"fit {kind} {name}", total=steps)
-            resume = store.path("scenes", ".resume", kind, source, f"{name}.pt")
-            t0 = time.perf_counter()
+        if together == 1:
+            for job in todo:
+                name = job["name"]
+                seed_everything(cfg.seed)
+                task = p.add_task(f"fit {kind} {name}", total=steps)
+                resume = store.path("scenes", ".resume", kind, source, f"{name}.pt")
+                t0 = time.perf_counter()
 
-            def on_step(step: int, loss: float, task: Any = task) -> None:
-                p.update(task, completed=step + 1)
+                def on_step(step: int, loss: float, task: Any = task) -> None:
+                    p.update(task, completed=step + 1)
 
-            with store.writing("scenes", *item, config=config, info={"object": name, "source": source}) as tmp:
-                metrics = fit_object(
-                    spec,
-                    captures[name],
-                    tmp,
-                    settings,
-                    device=device,
-                    resume_path=resume,
-                    on_step=on_step,
-                    seed=cfg.seed,
-                    size_m=_object_size(capture_manifest),
-                )
-            metrics.pop("train_log", None)
-            rows.append({"object": name, "status": "fitted", "seconds": time.perf_counter() - t0, **metrics})
-            log.info("fitted %s %s: %s", kind, name, {k: metrics.get(k) for k in ("psnr", "ssim", "steps")})
+                with store.writing(
+                    "scenes", *job["item"], config=job["config"], info={"object": name, "source": source}
+                ) as tmp:
+                    metrics = fit_object(
+                        job["spec"],
+                        captures[name],
+                        tmp,
+                        settings,
+                        device=device,
+                        resume_path=resume,
+                        on_step=on_step,
+                        seed=cfg.seed,
+                        size_m=job["size"],
+                    )
+                rows.append(_fitted_row(name, metrics, time.perf_counter() - t0, kind))
+        else:
+            for i in range(0, len(todo), together):
+                rows += _fit_group(todo[i : i + together], captures, settings, kind, source, store, device, cfg, p)
+    rows.sort(key=lambda r: names.index(r["object"]))
     _print_table(rows, f"fit-scene {kind} -> {store.path('scenes', kind, source)}")
     return rows
+
+
+def _fit_group(
+    group: list[dict[str, Any]],
+    captures: dict[str, Any],
+    settings: Any,
+    kind: str,
+    source: str,
+    store: ArtifactStore,
+    device: str,
+    cfg: Any,
+    p: Any,
+) -> list[dict[str, Any]]:
+    """Fit the objects of ``group`` together (``tnf.scenes.batched.fit_objects``), each into its own item; the
+    group resumes from its own checkpoint. Returns their summary rows."""
+    from tnf.scenes.batched import fit_objects, group_resume_name
+
+    names = [job["name"] for job in group]
+    seed_everything(cfg.seed)
+    label = ", ".join(names) if len(names) <= 3 else f"{names[0]} ... {names[-1]}"
+    task = p.add_task(f"fit {kind} x{len(names)} ({label})", total=settings.resolved(kind).steps)
+    resume = store.path("scenes", ".resume", kind, source, group_resume_name(names))
+    t0 = time.perf_counter()
+
+    def on_step(step: int, loss: float) -> None:
+        p.update(task, completed=step + 1)
+
+    with contextlib.ExitStack() as stack:
+        tmps = [
+            stack.enter_context(
+                store.writing(
+                    "scenes", *job["item"], config=job["config"], info={"object": job["name"], "source": source}
+                )
+            )
+            for job in group
+        ]
+        results = fit_objects(
+            [job["spec"] for job in group],
+            [captures[n] for n in names],
+            tmps,
+            settings,
+            device=device,
+            resume_path=resume,
+            on_step=on_step,
+            seed=cfg.seed,
+            sizes_m=[job["size"] for job in group],
+            names=names,
+        )
+    seconds = (time.perf_counter() - t0) / len(names)
+    return [_fitted_row(n, m, seconds, kind) for n, m in zip(names, results, strict=True)]
+
+
+def _fitted_row(name: str, metrics: dict[str, Any], seconds: float, kind: str) -> dict[str, Any]:
+    """The summary row of a fitted object (``seconds``: its wall time, or its share of its group's)."""
+    metrics.pop("train_log", None)
+    log.info("fitted %s %s: %s", kind, name, {k: metrics.get(k) for k in ("psnr", "ssim", "steps")})
+    return {"object": name, "status": "fitted", "seconds": seconds, **metrics}
 
 
 def _print_table(rows: list[dict[str, Any]], title: str) -> None:

@@ -137,9 +137,11 @@ def size_demands(cfg: Any, stage: str) -> list[tuple[float, str, str]]:
         return value if isinstance(value, int) and not isinstance(value, bool) else None
 
     out: list[tuple[float, str, str]] = []
-    rays = get("fit", "batch_rays")
+    rays, together = get("fit", "batch_rays"), get("fit", "batch_objects") or 1
     if rays and (every or stage == "fit_scene"):
-        out.append((rays * _RAY_BYTES, "fitting a scene", f"fit.batch_rays={rays}"))
+        what = "fitting a scene" if together == 1 else f"fitting {together} scenes together"
+        settings = f"fit.batch_rays={rays}" + (f", fit.batch_objects={together}" if together > 1 else "")
+        out.append((rays * together * _RAY_BYTES, what, settings))
     batch, px = get("pair", "render_batch"), get("pair", "render_px")
     if batch and px and (every or stage == "pair"):
         out.append(
