@@ -127,6 +127,14 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def step_seed(seed: int, step: int) -> int:
+    """A 64-bit seed for training step ``step`` of a fit seeded with ``seed`` (mixed, so that nearby seeds
+    and steps give unrelated streams; the CPU generator keeps only the low 32 bits)."""
+    import numpy as np
+
+    return int(np.random.SeedSequence((seed % 2**64, step)).generate_state(1, np.uint64)[0])
+
+
 @contextlib.contextmanager
 def progress(enabled: bool = True, transient: bool = False) -> Iterator[Any]:
     """A rich progress display: ``with progress() as p: t = p.add_task("capture", total=n); p.advance(t)``.

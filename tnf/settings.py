@@ -322,11 +322,16 @@ def defaults_source(config_class: type) -> str | None:
 
 
 def _yaml_values(path: Path, node: str | None, where: str) -> dict[str, Any]:
-    from omegaconf import OmegaConf
-
     if not path.is_file():
         raise TnfError(f"{path}: no such file (a Config takes its defaults from it)")
-    loaded = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    try:
+        from omegaconf import OmegaConf
+    except ImportError:  # a machine with torch and tnf alone (benchmarks): the defaults files are plain YAML
+        import yaml
+
+        loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
+    else:
+        loaded = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
     values = loaded.get(node) if node is not None and isinstance(loaded, dict) else loaded
     if not isinstance(values, dict):
         raise TnfError(f"{where}: expected a mapping of settings, got {values!r}")

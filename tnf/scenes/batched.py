@@ -39,11 +39,11 @@ from torch import nn
 from tnf.artifacts import write_bytes
 from tnf.cameras import Views, camera_rays
 from tnf.errors import NonFiniteLoss, TnfError
+from tnf.runtime import step_seed
 from tnf.scenes.encoding import HashEncoding, spherical_harmonics
 from tnf.scenes.hashgrid import HashGridScene
 from tnf.scenes.render import composite, distortion_loss, ray_aabb, volume_render
 from tnf.scenes.settings import FitSettings
-from tnf.scenes.system import step_seed
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from tnf.registry import SCENES, split_spec
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
 from tnf.scenes import save_scene
 from tnf.scenes.render import FieldScene, composite
-from tnf.scenes.system import AtomicCheckpointIO, FitSettings, SceneFitSystem, lightning_device
+from tnf.scenes.settings import FitSettings
 
 if TYPE_CHECKING:
     import lightning
@@ -105,6 +105,8 @@ def fit_scene(
     """
     from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+    from tnf.scenes.system import SceneFitSystem
+
     s = settings.resolved(kind)
     system = SceneFitSystem(scene, views, s, seed=seed, resume_path=resume_path, on_step=on_step)
     resume = Path(resume_path) if resume_path else None
@@ -145,6 +147,8 @@ def _trainer(settings: FitSettings, device: str) -> lightning.Trainer:
     progress bar (callers draw their own through ``on_step``), model summary, validation or checkpoint
     callback (``SceneFitSystem`` writes its resume checkpoint itself, atomically)."""
     import lightning as L
+
+    from tnf.scenes.system import AtomicCheckpointIO, lightning_device
 
     assert settings.steps is not None
     accelerator, devices = lightning_device(device)

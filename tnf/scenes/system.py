@@ -18,13 +18,13 @@ from pathlib import Path
 from typing import Any, cast
 
 import lightning as L
-import numpy as np
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
 from tnf.artifacts import write_bytes
 from tnf.cameras import Views, camera_rays
 from tnf.errors import NonFiniteLoss, TnfError
+from tnf.runtime import step_seed
 from tnf.scenes.render import FieldScene, composite
 from tnf.scenes.settings import FitSettings
 
@@ -51,12 +51,6 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         buf = io.BytesIO()
         torch.save(checkpoint, buf)
         write_bytes(path, buf.getvalue())
-
-
-def step_seed(seed: int, step: int) -> int:
-    """A 64-bit seed for training step ``step`` of a fit seeded with ``seed`` (mixed, so that nearby seeds
-    and steps give unrelated streams; the CPU generator keeps only the low 32 bits)."""
-    return int(np.random.SeedSequence((seed % 2**64, step)).generate_state(1, np.uint64)[0])
 
 
 class SceneFitSystem(L.LightningModule):
