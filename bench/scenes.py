@@ -9,6 +9,12 @@ no renderer needed) or, with ``--object NAME``, a built-in object captured with 
 Writes ``<out>/<object>/`` (the dataset), ``<out>/<scene>-<object>/`` (scene.pt, metrics.json, preview.png)
 and ``<out>/<scene>-<object>.json`` (the figures printed). No network access is needed.
 
+Fitting K objects together (``fit.batch_objects``, ``tnf.scenes.batched``) against one after another, on one
+device: steps/s and held-out PSNR per object for both (K analytic spheres of other sizes, or ``--objects``):
+
+    python bench/scenes.py --device cuda --batched 27 --steps 3000 --size 256 --views 48 --out bench-batched
+    python bench/scenes.py --device cpu --batched 3 --steps 60 --size 24 --views 10 --tiny --eval-every 0
+
 Rendering only, of a scene fitted before (frames/s at 128 x 128 for batches of 64 poses, peak memory,
 samples per ray, and the difference to the dense quadrature over every sample):
 
@@ -39,14 +45,20 @@ TINY_HASHGRID = {
 TINY_NERF = {"depth": 4, "width": 64, "skip": 2, "samples_coarse": 32, "samples_fine": 32}
 
 
-def make_dataset(args: argparse.Namespace, folder: Path) -> tuple[Path, float | None]:
-    """The capture folder of the object (made if missing) and the object's size in metres."""
-    if args.object == "sphere":
+def make_dataset(args: argparse.Namespace, folder: Path, name: str | None = None) -> tuple[Path, float | None]:
+    """The capture folder of the object ``name`` (default ``args.object``; made if missing) and its size in
+    metres. ``sphere`` is the analytic sphere, ``sphere-N`` one of other sizes seen from other distances."""
+    name = name or args.object
+    if name == "sphere" or name.startswith("sphere-"):
         from tnf.scenes.synthetic import write_sphere_dataset
 
+        # sphere-N: radius 3.5 to 6.5 cm, cameras 3.2 to 5.2 radii away (other bounds and step sizes).
+        n = int(name.split("-")[1]) if "-" in name else None
+        radius = 0.05 if n is None else 0.035 + 0.03 * ((n * 0.618) % 1.0)
+        distance = 0.2 if n is None else radius * (3.2 + 2.0 * ((n * 0.382) % 1.0))
         if not (folder / "transforms.json").is_file():
-            write_sphere_dataset(folder, args.views, args.test_views, args.size, radius=0.05, distance=0.2)
-        return folder, 0.1
+            write_sphere_dataset(folder, args.views, args.test_views, args.size, radius=radius, distance=distance)
+        return folder, 2 * radius
     # A built-in object through the capture stage's own renderer (needs pyrender with EGL).
     from tnf.env import headless_rendering
 
@@ -57,7 +69,7 @@ def make_dataset(args: argparse.Namespace, folder: Path) -> tuple[Path, float | 
     from tnf.capture.render import MeshRenderer
     from tnf.registry import OBJECTS
 
-    mesh = OBJECTS.build({"name": "builtin"}).load(args.object)
+    mesh = OBJECTS.build({"name": "builtin"}).load(name)
     ccfg = capture_config({"resolution": args.size, "num_views": args.views, "num_test_views": args.test_views})
     if not (folder / "transforms.json").is_file():
         radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
@@ -99,9 +111,21 @@ def main() -> None:
     ap.add_argument("--march-kernel", choices=["auto", "on", "off"], default="auto", help="Warp march selection")
     ap.add_argument("--distortion-weight", type=float, default=None, help="fit.distortion_weight (default: fit's)")
     ap.add_argument("--profile", action="store_true", help="with --load: print the top operators of one batch")
+    ap.add_argument("--batched", type=int, default=0, help="fit K objects together and one after another: compare")
+    ap.add_argument("--objects", default=None, help="with --batched: comma-separated built-in objects (else spheres)")
+    ap.add_argument(
+        "--separate",
+        choices=["auto", "lightning", "loop", "skip"],
+        default="auto",
+        help="with --batched, how the objects are fitted one after another: fit_scene (Lightning, as tnf "
+        "fit-scene), the batched loop with one object, or not at all (auto: Lightning where installed)",
+    )
     args = ap.parse_args()
     if args.load:
         render_only(args)
+        return
+    if args.batched:
+        batched_bench(args)
         return
 
     import torch
@@ -182,6 +206,109 @@ def main() -> None:
     (out / f"{args.scene}-{args.object}.json").write_text(json.dumps(figures, indent=2) + "\n")
     for key, value in figures.items():
         print(f"{key:>36}: {value}")
+
+
+def batched_bench(args: argparse.Namespace) -> None:
+    """``--batched K``: fit K objects one after another and then together on ``args.device`` with the same
+    seed and settings; print each object's held-out PSNR both ways and the training steps/s of both."""
+    import importlib.util
+    import resource
+
+    import torch
+
+    from tnf.cameras import read_views
+    from tnf.scenes.batched import fit_batched
+    from tnf.scenes.fit import build_scene, evaluate_scene
+    from tnf.scenes.settings import FitSettings
+
+    if args.scene != "hashgrid":
+        raise SystemExit("--batched fits hash grids only")
+    if args.device.startswith("cuda"):
+        torch.backends.cuda.matmul.allow_tf32 = True
+    K, out = args.batched, Path(args.out)
+    names = args.objects.split(",") if args.objects else [f"sphere-{k}" for k in range(K)]
+    if len(names) != K:
+        raise SystemExit(f"--objects names {len(names)} objects, --batched asks for {K}")
+    data = [make_dataset(args, out / name, name) for name in names]
+    params = dict(TINY_HASHGRID) if args.tiny else {}
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        params[k] = json.loads(v)
+    extra = {} if args.distortion_weight is None else {"distortion_weight": args.distortion_weight}
+    settings = FitSettings(steps=args.steps, batch_rays=args.batch_rays, lr=args.lr, chunk=args.chunk, **extra)
+    settings = settings.resolved("hashgrid")
+    trains = [read_views(folder / "transforms.json") for folder, _ in data]
+    tests = [read_views(folder / "transforms_test.json") for folder, _ in data]
+
+    def scene(k: int):
+        torch.manual_seed(args.seed)
+        s = build_scene({"name": "hashgrid", **params}, trains[k])
+        if settings.carve:
+            s.carve(*trains[k].cameras(), trains[k].rgba()[..., 3])
+        return s
+
+    def psnr(s, k: int) -> float:
+        return round(evaluate_scene(s, tests[k], settings.chunk, data[k][1])["metrics"]["psnr"], 2)
+
+    separate = args.separate
+    if separate == "auto":
+        separate = "lightning" if importlib.util.find_spec("lightning") else "loop"
+    # Warm-up (CUDA context, kernels, allocator) before anything is timed: a few steps of the batched loop.
+    warm = FitSettings(**{**settings.__dict__, "steps": 3})
+    fit_batched([scene(0)], trains[:1], warm, args.device, seed=args.seed)
+    rows = [{"object": n, "bound_m": None} for n in names]
+    alone_seconds = None
+    if separate != "skip":
+        alone_seconds = 0.0
+        for k in range(K):
+            s = scene(k)
+            if separate == "lightning":
+                from tnf.scenes.fit import fit_scene
+
+                info = fit_scene(s, trains[k], settings, "hashgrid", args.device, seed=args.seed)
+            else:
+                info = fit_batched([s], trains[k : k + 1], settings, args.device, seed=args.seed)[0]
+            alone_seconds += info["train_seconds"]
+            rows[k]["psnr_alone_db"] = psnr(s, k)
+            print(f"alone {names[k]}: {info['train_seconds']:.1f} s, PSNR {rows[k]['psnr_alone_db']} dB", flush=True)
+    if args.device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    scenes = [scene(k) for k in range(K)]
+    infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed)
+    together_seconds = infos[0]["train_seconds"]
+    peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
+    for k, s in enumerate(scenes):
+        rows[k]["bound_m"] = round(s.bound, 4)
+        rows[k]["psnr_together_db"] = psnr(s, k)
+    steps = settings.steps
+    assert steps is not None
+    figures = {
+        "device": torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu",
+        "objects": K,
+        "steps": steps,
+        "batch_rays": settings.batch_rays,
+        "size_px": args.size,
+        "train_views": args.views,
+        "separate": separate,
+        "alone_train_seconds": round(alone_seconds, 2) if alone_seconds is not None else None,
+        "alone_object_steps_per_s": round(K * steps / alone_seconds, 1) if alone_seconds else None,
+        "together_train_seconds": round(together_seconds, 2),
+        "together_steps_per_s": round(steps / together_seconds, 2),
+        "together_object_steps_per_s": round(K * steps / together_seconds, 1),
+        "speed_up": round(alone_seconds / together_seconds, 2) if alone_seconds else None,
+        "peak_gpu_memory_together_gib": round(peak, 2) if peak is not None else None,
+        "peak_cpu_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
+        "scene_config": params,
+        "per_object": rows,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"batched-{K}.json").write_text(json.dumps(figures, indent=2) + "\n")
+    print(f"{'object':>16} {'bound m':>8} {'PSNR alone':>11} {'PSNR together':>14}")
+    for r in rows:
+        print(f"{r['object']:>16} {r['bound_m']:>8} {r.get('psnr_alone_db', ''):>11} {r['psnr_together_db']:>14}")
+    for key, value in figures.items():
+        if key != "per_object":
+            print(f"{key:>36}: {value}")
 
 
 def load_scene_for_rendering(path: str | Path, args: argparse.Namespace):
