@@ -442,3 +442,37 @@ def test_resized_calibration_keeps_the_optics_in_gel_units(sensor):
     assert cal.size == (320, 240)  # the original is left alone
     with pytest.raises(TnfError, match="aspect ratios differ"):
         cal.resized(np.zeros((480, 480, 3), np.uint8))
+
+
+def test_fit_equals_the_least_squares_fit_of_the_blurred_design(taxim_presses, sensor):
+    """The sparse design with the blur as matrices gives the normal equations and errors of the dense design
+    blurred image by image (``scipy.ndimage.gaussian_filter1d``, edges repeated)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    from tnf.real.calibrate import _Design, press_surfaces
+
+    st = FitSettings(**TINY)
+    sp = at_sensor_size(taxim_presses, sensor, TRAIN)
+    design = _Design(sensor, sp, press_surfaces(sensor, WARP, sp, taxim_presses.radius_mm * 1e-3), st)
+    n, k, blur = st.table_size, st.table_size**2, 1.5
+    reg = st.smoothness * np.eye(k)
+    ata, atb, parts = np.zeros((k, k)), np.zeros((k, 3)), []
+    for b, (w, target, region) in enumerate(design.crops):
+        r0, r1, c0, c1 = design.bounds[b]
+        dense = w.toarray().reshape(r1 - r0, c1 - c0, k)
+        dense = gaussian_filter1d(gaussian_filter1d(dense, blur, axis=0, mode="nearest"), blur, axis=1, mode="nearest")
+        dense = dense.reshape(-1, k).astype(np.float64)
+        ata += dense.T @ dense
+        atb += dense.T @ target
+        parts.append((dense[region], target[region]))
+    x = np.linalg.solve(ata + reg, atb)
+    err = sum(float(((d @ x - t) ** 2).sum()) for d, t in parts) / sum(t.size for _, t in parts)
+    table, got = design.fit(blur, st, reg)
+    assert table.shape == (n, n, 3)
+    np.testing.assert_allclose(table.reshape(-1, 3), x, rtol=1e-3, atol=1e-3 * np.abs(x).max())
+    assert got == pytest.approx(err, rel=1e-4)
+    # Unblurred, the fit is the plain least squares of the sparse design.
+    w_all = np.concatenate([w.toarray() for w, _, _ in design.crops]).astype(np.float64)
+    t_all = np.concatenate([t for _, t, _ in design.crops])
+    x0 = np.linalg.solve(w_all.T @ w_all + reg, w_all.T @ t_all)
+    np.testing.assert_allclose(design.fit(0.0, st, reg)[0].reshape(-1, 3), x0, rtol=1e-3, atol=1e-3 * np.abs(x0).max())

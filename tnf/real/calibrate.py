@@ -140,56 +140,96 @@ def _smoothness(n: int) -> np.ndarray:
     return d.T @ d
 
 
+def _blur_matrix(n: int, sigma: float) -> np.ndarray:
+    """``[n, n]`` matrix ``G`` with ``G @ v`` equal to ``gaussian_filter1d(v, sigma, mode="nearest")``."""
+    from scipy.ndimage import gaussian_filter1d
+
+    return gaussian_filter1d(np.eye(n), sigma, axis=0, mode="nearest")
+
+
 class _Design:
     """Per-press crops of the unblurred design (table weights at each pixel's slope, minus the undeformed
-    slope's) and the targets (real minus background), for one fall-off."""
+    slope's) and the targets (real minus background), for one fall-off.
+
+    A crop's design is a sparse ``[pixels, nodes]`` matrix ``W`` (at most eight weights per pixel). The blur is
+    separable and linear: ``G = Gy (x) Gx``, so the blurred design's normal equations are ``W^T G^T G W`` and
+    ``W^T G^T t``, and a prediction is ``G (W x)``: the blur runs on images and on ``W`` once per press as two
+    small matrix products, never on a dense blurred copy of ``W``."""
 
     def __init__(self, sensor: Sensor, sp: SensorPresses, u: np.ndarray, st: FitSettings):
+        from scipy.sparse import coo_matrix
+
         n, k = st.table_size, st.table_size**2
         h0 = sensor.gel_surface()
         s0 = sensor.surface_slopes(h0)
         slopes = sensor.surface_slopes(h0[None] - u)
-        self.crops: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        #: Per press: the design ``[pixels, nodes]`` (CSR), the target ``[pixels, 3]`` and the region mask.
+        self.crops: list[tuple[Any, np.ndarray, np.ndarray]] = []
         self.bounds: list[tuple[int, int, int, int]] = []
+        self._blurs: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
         hh, ww = h0.shape
         for b in range(len(u)):
             col, row = sp.centers[b]
             half = int(math.ceil(st.fit_scale * sp.radii[b])) + 2
             r0, r1 = max(0, int(row) - half), min(hh, int(row) + half + 1)
             c0, c1 = max(0, int(col) - half), min(ww, int(col) + half + 1)
-            crop_h, crop_w = r1 - r0, c1 - c0
+            pixels = (r1 - r0) * (c1 - c0)
             self.bounds.append((r0, r1, c0, c1))
-            w = np.zeros((crop_h * crop_w, k), np.float32)
-            rows = np.arange(crop_h * crop_w)
+            rows, cols, vals = [], [], []
             for sl, sign in ((slopes[b, r0:r1, c0:c1], 1.0), (s0[r0:r1, c0:c1], -1.0)):
                 idx, wt = _bilinear(sl.reshape(-1, 2), n, st.max_slope, st.slope_power)
-                for q in range(4):
-                    np.add.at(w, (rows, idx[:, q]), sign * wt[:, q])
+                rows.append(np.repeat(np.arange(pixels), 4))
+                cols.append(idx.reshape(-1))
+                vals.append(sign * wt.reshape(-1))
+            w = coo_matrix(
+                (np.concatenate(vals).astype(np.float32), (np.concatenate(rows), np.concatenate(cols))),
+                shape=(pixels, k),
+            ).tocsr()  # repeated entries are summed
             target = sp.frames[b, r0:r1, c0:c1].astype(np.float32) - sp.background[r0:r1, c0:c1]
             rr, cc = np.mgrid[r0:r1, c0:c1]
             region = (cc - col) ** 2 + (rr - row) ** 2 <= (st.region_scale * sp.radii[b]) ** 2
-            self.crops.append((w.reshape(crop_h, crop_w, k), target.reshape(-1, 3), region.reshape(-1)))
+            self.crops.append((w, target.reshape(-1, 3), region.reshape(-1)))
+
+    def _blur_pair(self, size: int, blur: float) -> tuple[np.ndarray, np.ndarray]:
+        """The blur matrix ``G`` ``[size, size]`` along one axis and ``G^T G`` (float32, for the design)."""
+        if (size, blur) not in self._blurs:
+            g = _blur_matrix(size, blur)
+            self._blurs[size, blur] = (g, (g.T @ g).astype(np.float32))
+        return self._blurs[size, blur]
+
+    def _shape(self, b: int) -> tuple[int, int]:
+        r0, r1, c0, c1 = self.bounds[b]
+        return r1 - r0, c1 - c0
+
+    def blurred(self, b: int, image: np.ndarray, blur: float, transpose: bool = False) -> np.ndarray:
+        """Press ``b``'s crop image ``[pixels, C]`` blurred (``G v``; ``G^T v`` with ``transpose``), ``[pixels, C]``."""
+        if blur <= 0:
+            return image
+        h, w = self._shape(b)
+        gy, gx = self._blur_pair(h, blur)[0], self._blur_pair(w, blur)[0]
+        if transpose:
+            gy, gx = gy.T, gx.T
+        along_rows = (gy @ image.reshape(h, -1)).reshape(h, w, -1)
+        return np.matmul(gx, along_rows).reshape(h * w, -1)
 
     def fit(self, blur: float, st: FitSettings, reg: np.ndarray) -> tuple[np.ndarray, float]:
         """Table ``[n, n, 3]`` for this blur, and its mean squared error over the contact regions."""
-        from scipy.ndimage import gaussian_filter1d
-
         k = st.table_size**2
         ata = np.zeros((k, k))
         atb = np.zeros((k, 3))
-        blurred = []
-        for w, target, _ in self.crops:
-            wb = w
+        for b, (w, target, _) in enumerate(self.crops):
             if blur > 0:
-                wb = gaussian_filter1d(gaussian_filter1d(w, blur, axis=0, mode="nearest"), blur, axis=1, mode="nearest")
-            wb = wb.reshape(-1, k)
-            ata += wb.T @ wb
-            atb += wb.T @ target
-            blurred.append(wb)
+                h, wd = self._shape(b)
+                hy, hx = self._blur_pair(h, blur)[1], self._blur_pair(wd, blur)[1]
+                q = np.matmul(hx, (hy @ w.toarray().reshape(h, -1)).reshape(h, wd, k))  # G^T G W, [h, w, k]
+                ata += w.T @ q.reshape(-1, k)
+            else:
+                ata += (w.T @ w).toarray()
+            atb += w.T @ self.blurred(b, target, blur, transpose=True)
         x = np.linalg.solve(ata + reg, atb)
         err, count = 0.0, 0
-        for wb, (_, target, region) in zip(blurred, self.crops):
-            res = wb[region] @ x - target[region]
+        for b, (w, target, region) in enumerate(self.crops):
+            res = self.blurred(b, w @ x, blur)[region] - target[region]
             err += float((res**2).sum())
             count += res.size
         return x.reshape(st.table_size, st.table_size, 3).astype(np.float32), err / max(count, 1)
@@ -197,17 +237,12 @@ class _Design:
     def shifts(self, table: np.ndarray, blur: float, sp: SensorPresses, radius: int) -> np.ndarray:
         """Per press, the whole-pixel shift ``[N, 2]`` ``(columns, rows)`` of the frame's change (real minus
         background) within ``radius`` that best matches the fitted pattern, by squared error over the crop."""
-        from scipy.ndimage import gaussian_filter1d
-
-        x = table.reshape(-1, 3)
+        x = table.reshape(-1, 3).astype(np.float64)
         change = sp.frames.astype(np.float32) - sp.background
         hh, ww = change.shape[1:3]
         out = np.zeros((len(self.crops), 2))
         for b, ((w, _, _), (r0, r1, c0, c1)) in enumerate(zip(self.crops, self.bounds)):
-            wb = w
-            if blur > 0:
-                wb = gaussian_filter1d(gaussian_filter1d(w, blur, axis=0, mode="nearest"), blur, axis=1, mode="nearest")
-            pred = (wb.reshape(-1, x.shape[0]) @ x).reshape(r1 - r0, c1 - c0, 3)
+            pred = self.blurred(b, w @ x, blur).reshape(r1 - r0, c1 - c0, 3)
             best = (math.inf, 0, 0)
             for dr in range(-radius, radius + 1):
                 for dc in range(-radius, radius + 1):
