@@ -166,6 +166,7 @@ def main() -> None:
             source, presses, small, train, root / "real_finetune" / short, steps, batch_size=batch,
             lr=lr, generator=dict(spec), framing=framing, depth_scale=depth_scale,
             sim=sim_pairs if n_sim else None, sim_pairs=n_sim, seed=args.seed,
+            val_every_n_epochs=int(ft.val_every_n_epochs),
         )  # fmt: skip
         wall[f"{label}: training"] = time.perf_counter() - t0
         rows.append(report.Row(label, *generated(tuned)))

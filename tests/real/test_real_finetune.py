@@ -92,6 +92,19 @@ def test_finetune_on_presses_with_simulated_pairs(checkpoint, root, taxim_presse
         finetune_on_presses(checkpoint, taxim_presses, sensor, [0], tmp_path / "zero", steps=0)
 
 
+def test_finetune_validates_every_n_epochs(checkpoint, taxim_presses, sensor, tmp_path):
+    """Four one-batch epochs validated every second one: validation rows and grids after epochs 1 and 3 only."""
+    import csv
+
+    run = tmp_path / "sparse"
+    finetune_on_presses(checkpoint, taxim_presses, sensor, [0, 1], run, steps=4, val_every_n_epochs=2)
+    with open(run / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted({int(r["epoch"]) for r in rows if r.get("val_l1")}) == [1, 3]
+    assert sorted(p.name for p in (run / "grids").glob("*.png")) == ["epoch_001.png", "epoch_003.png"]
+    assert json.loads((run / "manifest.json").read_text())["config"]["val_every_n_epochs"] == 2
+
+
 def test_finetune_stage_on_a_press_folder(checkpoint, root, taxim_presses, capsys):
     from tnf.stages import finetune
     from tnf.testing import compose

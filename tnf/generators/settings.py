@@ -100,6 +100,8 @@ class FinetuneSettings:
     """Validation pairs in each epoch's image grid."""
     finite_check_every: int = FROM_YAML
     """Steps between checks of the losses for NaN/Inf."""
+    val_every_n_epochs: int = FROM_YAML
+    """Validation (``best.ckpt``, the image grid) after every this many epochs."""
     presses: str | None = FROM_YAML
     """Real indenter presses to fine-tune on instead of ``data.datasets``: a press folder or ``taxim:SENSOR``;
     null: the paired datasets."""
@@ -120,6 +122,7 @@ class FinetuneSettings:
     def validate(self) -> None:
         at_least(self, 0, "epochs", "decay_epochs", "checkpoint_every_s", "log_every_n_steps")
         at_least(self, 0, "grid_rows", "finite_check_every", "press_sim_pairs")
+        at_least(self, 1, "val_every_n_epochs")
         if not self.press_depth_scale > 0:
             raise SettingError("press_depth_scale", f"must be > 0, got {self.press_depth_scale}")
 

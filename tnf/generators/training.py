@@ -163,6 +163,7 @@ def fit(
     limit_val_batches: int | float | None = None,
     log_every_n_steps: int = 50,
     checkpoint_every_s: float = 0.0,
+    val_every_n_epochs: int = 1,
     info: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Train ``system`` (a ``GeneratorSystem``) on ``datamodule`` into ``run_dir``; returns the summary that
@@ -173,7 +174,8 @@ def fit(
     configurable callbacks (``tnf.generators.callbacks.build_callbacks``, default: those of the ``callbacks``
     group's default option), which join the checkpoints and the progress bar. ``last.ckpt`` is written at
     the end of an epoch once ``checkpoint_every_s`` seconds have passed since it was last written (0: after
-    every epoch), and always after the last epoch.
+    every epoch), and always after the last epoch. Validation (with ``best.ckpt`` and the image grids) runs after
+    every ``val_every_n_epochs``-th epoch.
     """
     if checkpoint_every_s < 0:
         raise TnfError(f"checkpoint_every_s must be >= 0 seconds (0: after every epoch), got {checkpoint_every_s}")
@@ -210,6 +212,7 @@ def fit(
         limit_train_batches=limit_train_batches,
         limit_val_batches=limit_val_batches,
         log_every_n_steps=log_every_n_steps,
+        check_val_every_n_epoch=val_every_n_epochs,
         **targs,
     )
     _run(trainer, system, datamodule, ckpt_path, run_dir)

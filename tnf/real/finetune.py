@@ -265,6 +265,7 @@ def finetune_on_presses(
     seed: int = 0,
     trainer: Mapping[str, Any] | None = None,
     progress: bool = False,
+    val_every_n_epochs: int = 1,
 ) -> Path:
     """Fine-tune a generator on the real frames of presses ``train``; returns the new checkpoint
     (``out/last.ckpt``: the weights after ``steps`` training batches).
@@ -288,6 +289,7 @@ def finetune_on_presses(
         ema_decay: keep an exponential moving average of the weights (``finetune.ema_decay``).
         trainer: Lightning Trainer arguments; default :data:`CPU_TRAINER`.
         progress: show Lightning's progress bar.
+        val_every_n_epochs: validate (``best.ckpt``, the image grid) after every this many epochs.
     """
     from tnf.data import PairDataModule
     from tnf.generators.training import fit
@@ -311,6 +313,7 @@ def finetune_on_presses(
         "depth_scale": float(depth_scale), "reference": reference,
         "sim": {"dataset": str(sim), "pairs": int(sim_pairs)} if sim_pairs else None,
         "freeze": list(freeze), "ema_decay": ema_decay, "seed": int(seed),
+        "val_every_n_epochs": int(val_every_n_epochs),
     }  # fmt: skip
     pairs = out / "pairs"
     if pairs.exists():
@@ -327,7 +330,8 @@ def finetune_on_presses(
     }  # fmt: skip
     fit(
         system, dm, out, config=config, trainer_cfg=dict(trainer or CPU_TRAINER), logger_cfg={"name": "csv"},
-        resume=True, progress=progress, log_every_n_steps=1, checkpoint_every_s=60.0, info=info,
+        resume=True, progress=progress, log_every_n_steps=1, checkpoint_every_s=60.0,
+        val_every_n_epochs=val_every_n_epochs, info=info,
     )  # fmt: skip
     return out / "last.ckpt"
 

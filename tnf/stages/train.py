@@ -139,6 +139,7 @@ def fit_section(
         limit_val_batches=section.limit_val_batches,
         log_every_n_steps=section.log_every_n_steps,
         checkpoint_every_s=section.checkpoint_every_s,
+        val_every_n_epochs=section.val_every_n_epochs if isinstance(section, FinetuneSettings) else 1,
         info=info,
     )
 
