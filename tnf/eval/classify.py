@@ -14,11 +14,13 @@ at once on a GPU as one network of grouped convolutions (``StackedClassifiers``)
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -28,6 +30,7 @@ from torch import nn
 from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.errors import TnfError
 from tnf.eval.settings import ClassifierConfig
+from tnf.eval.timing import Phases
 from tnf.metrics import exact_fp32_matmul
 from tnf.touches import read_touch_records
 
@@ -444,23 +447,28 @@ def run_rows(
     device: str = "cpu",
     on_step: Callable[[int], None] | None = None,
     at_once: int | None = None,
+    phases: Phases | None = None,
 ) -> dict[str, float]:
     """Train ``cfg.restarts`` classifiers per row (the same seeds and schedule for every row) -> mean accuracy in
     percent per row.
 
     ``train_sets`` maps each row to its training images, or is a function of a restart's seed
     (``restart_seed``) that returns that mapping: each restart then trains on its own draw, and the rows of one
-    restart share it."""
-    runs = []  # (row, set, seed) of every classifier of the call
-    for k in range(cfg.restarts):
-        run_seed = restart_seed(seed, k)
-        sets = train_sets(run_seed) if callable(train_sets) else train_sets
-        runs += [(row, s, run_seed) for row, s in sets.items()]
-    every, seeds = [s for _, s, _ in runs], [r for *_, r in runs]
-    models = train_classifiers(every, num_classes, cfg, seeds, device, on_step, at_once)
+    restart share it. ``phases`` (``tnf.eval.timing.Phases``) gets the seconds of ``classify.train`` (the
+    training sets' draws included) and ``classify.predict``."""
+    timer = phases if phases is not None else Phases(device)
+    with timer.phase("classify.train"):
+        runs = []  # (row, set, seed) of every classifier of the call
+        for k in range(cfg.restarts):
+            run_seed = restart_seed(seed, k)
+            sets = train_sets(run_seed) if callable(train_sets) else train_sets
+            runs += [(row, s, run_seed) for row, s in sets.items()]
+        every, seeds = [s for _, s, _ in runs], [r for *_, r in runs]
+        models = train_classifiers(every, num_classes, cfg, seeds, device, on_step, at_once)
     totals: dict[str, float] = {}
-    for (row, _, _), model in zip(runs, models, strict=True):
-        totals[row] = totals.get(row, 0.0) + accuracy(model, test.images, test.labels, cfg.image_size)
+    with timer.phase("classify.predict"):
+        for (row, _, _), model in zip(runs, models, strict=True):
+            totals[row] = totals.get(row, 0.0) + accuracy(model, test.images, test.labels, cfg.image_size)
     return {row: v / cfg.restarts for row, v in totals.items()}
 
 
@@ -474,6 +482,15 @@ def subset(n: int, limit: int | None, seed: int) -> np.ndarray:
 
 # ---- touch-format folders (the output of `tnf touch` and `tnf generate`) -------------------------------------
 
+# Images resized at once by load_touch_images (a 160 x 120 chunk of 256 is 59 MB in float32).
+_RESIZE_CHUNK = 256
+
+
+def touch_count(folder: str | Path, splits: Sequence[str] | None = None) -> int:
+    """How many touches of a touch-format folder ``load_touch_images`` reads with ``splits`` (None: all) and no
+    ``limit``: the ``n`` of the draws (``subset``) over them."""
+    return sum(1 for t in read_touch_records(Path(folder)) if splits is None or t.split in splits)
+
 
 def load_touch_images(
     folder: str | Path,
@@ -481,6 +498,8 @@ def load_touch_images(
     splits: Sequence[str] | None = None,
     limit: int | None = None,
     seed: int = 0,
+    rows: Sequence[int] | np.ndarray | None = None,
+    workers: int | None = None,
 ) -> torch.Tensor:
     """Tactile images of a touch-format folder as uint8 ``[N, 3, size, size]``.
 
@@ -489,22 +508,46 @@ def load_touch_images(
 
     ``splits`` keeps touches whose ``split`` is listed (None: all); ``limit`` keeps a random subset of that many
     (chosen with ``seed``, in the manifest's order), the way the ``Sim`` set takes a fixed number per object.
+    ``rows`` (instead of ``limit``) reads only those positions among the touches ``splits`` keeps, in the order
+    given: a draw made elsewhere (``subset``) without decoding the images it leaves out. ``workers`` threads decode
+    the images (None: up to 8, as the CPU has cores); the result is the same whatever their number.
     """
     from PIL import Image
 
     folder = Path(folder)
     recs = [t for t in read_touch_records(folder) if splits is None or t.split in splits]
-    recs = [recs[i] for i in subset(len(recs), limit, seed)]
-    out = np.zeros((len(recs), size, size, 3), np.uint8)
-    for i, t in enumerate(recs):
+    if rows is not None:
+        if limit is not None:
+            raise ValueError("give limit or rows, not both")
+        recs = [recs[int(i)] for i in rows]
+    else:
+        recs = [recs[i] for i in subset(len(recs), limit, seed)]
+
+    def read(t: Any) -> np.ndarray:
         path = folder / t.image
         try:
             with Image.open(path) as im:
-                # As the paired datasets do: every tactile image at 128 x 128 first, then the classifier's size.
-                img = resize_uint8(np.array(im.convert("RGB")), SIZE)
-            out[i] = img if size == SIZE else resize_uint8(img, size)
+                return np.array(im.convert("RGB"))
         except FileNotFoundError:
             raise TnfError(f"touch image {path} listed in {folder / 'manifest.json'} is missing") from None
         except (OSError, ValueError, SyntaxError) as e:  # truncated or not an image
             raise TnfError(f"touch image {path} is not a readable image ({e}); `tnf clean` its item and redo") from None
+
+    n_workers = min(8, os.cpu_count() or 1) if workers is None else workers
+    if n_workers <= 1 or len(recs) < 2:
+        decoded = [read(t) for t in recs]
+    else:  # PNG decoding releases the GIL; list() re-raises the first error
+        with ThreadPoolExecutor(n_workers) as pool:
+            decoded = list(pool.map(read, recs))
+    out = np.zeros((len(recs), size, size, 3), np.uint8)
+    # As the paired datasets do: every tactile image at 128 x 128 first, then the classifier's size. The images of
+    # one shape are resized together, a chunk at a time: each comes out as it does resized alone.
+    shapes: dict[tuple[int, ...], list[int]] = {}
+    for i, img in enumerate(decoded):
+        shapes.setdefault(img.shape, []).append(i)
+    for idx in shapes.values():
+        for c in range(0, len(idx), _RESIZE_CHUNK):
+            chunk = idx[c : c + _RESIZE_CHUNK]
+            img = resize_uint8(np.stack([decoded[i] for i in chunk]), SIZE)
+            out[chunk] = img if size == SIZE else resize_uint8(img, size)
     return torch.from_numpy(out).permute(0, 3, 1, 2).contiguous()

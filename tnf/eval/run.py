@@ -20,6 +20,7 @@ from tnf.artifacts import MANIFEST, read_json, write_json
 from tnf.errors import TnfError
 from tnf.eval.aggregate import RESULTS_FILE, SCHEMA, find_results, load_results
 from tnf.eval.settings import EvaluateSettings
+from tnf.eval.timing import Phases
 from tnf.runtime import environment, progress, resolve_device, seed_everything
 
 
@@ -101,13 +102,22 @@ def collect_sweep(sweep_dir: str, runs_dir: Path, force: bool) -> int:
     return len(files)
 
 
-def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | None, dict[str, bytes]]:
+def evaluate_model(
+    job: EvalJob, store: Any, phases: Phases | None = None
+) -> tuple[dict[str, Any], bytes | None, dict[str, bytes]]:
     """Image metrics and the classification task for ``evaluate.model``: the results dict, the example
     figure as PNG bytes (None without image metrics) and further figures by file name (a force-conditioned
-    model's force sweep), which the caller writes beside the results."""
+    model's force sweep), which the caller writes beside the results.
+
+    ``phases`` (``tnf.eval.timing.Phases``; a fresh one if None) gets the wall seconds of each phase: ``setup``,
+    ``load_model``, per test split ``<split>.data`` (reading and batching its pairs), ``<split>.generate`` (the
+    model's images), ``<split>.metrics`` (SSIM, MSE and the example touches), ``by_force``, ``examples_figure``,
+    ``classify.load`` (reading the touches), ``classify.train``, ``classify.predict``; ``results["phases_s"]``
+    holds them as they stand at return."""
 
     ecfg = job.settings
     device = resolve_device(job.device)
+    timer = phases if phases is not None else Phases(device)
     t0 = time.perf_counter()
     examples_png = None
     figures: dict[str, bytes] = {}
@@ -121,12 +131,13 @@ def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | No
         "image": {},
         "accuracy": {},
         "warnings": [],
-        "environment": environment(device),
     }
+    with timer.phase("setup"):
+        results["environment"] = environment(device)
     with progress(job.progress) as bar:
         if ecfg.splits:
             seed_everything(job.seed)
-            image, examples, force = image_metrics(job, store, device, bar)
+            image, examples, force = image_metrics(job, store, device, bar, timer)
             results["image"] = image
             if force is not None:  # a model conditioned on the force: its evaluation by force (tnf.eval.force)
                 results["force"], figures["force_sweep.png"] = force
@@ -134,23 +145,25 @@ def evaluate_model(job: EvalJob, store: Any) -> tuple[dict[str, Any], bytes | No
             if examples is not None:
                 from tnf.eval.figures import example_grid
 
-                buf = io.BytesIO()
-                example_grid(examples["tensors"], ecfg.diff_threshold, examples["labels"]).save(buf, "PNG")
-                examples_png = buf.getvalue()
+                with timer.phase("examples_figure"):
+                    buf = io.BytesIO()
+                    example_grid(examples["tensors"], ecfg.diff_threshold, examples["labels"]).save(buf, "PNG")
+                    examples_png = buf.getvalue()
                 results["examples"] = "examples.png"
                 results["examples_split"] = examples["split"]
         if ecfg.classify.enabled:
             seed_everything(job.seed)
-            acc, info, warnings = classification(job, store, device, bar)
+            acc, info, warnings = classification(job, store, device, bar, timer)
             results["accuracy"] = acc
             results["classify"] = info
             results["warnings"] += warnings
     results["evaluate_s"] = time.perf_counter() - t0
+    results["phases_s"] = timer.record()
     return results, examples_png, figures
 
 
 def image_metrics(
-    job: EvalJob, store: Any, device: str, bar: Any
+    job: EvalJob, store: Any, device: str, bar: Any, phases: Phases | None = None
 ) -> tuple[dict[str, Any], dict[str, Any] | None, tuple[dict[str, Any], bytes] | None]:
     """SSIM/MSE per test split for the model and BG, the example touches (from novel_object if scored), and for
     a model conditioned on the force its evaluation by force (``tnf.eval.force.by_force``; None otherwise)."""
@@ -161,6 +174,7 @@ def image_metrics(
     from tnf.data.datamodule import resolve_dataset
     from tnf.eval.scoring import BG, score_batches
 
+    timer = phases if phases is not None else Phases(device)
     ecfg = job.settings
     dataset = ecfg.dataset or (job.datasets[0] if job.datasets else None)
     if not dataset:
@@ -169,7 +183,8 @@ def image_metrics(
     ckpt = store.path("models", str(ecfg.model), ecfg.checkpoint)
     if not ckpt.is_file():
         raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check evaluate.model/checkpoint")
-    generate, uses_force, fixed_force = _model_images(job, ckpt, pairs, device, bar)
+    with timer.phase("load_model"):
+        generate, uses_force, fixed_force = _model_images(job, ckpt, pairs, device, bar)
     out: dict[str, Any] = {}
     bg_all = None
     examples = None
@@ -182,7 +197,10 @@ def image_metrics(
         read_json(pairs / MANIFEST, "dataset manifest").get("objects") or [],
     )
     for split in splits:
-        ds = PairDataset(pairs, splits=[split], per_object=ecfg.per_object, seed=job.seed, object_names=object_names)
+        with timer.phase(f"{split}.data"):
+            ds = PairDataset(
+                pairs, splits=[split], per_object=ecfg.per_object, seed=job.seed, object_names=object_names
+            )
         names = _object_names(ds)
         if len(ds) == 0:
             raise TnfError(f"split {split!r} of dataset {pairs} is empty; check evaluate.splits")
@@ -196,7 +214,13 @@ def image_metrics(
         task = bar.add_task(f"score {split}", total=len(loader))
         keep = ecfg.examples if split == example_split else 0
         accs, kept = score_batches(
-            loader, generate, names, keep_examples=keep, on_batch=functools.partial(bar.advance, task)
+            loader,
+            generate,
+            names,
+            keep_examples=keep,
+            on_batch=functools.partial(bar.advance, task),
+            phases=timer,
+            prefix=f"{split}.",
         )
         out[split] = {"G": accs["G"].summary(), BG: accs[BG].summary()}
         bg_all = accs[BG] if bg_all is None else bg_all.merge(accs[BG])
@@ -212,10 +236,11 @@ def image_metrics(
     if uses_force and fixed_force is None:
         from tnf.eval.force import by_force
 
-        force = by_force(
-            ecfg, job.seed, pairs, object_names, generate, device, bar,
-            data_root=job.data_root, objects=job.objects, simulator=job.simulator,
-        )  # fmt: skip
+        with timer.phase("by_force"):
+            force = by_force(
+                ecfg, job.seed, pairs, object_names, generate, device, bar,
+                data_root=job.data_root, objects=job.objects, simulator=job.simulator,
+            )  # fmt: skip
     return results, examples, force
 
 
@@ -269,12 +294,16 @@ def _object_names(ds: Any) -> list[str] | None:
     return None
 
 
-def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dict, dict, list[str]]:
+def classification(
+    job: EvalJob, store: Any, device: str, bar: Any, phases: Phases | None = None
+) -> tuple[dict, dict, list[str]]:
     """Train the classifier on Sim, Sim + G and G only; accuracy (percent) on held-out ground truth."""
+    import numpy as np
     import torch
 
-    from tnf.eval.classify import LabelledImages, load_touch_images, run_rows, subset
+    from tnf.eval.classify import LabelledImages, load_touch_images, restart_seed, run_rows, subset, touch_count
 
+    timer = phases if phases is not None else Phases(device)
     ecfg, method = job.settings, job.method
     ccfg = ecfg.classify
     clf = ecfg.classifier
@@ -294,40 +323,51 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
         )
     size = clf.image_size
     seed = job.seed
-    sim, gen, test, warnings = [], [], [], []
+    limit = ccfg.sim_per_object
+    seeds = [restart_seed(seed, k) for k in range(clf.restarts)]  # the seeds run_rows gives `rows` below
+    sim: list[tuple[int, np.ndarray, LabelledImages]] = []  # per object: its Sim touches, those read, their images
+    gen, test, warnings = [], [], []
     poses: list[Any] = []  # each generated object's pose source (its manifest's "poses")
     load = bar.add_task("load touches", total=len(objects))
-    for label, obj in enumerate(objects):
-        folder = store.require("touch", sensor, source, obj, hint="run `tnf touch` first")
+    with timer.phase("classify.load"):
+        for label, obj in enumerate(objects):
+            folder = store.require("touch", sensor, source, obj, hint="run `tnf touch` first")
 
-        def labelled(x: torch.Tensor, label: int = label) -> LabelledImages:
-            return LabelledImages(x, torch.full((len(x),), label, dtype=torch.long))
+            def labelled(x: torch.Tensor, label: int = label) -> LabelledImages:
+                return LabelledImages(x, torch.full((len(x),), label, dtype=torch.long))
 
-        # Every ground-truth touch of the Sim splits; each restart draws its own sim_per_object from them.
-        sim.append(labelled(load_touch_images(folder, size, list(ccfg.sim_splits), None, seed)))
-        test.append(labelled(load_touch_images(folder, size, list(ccfg.test_splits), ccfg.test_per_object, seed)))
-        gfolder = store.path("generated", generated_run, source, obj)
-        if (gfolder / "manifest.json").is_file():
-            poses.append(read_json(gfolder / "manifest.json", "generated manifest").get("poses"))
-            x = load_touch_images(gfolder, size, None, ccfg.generated_per_object, seed)
-            gen.append(LabelledImages(x, torch.full((len(x),), label), torch.ones(len(x), dtype=torch.bool)))
-        else:
-            warnings.append(f"no generated touches for {obj} in {gfolder}")
-        bar.advance(load)
+            # Each restart draws its own sim_per_object of the Sim splits' touches: only the touches some draw
+            # takes are read (all of them where the draws take every touch).
+            n = touch_count(folder, list(ccfg.sim_splits))
+            read = np.unique(np.concatenate([subset(n, limit, s) for s in seeds])) if n else np.arange(0)
+            sim.append((n, read, labelled(load_touch_images(folder, size, list(ccfg.sim_splits), rows=read))))
+            tests = load_touch_images(folder, size, list(ccfg.test_splits), ccfg.test_per_object, seed)
+            test.append(labelled(tests))
+            gfolder = store.path("generated", generated_run, source, obj)
+            if (gfolder / "manifest.json").is_file():
+                poses.append(read_json(gfolder / "manifest.json", "generated manifest").get("poses"))
+                x = load_touch_images(gfolder, size, None, ccfg.generated_per_object, seed)
+                gen.append(LabelledImages(x, torch.full((len(x),), label), torch.ones(len(x), dtype=torch.bool)))
+            else:
+                warnings.append(f"no generated touches for {obj} in {gfolder}")
+            bar.advance(load)
     if not gen:
         raise TnfError(
             f"no generated touches of run {generated_run!r} under {store.path('generated', generated_run, source)}; "
             "run `tnf generate` first, set evaluate.generated=RUN, or evaluate.classify.enabled=false"
         )
     gen_set, test_set = LabelledImages.concat(gen), LabelledImages.concat(test)
-    limit = ccfg.sim_per_object
 
     def rows(restart_seed: int) -> dict[str, LabelledImages]:
         # The Sim set of one restart: its own draw of sim_per_object touches per object, shared by its rows, so
         # that a row's accuracy averages over draws of the few ground-truth touches as well as over classifiers.
         drawn = []
-        for s in sim:
-            idx = torch.from_numpy(subset(len(s), limit, restart_seed))
+        for n, read, s in sim:
+            want = subset(n, limit, restart_seed)
+            at = np.searchsorted(read, want)
+            if not np.array_equal(read[np.minimum(at, len(read) - 1)], want):
+                raise AssertionError(f"restart seed {restart_seed} draws Sim touches that were not read")
+            idx = torch.from_numpy(at)
             drawn.append(LabelledImages(s.images[idx], s.labels[idx]))
         sim_set = LabelledImages.concat(drawn)
         out = {"Sim": sim_set, f"Sim + {method}": LabelledImages.concat([sim_set, gen_set])}
@@ -337,7 +377,7 @@ def classification(job: EvalJob, store: Any, device: str, bar: Any) -> tuple[dic
 
     first = rows(seed)
     task = bar.add_task("classify", total=clf.steps * clf.restarts * len(first))
-    acc = run_rows(rows, test_set, len(objects), clf, seed, device, on_step=lambda _: bar.advance(task))
+    acc = run_rows(rows, test_set, len(objects), clf, seed, device, on_step=lambda _: bar.advance(task), phases=timer)
     info = {
         "classes": objects,
         "train_images": {row: len(s) for row, s in first.items()},

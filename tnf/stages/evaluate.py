@@ -10,6 +10,7 @@ there. ``evaluate.sweep_dir=DIR`` instead collects the results.json files of a H
 from __future__ import annotations
 
 import shutil
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, cast
@@ -21,6 +22,7 @@ from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
 from tnf.eval.paper import METHOD_LABELS
 from tnf.eval.run import EvalJob, check_not_another_models, collect_sweep, evaluate_model, run_id
 from tnf.eval.settings import EvaluateSettings
+from tnf.eval.timing import Phases, phases_line
 from tnf.registry import from_dict
 from tnf.stages.settings import identity_config
 
@@ -38,6 +40,8 @@ def run(cfg: Any) -> dict[str, Any]:
     runs_dir = report_dir / "runs"
     out: dict[str, Any] = {}
     force = ecfg.force
+    timer: Phases | None = None  # this run's phases (None when no model is evaluated)
+    folder = None
 
     if ecfg.sweep_dir:
         n = collect_sweep(ecfg.sweep_dir, runs_dir, force)
@@ -58,17 +62,18 @@ def run(cfg: Any) -> dict[str, Any]:
             results = load_results([old])[0]
             results.pop("_path")
         else:
-            results, examples_png, figures = evaluate_model(_job(cfg, ecfg, settings, method), store)
+            timer = Phases(str(cfg.device))
+            results, examples_png, figures = evaluate_model(_job(cfg, ecfg, settings, method), store, timer)
             results["config_hash"] = chash
             # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile. Nothing
             # of this run is in the row's folder until here, so a refused run leaves the other model's intact.
             check_not_another_models(old, str(ecfg.model), method, cfg.seed, force)
-            if examples_png is not None:
-                write_bytes(folder / str(results["examples"]), examples_png)
-            for file, png in figures.items():
-                write_bytes(folder / file, png)
-            write_json(folder / RESULTS_FILE, results)
-        _copy_to_hydra_output(folder)
+            with timer.phase("write"):
+                if examples_png is not None:
+                    write_bytes(folder / str(results["examples"]), examples_png)
+                for file, png in figures.items():
+                    write_bytes(folder / file, png)
+                write_json(folder / RESULTS_FILE, results)
         out["results"] = results
 
     # Jobs of a sweep rebuild the same report, each from every run present: one at a time (tnf.artifacts.exclusive),
@@ -83,10 +88,20 @@ def run(cfg: Any) -> dict[str, Any]:
         files = find_results(runs_dir)
         if not files:
             raise nothing
+        t0 = time.perf_counter()
         tables = write_report(
             load_results(files), report_dir, name=ecfg.name, notes=ecfg.notes or None, next_step=ecfg.next or None
         )
+        if timer is not None and folder is not None:
+            # The report's seconds join the run's record (which the report does not show), written again.
+            timer.add("report", time.perf_counter() - t0)
+            out["results"]["phases_s"] = {**out["results"].get("phases_s", {}), **timer.record()}
+            write_json(folder / RESULTS_FILE, out["results"])
+    if folder is not None:
+        _copy_to_hydra_output(folder)
     _print_summary(console, tables, report_dir)
+    if timer is not None:
+        console.print(phases_line(out["results"]["phases_s"]))
     out["report"] = report_dir / "report.md"
     out["tables"] = tables
     return out
