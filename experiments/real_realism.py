@@ -156,6 +156,11 @@ def main() -> None:
     import torch
 
     ft = OmegaConf.load(conf / "transfer" / "real.yaml").finetune
+    # The experiment's trainer: its precision on the CPU, as `tnf finetune experiment=sim_gelsight_mini` has it.
+    from tnf.real.finetune import CPU_TRAINER
+
+    precision = OmegaConf.load(conf / "experiment" / "sim_gelsight_mini.yaml").trainer.precision
+    trainer = {**CPU_TRAINER, "precision": str(precision)}
     batch = 16
     steps = int(ft.epochs) * -(-len(train) // batch)  # the presses' batches per epoch, times its epochs
     spec = torch.load(ckpt, weights_only=False, map_location="cpu")["tnf"]["generator"]
@@ -169,7 +174,7 @@ def main() -> None:
             source, presses, small, train, root / "real_finetune" / short, steps, batch_size=batch,
             lr=lr, generator=dict(spec), framing=framing, depth_scale=depth_scale,
             sim=sim_pairs if n_sim else None, sim_pairs=n_sim, seed=args.seed,
-            val_every_n_epochs=int(ft.val_every_n_epochs),
+            val_every_n_epochs=int(ft.val_every_n_epochs), trainer=trainer,
         )  # fmt: skip
         wall[f"{label}: training"] = time.perf_counter() - t0
         rows.append(report.Row(label, *generated(tuned)))
