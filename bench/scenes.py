@@ -248,6 +248,8 @@ def batched_bench(args: argparse.Namespace) -> None:
         return s
 
     def psnr(s, k: int) -> float:
+        if importlib.util.find_spec("warp") is None:
+            s.render_kernel = False  # render with the PyTorch encoding where Warp is not installed
         return round(evaluate_scene(s, tests[k], settings.chunk, data[k][1])["metrics"]["psnr"], 2)
 
     separate = args.separate
@@ -276,6 +278,7 @@ def batched_bench(args: argparse.Namespace) -> None:
     scenes = [scene(k) for k in range(K)]
     infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed)
     together_seconds = infos[0]["train_seconds"]
+    print(f"together: {together_seconds:.1f} s", flush=True)
     peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
     for k, s in enumerate(scenes):
         rows[k]["bound_m"] = round(s.bound, 4)
