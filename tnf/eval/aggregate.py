@@ -7,10 +7,11 @@ A run's results JSON (written by ``tnf evaluate`` for one model, see ``tnf.eval.
                                            "per_object": {object: {"ssim", "mse", "n"}}}}},
      "accuracy": {"Sim": percent, "Sim + T-N": percent, "T-N only": percent},
      "environment": {"accelerator", "cpu_cores", "python", "torch", "warp", "lightning", "tnf", "commit", ...},
-     "evaluate_s": seconds}
+     "evaluate_s": seconds, "phases_s": {phase: seconds}}
 
 ``environment`` (``tnf.runtime.environment``) and ``evaluate_s`` are absent from runs evaluated before they were
-recorded; the report then says ``not recorded``.
+recorded; the report then says ``not recorded``. ``phases_s`` (``tnf.eval.timing``; not in the report) splits the
+evaluation's wall time into its phases (``tnf.eval.run.evaluate_model`` names them; ``write`` and ``report`` last).
 
 Test set ``all`` holds the pooled ``BG`` row. Rows shared by several runs of the same seed (``Sim``, ``BG``: every
 generator's job of seed 0 computes the same ones) are averaged within the seed first, so each seed counts once;
