@@ -289,11 +289,12 @@ def evaluate_inputs(root: Path, upstream: Path, reference: Path) -> None:
 
 def report_files(root: Path) -> dict[str, bytes]:
     """The report's files, without the line that says when it was written and the wall times (the pipeline's
-    timings files, the report's section of them and the evaluation's time in each run's results)."""
+    timings files, the report's section of them and the evaluation's times in each run's results)."""
     files = {k: v for k, v in tree_bytes(root / REPORT).items() if not k.startswith("timings/")}
     for k in [k for k in files if k.endswith("results.json")]:
         results = json.loads(files[k])
         results.pop("evaluate_s")
+        results.pop("phases_s")
         files[k] = json.dumps(results, sort_keys=True).encode()
     lines, kept, timed = files["report.md"].split(b"\n"), [], False
     for ln in lines:
@@ -306,9 +307,10 @@ def report_files(root: Path) -> dict[str, bytes]:
 
 
 def results_of(root: Path) -> dict:
-    """The run's results without how long its evaluation took."""
+    """The run's results without how long its evaluation and its phases took."""
     results = json.loads((root / RESULTS).read_text())
     assert results.pop("evaluate_s") > 0
+    assert results.pop("phases_s")["classify.train"] >= 0
     return results
 
 
