@@ -31,10 +31,9 @@ from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tnf.data.preprocess import SIZE, resize_uint8  # noqa: E402
 from tnf.eval.classify import load_touch_images, subset, touch_count  # noqa: E402
 from tnf.metrics import mse, ssim  # noqa: E402
-from tnf.touches import read_touch_records  # noqa: E402
+from tnf.testing.references import load_touch_images_one_by_one  # noqa: E402
 
 
 def _image(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
@@ -60,18 +59,6 @@ def _folder(folder: Path, splits: dict[str, int], h: int, w: int, seed: int) -> 
     return folder
 
 
-def _per_image(folder: Path, size: int, splits: list[str] | None, limit: int | None, seed: int) -> torch.Tensor:
-    """load_touch_images as it was: one image at a time."""
-    recs = [t for t in read_touch_records(folder) if splits is None or t.split in splits]
-    recs = [recs[i] for i in subset(len(recs), limit, seed)]
-    out = np.zeros((len(recs), size, size, 3), np.uint8)
-    for i, t in enumerate(recs):
-        with Image.open(folder / t.image) as im:
-            img = resize_uint8(np.array(im.convert("RGB")), SIZE)
-        out[i] = img if size == SIZE else resize_uint8(img, size)
-    return torch.from_numpy(out).permute(0, 3, 1, 2).contiguous()
-
-
 def bench_load(root: Path, objects: int, size: int = 64, sim: int = 20) -> tuple[float, float]:
     """Seconds per object before and after."""
     folders = []
@@ -81,9 +68,9 @@ def bench_load(root: Path, objects: int, size: int = 64, sim: int = 20) -> tuple
         folders.append((touch, gen))
     t0 = time.perf_counter()
     for touch, gen in folders:
-        _per_image(touch, size, ["train"], None, 0)
-        _per_image(touch, size, ["novel_view"], None, 0)
-        _per_image(gen, size, None, None, 0)
+        load_touch_images_one_by_one(touch, size, ["train"], None, 0)
+        load_touch_images_one_by_one(touch, size, ["novel_view"], None, 0)
+        load_touch_images_one_by_one(gen, size, None, None, 0)
     before = (time.perf_counter() - t0) / objects
     t0 = time.perf_counter()
     for touch, gen in folders:

@@ -7,11 +7,11 @@ import torch
 from PIL import Image
 
 from tests.eval.eval_fixtures import tactile_image, write_touch_folder
-from tnf.data.preprocess import SIZE, resize_uint8
 from tnf.eval.classify import load_touch_images, subset, touch_count
 from tnf.eval.scoring import score_batches
 from tnf.eval.timing import Phases, phases_line
 from tnf.testing import compose
+from tnf.testing.references import load_touch_images_one_by_one
 
 
 def test_phases_accumulate_in_the_order_they_first_ran():
@@ -57,20 +57,6 @@ def test_scoring_records_its_phases_and_scores_as_without_them():
     assert accs["BG"].summary()["n"] == 12 and accs["G"].summary()["n"] == 0 and kept == {}
 
 
-def _per_image_reference(folder, size, splits=None, limit=None, seed=0):
-    """load_touch_images as it was: one image at a time, each resized alone."""
-    from tnf.touches import read_touch_records
-
-    recs = [t for t in read_touch_records(folder) if splits is None or t.split in splits]
-    recs = [recs[i] for i in subset(len(recs), limit, seed)]
-    out = np.zeros((len(recs), size, size, 3), np.uint8)
-    for i, t in enumerate(recs):
-        with Image.open(folder / t.image) as im:
-            img = resize_uint8(np.array(im.convert("RGB")), SIZE)
-        out[i] = img if size == SIZE else resize_uint8(img, size)
-    return torch.from_numpy(out).permute(0, 3, 1, 2).contiguous()
-
-
 def test_loader_reads_each_image_as_the_per_image_loop_did(tmp_path, monkeypatch):
     import tnf.eval.classify as classify
 
@@ -79,13 +65,12 @@ def test_loader_reads_each_image_as_the_per_image_loop_did(tmp_path, monkeypatch
     Image.fromarray(tactile_image(1, np.random.default_rng(5), 160, 120)).save(folder / "images" / "00002.png")
     monkeypatch.setattr(classify, "_RESIZE_CHUNK", 3)  # chunks that split a shape's images
     for size in (32, 64, 128):
-        ref = _per_image_reference(folder, size)
+        ref = load_touch_images_one_by_one(folder, size)
         assert torch.equal(load_touch_images(folder, size), ref)
         assert torch.equal(load_touch_images(folder, size, workers=1), ref)
         assert torch.equal(load_touch_images(folder, size, workers=3), ref)
-    assert torch.equal(
-        load_touch_images(folder, 32, ["train"], limit=4, seed=3), _per_image_reference(folder, 32, ["train"], 4, 3)
-    )
+    fast = load_touch_images(folder, 32, ["train"], limit=4, seed=3)
+    assert torch.equal(fast, load_touch_images_one_by_one(folder, 32, ["train"], 4, 3))
     # rows: only those touches are read, as the full load holds them
     assert touch_count(folder, ["train"]) == 7 and touch_count(folder) == 10
     rows = np.array([1, 2, 5])

@@ -102,6 +102,8 @@ def test_unknown_registry_name_lists_the_available_ones(capsys, data_root):
         ("touch", "sensor.width=0", "sensor.digit: image size must be at least 8x8 pixels, got 0x80"),
         ("touch", "touch.radius=0", "touch.radius: must be > 0"),
         ("fit-scene", "fit.steps=-5", "steps"),
+        ("fit-scene", "fit.batch_objects=0", "fit.batch_objects: must be >= 1, got 0"),
+        ("finetune", "finetune.val_every_n_epochs=0", "finetune.val_every_n_epochs: must be >= 1, got 0"),
         ("train", "train.decay_epochs=9", "decay_epochs must be in [0, epochs=2], got 9"),
         ("train", "data.batch_size=0", "batch_size"),
     ],

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from tnf.registry import FROM_YAML, yaml_defaults, yaml_field
+from tnf.registry import FROM_YAML, at_least, yaml_defaults, yaml_field
 
 # Defaults per scene kind where one value does not suit both (fit settings of null pick these).
 KIND_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -65,20 +65,10 @@ class FitSettings:
     rounding (batched matrix products), so its scenes are not the separately fitted ones bit for bit."""
 
     def validate(self) -> None:
-        if self.batch_objects < 1:
-            raise ValueError(f"batch_objects must be >= 1, got {self.batch_objects}")
-        for k in ("steps", "batch_rays"):
-            v = getattr(self, k)
-            if v is not None and v < 1:
-                raise ValueError(f"{k} must be >= 1, got {v}")
+        at_least(self, 1, "batch_objects", "steps", "batch_rays", "log_every")
+        at_least(self, 0, "checkpoint_every", "distortion_weight")
         if self.lr is not None and self.lr <= 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
-        if self.log_every < 1:
-            raise ValueError(f"log_every must be >= 1, got {self.log_every}")
-        if self.checkpoint_every < 0:
-            raise ValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
-        if self.distortion_weight < 0:
-            raise ValueError(f"distortion_weight must be >= 0, got {self.distortion_weight}")
         if not 0 <= self.distortion_start < 1:
             raise ValueError(f"distortion_start must be in [0, 1), got {self.distortion_start}")
         if not 0 < self.lr_final_factor <= 1:
