@@ -1,7 +1,10 @@
-"""Realism against real GelSight Mini frames: every way tnf makes a press, and Taxim, in one table.
+"""Realism against real GelSight frames: every way tnf makes a press, and Taxim, in one table.
 
-On the GelSight Mini recording that the ``taxim`` package ships (presses 0-15 train, 16-23 held out, the split
-of ``conf/calibrate/default.yaml``), all on the CPU:
+On a recording that the ``taxim`` package ships, all on the CPU. The GelSight Mini's (``--recording
+gelsight_mini``, the default) splits as ``conf/calibrate/default.yaml`` does: presses 0-15 train, 16-23 held out.
+Any other recording splits by the same rule, the first two thirds train and the rest are held out
+(``--recording gelsight``: 48 presses, 0-31 and 32-47). Every recording is simulated with the GelSight Mini's
+geometry (``conf/sensor/gelsight_mini.yaml``); taxim's recordings share its image size and pixel size:
 
 1. tnf's calibration fitted on presses 0-15 at 320x240 (``tnf calibrate``'s defaults): the no-contact frame,
    the hand-set optics, the calibration at 320x240 and rendered at the recording's 640x480.
@@ -10,13 +13,15 @@ of ``conf/calibrate/default.yaml``), all on the CPU:
    same settings, five objects with a 5 mm bearing ball among the training ones, T-N trained on the calibrated
    simulator's pairs), then the indenter rendered as RGB-D at each held-out press's pose with the mesh scene and
    fed to that generator.
-4. T-N fine-tuned on the real frames of presses 0-15 (``transfer=real``'s settings), the same network from
-   scratch on those frames (FS), and T-N+ (simulated pairs kept in the mix).
+4. T-N fine-tuned on the real frames of the training presses (``transfer=real``'s settings) and the same network
+   from scratch on those frames (FS). With ``--tn-plus``, also T-N+ (simulated pairs kept in the mix; about a
+   minute more).
 
 Each held-out press sits at its annotated centre. Scores: :mod:`tnf.real.report` (the native 4r crop with
 the sharpness ratio, and the contact region at 320x240).
 
     python experiments/real_realism.py --out results/real/gelsight_mini
+    python experiments/real_realism.py --recording gelsight --out results/real/gelsight
 
 Writes ``report.md``, ``realism.png`` and ``realism.json`` into ``--out``; the pipeline's data and the
 fine-tuned runs go to ``--data-root`` (default: a temporary folder; pass one to reuse its runs).
@@ -37,16 +42,30 @@ from pathlib import Path
 import numpy as np
 
 PIPELINE = "[calibrate,capture,fit-scene,touch,pair,train]"
+RECORDINGS = {"gelsight_mini": "GelSight Mini", "gelsight": "GelSight"}
 
 
-def taxim_frames(presses, indices, with_shadow: bool = True) -> tuple[np.ndarray, float]:
+def split(recording: str, n: int, conf: Path) -> tuple[list[int], list[int]]:
+    """Training and held-out presses of a recording of ``n`` presses: ``conf/calibrate``'s for the GelSight Mini,
+    else the first two thirds and the rest (the Mini's split by the same rule)."""
+    if recording == "gelsight_mini":
+        from omegaconf import OmegaConf
+
+        cal = OmegaConf.load(conf / "calibrate" / "default.yaml")
+        return list(cal.train), list(cal.test)
+    k = round(2 * n / 3)
+    return list(range(k)), list(range(k, n))
+
+
+def taxim_frames(recording: str, presses, indices, with_shadow: bool = True) -> tuple[np.ndarray, float]:
     """Taxim's frames ``[N, 480, 640, 3]`` uint8 of the presses, and its warm seconds per frame.
 
     Taxim presses to the depth at which the ball crosses the gel in the annotated circle, as its calibration
     defines it."""
-    from taxim import CALIB_GELSIGHT_MINI, Taxim
+    from taxim import CALIB_GELSIGHT, CALIB_GELSIGHT_MINI, Taxim
 
-    sim = Taxim(calib_folder=CALIB_GELSIGHT_MINI, backend="jax")
+    calib = {"gelsight_mini": CALIB_GELSIGHT_MINI, "gelsight": CALIB_GELSIGHT}[recording]
+    sim = Taxim(calib_folder=calib, backend="jax")
     h, w, pix, r = presses.height, presses.width, presses.mm_per_pixel, presses.radius_mm
     rows, cols = np.mgrid[:h, :w]
 
@@ -68,8 +87,14 @@ def taxim_frames(presses, indices, with_shadow: bool = True) -> tuple[np.ndarray
     return np.stack(out), spent / len(indices)
 
 
-def run_pipeline(root: Path, seed: int) -> float:
-    """``tnf pipeline experiment=sim_gelsight_mini`` up to training into ``root``; its wall seconds.
+def calibration_name(recording: str) -> str:
+    """The name of the pipeline's 160x120 calibration (``calibrate.name``) made on ``recording``."""
+    return "mini_160x120" if recording == "gelsight_mini" else f"{recording}_160x120"
+
+
+def run_pipeline(root: Path, seed: int, recording: str, train: list[int], test: list[int]) -> float:
+    """``tnf pipeline experiment=sim_gelsight_mini`` up to training into ``root``, its calibration made on the
+    training presses of ``recording``; its wall seconds.
 
     Run alone: beside the 320x240 calibration, both slowed each other down on 2 cores (the scene fits took twice
     as long) and the whole script gained nothing."""
@@ -77,6 +102,9 @@ def run_pipeline(root: Path, seed: int) -> float:
         sys.executable, "-m", "tnf.cli", "pipeline", "experiment=sim_gelsight_mini", f"data_root={root}",
         f"seed={seed}", "progress=false", f"pipeline.stages={PIPELINE}",
     ]  # fmt: skip
+    if recording != "gelsight_mini":  # the Mini's run keeps the experiment's settings, and so its identity
+        cmd += [f"calibrate.presses=taxim:{recording}", f"calibrate.train={train}", f"calibrate.test={test}"]
+        cmd += [f"calibrate.name={calibration_name(recording)}"]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, env={**os.environ, "TNF_DATA": str(root)})
     return time.perf_counter() - t0
@@ -84,9 +112,11 @@ def run_pipeline(root: Path, seed: int) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="results/real/gelsight_mini", help="report.md and realism.png go here")
+    ap.add_argument("--recording", default="gelsight_mini", choices=sorted(RECORDINGS), help="taxim's recording")
+    ap.add_argument("--out", default=None, help="report.md and realism.png go here (default: results/real/RECORDING)")
     ap.add_argument("--data-root", default=None, help="the pipeline's and fine-tuning's data (default: temporary)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tn-plus", action="store_true", help="also T-N+: fine-tuned with simulated pairs kept")
     args = ap.parse_args()
 
     from omegaconf import OmegaConf
@@ -101,13 +131,14 @@ def main() -> None:
 
     started = time.perf_counter()
     root = Path(args.data_root or tempfile.mkdtemp(prefix="tnf-realism-"))
-    out = Path(args.out)
+    out = Path(args.out or f"results/real/{args.recording}")
+    sensor_name = RECORDINGS[args.recording]
     out.mkdir(parents=True, exist_ok=True)
     conf = Path(__file__).resolve().parents[1] / "conf"
     cal_cfg = OmegaConf.load(conf / "calibrate" / "default.yaml")
-    train, test = list(cal_cfg.train), list(cal_cfg.test)
     settings = from_dict(FitSettings, OmegaConf.to_container(cal_cfg.fit), where="calibrate.fit")
-    presses = resolve_presses("taxim:gelsight_mini", root)
+    presses = resolve_presses(f"taxim:{args.recording}", root)
+    train, test = split(args.recording, len(presses), conf)
     wall: dict[str, float] = {}
 
     # 1. tnf's calibration at 320x240.
@@ -122,7 +153,7 @@ def main() -> None:
 
     # 2. Taxim.
     t0 = time.perf_counter()
-    taxim, taxim_s = taxim_frames(presses, test)
+    taxim, taxim_s = taxim_frames(args.recording, presses, test)
     rows.append(report.Row("Taxim", taxim, taxim_s))
     wall["Taxim"] = time.perf_counter() - t0
     print(f"Taxim: {wall['Taxim']:.0f} s", flush=True)
@@ -133,11 +164,11 @@ def main() -> None:
     # The pipeline's model: the one finished run of sim_gelsight_mini's generator option, dataset and seed.
     family = f"tn_cgan_plain-gelsight_mini-hashgrid-seed{args.seed}"
     run = find_run(root / "models", family)
-    wall["pipeline to T-N"] = 0.0 if run is not None else run_pipeline(root, args.seed)
+    wall["pipeline to T-N"] = 0.0 if run is not None else run_pipeline(root, args.seed, args.recording, train, test)
     run = run or find_run(root / "models", family)
     assert run is not None, f"the pipeline left no finished run {family}-<hash> under {root / 'models'}"
     ckpt = root / "models" / run / "best.ckpt"
-    small_cal = root / "calibration" / "gelsight_mini" / "mini_160x120"
+    small_cal = root / "calibration" / "gelsight_mini" / calibration_name(args.recording)
     small = SENSORS.build({"name": "gelsight_mini", "width": 160, "height": 120, "calibration": str(small_cal)})
     small_info = json.loads((small_cal / "realism.json").read_text())["fit"]
     depth_scale = float(small_info["depth_scale"])
@@ -166,7 +197,8 @@ def main() -> None:
     spec = torch.load(ckpt, weights_only=False, map_location="cpu")["tnf"]["generator"]
     lr = float(ft.lr) if ft.lr is not None else None
     runs = {"T-N fine-tuned": ("T-N", ckpt, 0), "FS (real presses only)": ("FS", None, 0)}
-    runs["T-N+ (fine-tuned, simulated pairs kept)"] = ("T-N+", ckpt, 16)
+    if args.tn_plus:
+        runs["T-N+ (fine-tuned, simulated pairs kept)"] = ("T-N+", ckpt, 16)
     sim_pairs = root / "pairs" / json.loads((root / "models" / run / "manifest.json").read_text())["datasets"][0]
     for label, (short, source, n_sim) in runs.items():
         t0 = time.perf_counter()
@@ -183,16 +215,18 @@ def main() -> None:
     env = environment("cpu")
     total = time.perf_counter() - started
     intro = [
-        f"Held-out presses {test[0]}-{test[-1]} of the GelSight Mini recording in the `taxim` package. "
+        f"Held-out presses {test[0]}-{test[-1]} of the {sensor_name} recording in the `taxim` package. "
         f"tnf's calibration at 320x240: {fit_summary(info, settings, '320x240')[0]}",
-        f"T-N: `tnf pipeline experiment=sim_gelsight_mini` (seed {args.seed}), the Mini calibrated at 160x120 with "
-        "the same settings, a 5 mm bearing ball among its training objects; its touches of the indenter (a sphere "
+        f"T-N: `tnf pipeline experiment=sim_gelsight_mini` (seed {args.seed}), the GelSight Mini's geometry calibrated "
+        f"on this recording's presses {train[0]}-{train[-1]} at 160x120 with the same settings, a 5 mm bearing ball "
+        "among its training objects; its touches of the indenter (a sphere "
         "of the recorded radius, the mesh scene) at each "
         "held-out press, 160x120, upsampled. Fine-tuned and FS: "
         f"{steps} batches at the generator's own learning rate on the real frames of presses "
-        f"{train[0]}-{train[-1]} (`transfer=real`). T-N+ keeps 16 of the pipeline's simulated pairs in the mix.",
-        "Taxim: its JAX backend and its own calibration of this sensor (made from all 24 frames, the held-out "
-        "ones included), with its shadows, at 640x480. Every source sits at the annotated centres.",
+        f"{train[0]}-{train[-1]} (`transfer=real`)."
+        + (" T-N+ keeps 16 of the pipeline's simulated pairs in the mix." if args.tn_plus else ""),
+        "Taxim: its JAX backend and its own calibration of this sensor (made from this recording, the held-out "
+        "presses included), with its shadows, at 640x480. Every source sits at the annotated centres.",
         "",
         "Wall time on this machine: "
         + ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
@@ -200,12 +234,14 @@ def main() -> None:
         "",
         f"Machine: {env['accelerator']} ({env['cpu_cores']} cores), Python {platform.python_version()}, "
         f"warp {env['warp']}, tnf commit {env['commit']}. Reproduce: "
-        "`pip install -e '.[real]' && python experiments/real_realism.py --out results/real/gelsight_mini`.",
+        f"`pip install -e '.[real]' && python experiments/real_realism.py --recording {args.recording}"
+        + (" --tn-plus" if args.tn_plus else "")
+        + "`.",
     ]
     grid = [r.name for r in rows if r.name.endswith("640x480")]
     grid += ["T-N (simulator only)", "T-N fine-tuned", "Taxim"]
     record = report.write_report(
-        out, "Realism against real GelSight Mini frames", intro, rows, presses, sp, grid_rows=grid,
+        out, f"Realism against real {sensor_name} frames", intro, rows, presses, sp, grid_rows=grid,
         region_scale=settings.region_scale, extra={"fit": info, "wall_s": wall, "total_s": total},
     )  # fmt: skip
     (out / "realism.md").rename(out / "report.md")
