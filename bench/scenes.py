@@ -120,6 +120,8 @@ def main() -> None:
         help="with --batched, how the objects are fitted one after another: fit_scene (Lightning, as tnf "
         "fit-scene), the batched loop with one object, or not at all (auto: Lightning where installed)",
     )
+    ap.add_argument("--workers", type=int, default=1, help="with --separate lightning: fit in this many processes")
+    ap.add_argument("--no-together", action="store_true", help="with --batched: the separate fits only")
     args = ap.parse_args()
     if args.load:
         render_only(args)
@@ -208,6 +210,29 @@ def main() -> None:
         print(f"{key:>36}: {value}")
 
 
+def _fit_alone(folder: str, params: dict, settings, device: str, seed: int, size: float | None) -> tuple[float, float]:
+    """One object fitted alone through ``fit_scene`` (as ``tnf fit-scene``): its training seconds and held-out
+    PSNR. Runs in a worker process of ``--workers``."""
+    import importlib.util
+
+    import torch
+
+    from tnf.cameras import read_views
+    from tnf.scenes.fit import build_scene, evaluate_scene, fit_scene
+
+    if device.startswith("cuda"):
+        torch.backends.cuda.matmul.allow_tf32 = True
+    train, test = read_views(Path(folder) / "transforms.json"), read_views(Path(folder) / "transforms_test.json")
+    torch.manual_seed(seed)
+    s = build_scene({"name": "hashgrid", **params}, train)
+    if settings.carve:
+        s.carve(*train.cameras(), train.rgba()[..., 3])
+    info = fit_scene(s, train, settings, "hashgrid", device, seed=seed)
+    if importlib.util.find_spec("warp") is None:
+        s.render_kernel = False
+    return info["train_seconds"], round(evaluate_scene(s, test, settings.chunk, size)["metrics"]["psnr"], 2)
+
+
 def batched_bench(args: argparse.Namespace) -> None:
     """``--batched K``: fit K objects one after another and then together on ``args.device`` with the same
     seed and settings; print each object's held-out PSNR both ways and the training steps/s of both."""
@@ -259,8 +284,26 @@ def batched_bench(args: argparse.Namespace) -> None:
     warm = FitSettings(**{**settings.__dict__, "steps": 3})
     fit_batched([scene(0)], trains[:1], warm, args.device, seed=args.seed)
     rows = [{"object": n, "bound_m": None} for n in names]
-    alone_seconds = None
-    if separate != "skip":
+    alone_seconds = alone_wall = None
+    if separate == "lightning" and args.workers > 1:
+        # As a sweep of `tnf fit-scene` jobs sharing the device: W processes, each fitting its share in turn. The
+        # figure is the wall time of the whole pool, the processes' start-up included.
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        t0 = time.perf_counter()
+        with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
+            jobs = [
+                pool.submit(_fit_alone, str(data[k][0]), params, settings, args.device, args.seed, data[k][1])
+                for k in range(K)
+            ]
+            done = [j.result() for j in jobs]
+        alone_wall = time.perf_counter() - t0
+        alone_seconds = sum(d[0] for d in done)
+        for k, (_, p) in enumerate(done):
+            rows[k]["psnr_alone_db"] = p
+        print(f"alone, {args.workers} workers: {alone_wall:.1f} s wall ({alone_seconds:.1f} s of training)")
+    elif separate != "skip":
         alone_seconds = 0.0
         for k in range(K):
             s = scene(k)
@@ -275,14 +318,16 @@ def batched_bench(args: argparse.Namespace) -> None:
             print(f"alone {names[k]}: {info['train_seconds']:.1f} s, PSNR {rows[k]['psnr_alone_db']} dB", flush=True)
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    scenes = [scene(k) for k in range(K)]
-    infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed)
-    together_seconds = infos[0]["train_seconds"]
-    print(f"together: {together_seconds:.1f} s", flush=True)
-    peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
-    for k, s in enumerate(scenes):
-        rows[k]["bound_m"] = round(s.bound, 4)
-        rows[k]["psnr_together_db"] = psnr(s, k)
+    together_seconds = peak = None
+    if not args.no_together:
+        scenes = [scene(k) for k in range(K)]
+        infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed)
+        together_seconds = infos[0]["train_seconds"]
+        print(f"together: {together_seconds:.1f} s", flush=True)
+        peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
+        for k, s in enumerate(scenes):
+            rows[k]["bound_m"] = round(s.bound, 4)
+            rows[k]["psnr_together_db"] = psnr(s, k)
     steps = settings.steps
     assert steps is not None
     figures = {
@@ -293,12 +338,14 @@ def batched_bench(args: argparse.Namespace) -> None:
         "size_px": args.size,
         "train_views": args.views,
         "separate": separate,
+        "workers": args.workers,
         "alone_train_seconds": round(alone_seconds, 2) if alone_seconds is not None else None,
+        "alone_wall_seconds": round(alone_wall, 2) if alone_wall is not None else None,
         "alone_object_steps_per_s": round(K * steps / alone_seconds, 1) if alone_seconds else None,
-        "together_train_seconds": round(together_seconds, 2),
-        "together_steps_per_s": round(steps / together_seconds, 2),
-        "together_object_steps_per_s": round(K * steps / together_seconds, 1),
-        "speed_up": round(alone_seconds / together_seconds, 2) if alone_seconds else None,
+        "together_train_seconds": round(together_seconds, 2) if together_seconds else None,
+        "together_steps_per_s": round(steps / together_seconds, 2) if together_seconds else None,
+        "together_object_steps_per_s": round(K * steps / together_seconds, 1) if together_seconds else None,
+        "speed_up": round(alone_seconds / together_seconds, 2) if alone_seconds and together_seconds else None,
         "peak_gpu_memory_together_gib": round(peak, 2) if peak is not None else None,
         "peak_cpu_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
         "scene_config": params,
@@ -308,7 +355,8 @@ def batched_bench(args: argparse.Namespace) -> None:
     (out / f"batched-{K}.json").write_text(json.dumps(figures, indent=2) + "\n")
     print(f"{'object':>16} {'bound m':>8} {'PSNR alone':>11} {'PSNR together':>14}")
     for r in rows:
-        print(f"{r['object']:>16} {r['bound_m']:>8} {r.get('psnr_alone_db', ''):>11} {r['psnr_together_db']:>14}")
+        bound, together = r["bound_m"] or "", r.get("psnr_together_db", "")
+        print(f"{r['object']:>16} {bound:>8} {r.get('psnr_alone_db', ''):>11} {together:>14}")
     for key, value in figures.items():
         if key != "per_object":
             print(f"{key:>36}: {value}")
