@@ -433,6 +433,34 @@ def test_search_edges_name_the_list_to_extend():
     assert search_steps(FitSettings(**{**TINY, "refine_radius": 4})) == 2
 
 
+def test_depth_factors_too_deep_for_the_sensor_are_left_out_of_the_search(taxim_presses):
+    from tnf.real.calibrate import feasible_depth_scales, search_edges
+
+    radius = taxim_presses.radius_mm * 1e-3
+    sp = at_sensor_size(taxim_presses, SENSORS.build("gelsight_mini"), TRAIN)
+    deepest = float(sp.depths.max())
+    # A gel that stops 1.6 x the deepest press past first contact: x2 would press through it.
+    shallow = SENSORS.build({"name": "gelsight_mini", "max_penetration": 1.6 * deepest})
+    kept, skipped = feasible_depth_scales([1.0, 1.5, 2.0], sp, shallow, radius)
+    assert kept == [1.0, 1.5]
+    assert len(skipped) == 1 and skipped[0].startswith("calibrate.fit.depth_scales: x2 left out: press ")
+    assert "max_penetration" in skipped[0]
+    with pytest.raises(TnfError, match=r"^calibrate.fit.depth_scales: every factor \[2.0\]"):
+        feasible_depth_scales([2.0], sp, shallow, radius)
+    # The indenter's radius bounds the factor too: no press goes past the ball's equator.
+    assert feasible_depth_scales([1.0, 1e3], sp, SENSORS.build("gelsight_mini"), radius)[0] == [1.0]
+
+    # The fit runs on the factors left, says which it left out, and calls the largest one left no edge.
+    cal, info = fit_calibration(
+        taxim_presses, shallow, WARP, TRAIN, FitSettings(**{**TINY, "depth_scales": [1.0, 1.5, 2.0]})
+    )
+    assert info["depth_scale"] in (1.0, 1.5) and {t["depth_scale"] for t in info["search"]} == {1.0, 1.5}
+    assert info["edges"][0] == skipped[0]
+    st = FitSettings(**{**TINY, "depth_scales": [1.0, 1.5, 2.0]})
+    assert search_edges(st, 0.05, 1.5, 2.0, [1.0, 1.5]) == []
+    assert "depth_scales: the fit chose 2, the largest" in search_edges(st, 0.05, 2.0, 2.0)[0]
+
+
 def test_resized_calibration_keeps_the_optics_in_gel_units(sensor):
     cal = _hand_calibration(sensor, _tables()["bumpy"])
     cal.blur_sigma = 1.5

@@ -255,6 +255,33 @@ class _Design:
         return out
 
 
+def feasible_depth_scales(
+    scales: Sequence[float], sp: SensorPresses, sensor: Sensor, radius_m: float
+) -> tuple[list[float], list[str]]:
+    """The depth factors that press every press of ``sp`` no deeper than the sensor's ``max_penetration`` and
+    less deep than the indenter's radius ``radius_m``, and one line for each factor left out.
+
+    Raises a one-line TnfError when no factor is left."""
+    k = int(np.argmax(sp.depths))
+    deepest = float(sp.depths[k])
+    limit = min(float(sensor.cfg.max_penetration), radius_m)
+    kept = [float(s) for s in scales if deepest * s <= sensor.cfg.max_penetration and deepest * s < radius_m]
+    skipped = [
+        f"calibrate.fit.depth_scales: x{s:g} left out: press {sp.indices[k]}, {1e3 * deepest:.2f} mm deep, would go "
+        f"{1e3 * deepest * s:.2f} mm, past the sensor's max_penetration {1e3 * sensor.cfg.max_penetration:g} mm "
+        f"or the indenter's radius {1e3 * radius_m:g} mm"
+        for s in scales
+        if float(s) not in kept
+    ]
+    if not kept:
+        raise TnfError(
+            f"calibrate.fit.depth_scales: every factor {list(scales)} presses press {sp.indices[k]} "
+            f"({1e3 * deepest:.2f} mm deep) past {1e3 * limit:g} mm (the sensor's max_penetration or the "
+            f"indenter's radius): add a smaller factor"
+        )
+    return kept, skipped
+
+
 class _Search:
     """The search over fall-off, depth factor and blur: each candidate's table fitted once and remembered."""
 
@@ -271,6 +298,7 @@ class _Search:
         n = settings.table_size
         self.reg = settings.smoothness * _smoothness(n) + settings.ridge * np.eye(n * n)
         self.mid_blur = sorted(settings.blurs)[len(settings.blurs) // 2]
+        self.depth_scales, self.skipped = feasible_depth_scales(settings.depth_scales, sp, sensor, radius_m)
         self.tried: list[dict[str, float]] = []
         self.designs: dict[tuple[float, float], _Design] = {}
         self.results: dict[tuple[float, float, float], tuple[np.ndarray, float]] = {}
@@ -302,8 +330,8 @@ class _Search:
     def search(self) -> tuple[float, float, float]:
         """Fall-off at the first depth factor and the middle blur, then the depth factor, then the blur."""
         st, mid = self.settings, self.mid_blur
-        f = min(st.falloffs, key=lambda f: self.trial(f, st.depth_scales[0], mid))
-        d = min(st.depth_scales, key=lambda d: self.trial(f, d, mid))
+        f = min(st.falloffs, key=lambda f: self.trial(f, self.depth_scales[0], mid))
+        d = min(self.depth_scales, key=lambda d: self.trial(f, d, mid))
         b = min(sorted(st.blurs, key=lambda b: b != mid), key=lambda b: self.trial(f, d, b))
         return f, d, b
 
@@ -360,7 +388,7 @@ def fit_calibration(
         "blur_sigma": float(blur),
         "depth_scale": float(scale),
         "search": tried,
-        "edges": search_edges(settings, falloff, scale, blur),
+        "edges": run.skipped + search_edges(settings, falloff, scale, blur, run.depth_scales),
         "center_shifts_px": moved.tolist(),
         "train_region_mse": float(err),
         "frame_noise_std": frame_noise(sp),
@@ -382,19 +410,26 @@ def search_steps(settings: FitSettings) -> int:
     return 2 * one if settings.refine_radius > 0 else one
 
 
-def search_edges(settings: FitSettings, falloff: float, scale: float, blur: float) -> list[str]:
+def search_edges(
+    settings: FitSettings, falloff: float, scale: float, blur: float, depth_scales: Sequence[float] | None = None
+) -> list[str]:
     """One line for each searched value that landed on the edge of its candidate list: the best value may lie
-    beyond it. Blur 0 is no edge (a blur cannot be negative)."""
+    beyond it. Blur 0 is no edge (a blur cannot be negative). ``depth_scales``: the factors searched (default:
+    the settings'); beyond the largest one searched lie only factors left out as too deep, so it is no edge."""
     lines = []
+    scales = settings.depth_scales if depth_scales is None else depth_scales
+    too_deep = len(scales) < len(settings.depth_scales)
     for name, value, cands in (
         ("falloffs", falloff, settings.falloffs),
-        ("depth_scales", scale, settings.depth_scales),
+        ("depth_scales", scale, scales),
         ("blurs", blur, settings.blurs),
     ):
         if len(cands) < 2 or (name == "blurs" and value == 0):
             continue
         if value in (min(cands), max(cands)):
             side = "smallest" if value == min(cands) else "largest"
+            if name == "depth_scales" and side == "largest" and too_deep:
+                continue
             lines.append(
                 f"calibrate.fit.{name}: the fit chose {value:g}, the {side} candidate; the best value may lie "
                 f"beyond it: extend the list and calibrate again"
