@@ -12,8 +12,8 @@ accuracies of both. Warm-up runs of both (a few steps on the same shapes) come f
     python bench/classify.py --scale quickstart     # the quick start's task (6 objects, 5 restarts)
     python bench/classify.py --tiny                 # a quick check on the CPU
 
-Needs only torch and numpy: ``tnf.eval.classify`` and what it imports. Where omegaconf is missing, through which
-tnf's Config classes read their defaults from ``conf/``, the settings below are used as written.
+Needs only torch, numpy and PyYAML: ``tnf.eval.classify`` and what it imports (tnf's Config classes read their
+defaults from ``conf/`` with PyYAML where omegaconf is missing).
 """
 
 from __future__ import annotations
@@ -60,23 +60,6 @@ SCALES: dict[str, dict[str, Any]] = {
         "classes": 4, "sim": 6, "generated": 12, "test": 8, "generated_only": True,
     },
 }  # fmt: skip
-
-
-def import_classify() -> tuple[ModuleType, bool]:
-    """``tnf.eval.classify`` and whether its ClassifierConfig has conf/'s defaults: without omegaconf it has none
-    (every field is given here)."""
-    try:
-        import omegaconf  # noqa: F401
-    except ImportError:
-        import tnf.registry
-
-        tnf.registry.yaml_defaults = lambda *args, **kwargs: lambda cls: cls  # type: ignore[assignment]
-        from tnf.eval import classify
-
-        return classify, False
-    from tnf.eval import classify
-
-    return classify, True
 
 
 def images_of(labels: np.ndarray, size: int, rng: np.random.Generator, generated: bool = False) -> torch.Tensor:
@@ -138,9 +121,10 @@ def main() -> None:
     a = ap.parse_args()
     name = "tiny" if a.tiny else a.scale
     scale = SCALES[name]
-    classify, with_conf = import_classify()
+    from tnf.eval import classify
+
     cfg = classify.ClassifierConfig(**scale["classifier"])
-    if name == "sim_digit" and with_conf:
+    if name == "sim_digit":
         default = dataclasses.replace(classify.ClassifierConfig(), real_fraction=0.5)
         if default != cfg:
             print(f"note: conf/ now gives sim_digit {default}; this benchmark uses {cfg}")
