@@ -1,0 +1,39 @@
+"""experiments/real_realism.py's choices that hold before any run: the split of each taxim recording, and that
+taxim's other recording (the check that the procedure carries over) fits the sensor the script simulates."""
+
+import importlib.util
+from pathlib import Path
+
+from tnf.real.presses import at_sensor_size, import_taxim
+from tnf.registry import SENSORS
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("real_realism", ROOT / "experiments" / "real_realism.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_every_recording_splits_by_the_minis_rule():
+    script = _script()
+    conf = ROOT / "conf"
+    mini = script.split("gelsight_mini", 24, conf)
+    assert mini == (list(range(16)), list(range(16, 24)))  # conf/calibrate/default.yaml
+    assert script.split("gelsight", 24, conf) == mini  # the rule, on the Mini's count, gives the Mini's split
+    assert script.split("gelsight", 48, conf) == (list(range(32)), list(range(32, 48)))
+    assert set(script.RECORDINGS) == {"gelsight_mini", "gelsight"}
+    assert script.calibration_name("gelsight_mini") == "mini_160x120"  # the experiment's own calibration name
+    assert script.calibration_name("gelsight") == "gelsight_160x120"
+
+
+def test_taxims_gelsight_recording_fits_the_minis_geometry(tmp_path):
+    presses = import_taxim("gelsight", tmp_path / "presses")
+    assert len(presses) == 48 and (presses.width, presses.height) == (640, 480)
+    for size in ((320, 240), (160, 120)):  # the script's calibration, and the pipeline's
+        sensor = SENSORS.build({"name": "gelsight_mini", "width": size[0], "height": size[1]})
+        sp = at_sensor_size(presses, sensor, list(range(48)))
+        assert sp.frames.shape == (48, size[1], size[0], 3)
