@@ -217,6 +217,7 @@ def main() -> None:
     intro = [
         f"Held-out presses {test[0]}-{test[-1]} of the {sensor_name} recording in the `taxim` package. "
         f"tnf's calibration at 320x240: {fit_summary(info, settings, '320x240')[0]}",
+        *(line for line in fit_summary(info, settings, "320x240") if line.startswith("Warning")),
         f"T-N: `tnf pipeline experiment=sim_gelsight_mini` (seed {args.seed}), the GelSight Mini's geometry calibrated "
         f"on this recording's presses {train[0]}-{train[-1]} at 160x120 with the same settings, a 5 mm bearing ball "
         "among its training objects; its touches of the indenter (a sphere "
