@@ -1,0 +1,71 @@
+"""How much of the calibrated simulator's gap on held-out presses is the annotated centres: a diagnostic.
+
+Fits the calibration on the training presses (as ``experiments/real_realism.py`` does at 320x240), then scores it
+on the held-out presses twice: at their annotated centres, and with each centre moved to where the fitted pattern
+best matches that press's real frame (``refine_radius`` pixels at 320x240 at most, the search the fit runs on the
+training presses). The second score uses the held-out frames to place the presses: it says what the optics reach
+with the poses right, and is no result of the method.
+
+    python experiments/real_centres.py --recording gelsight_mini
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--recording", default="gelsight_mini", choices=["gelsight_mini", "gelsight"])
+    ap.add_argument("--data-root", default=None, help="where taxim's presses are imported (default: temporary)")
+    args = ap.parse_args()
+
+    from omegaconf import OmegaConf
+    from real_realism import split
+
+    from tnf.real import report
+    from tnf.real.calibrate import FitSettings, _Design, calibration_rows, fit_calibration, press_surfaces
+    from tnf.real.presses import at_sensor_size, resolve_presses
+    from tnf.registry import SENSORS, from_dict
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    settings = from_dict(
+        FitSettings, OmegaConf.to_container(OmegaConf.load(conf / "calibrate" / "default.yaml").fit), where="fit"
+    )
+    presses = resolve_presses(f"taxim:{args.recording}", args.data_root or tempfile.mkdtemp(prefix="tnf-centres-"))
+    train, test = split(args.recording, len(presses), conf)
+    sensor, warp = SENSORS.build("gelsight_mini"), {"name": "warp_gel"}
+    cal, info = fit_calibration(presses, sensor, warp, train, settings)
+
+    # The held-out presses' best shifts against the fitted pattern, as the fit finds them for training presses.
+    sp = at_sensor_size(presses, sensor, test)
+    deep = dataclasses.replace(sp, depths=sp.depths * info["depth_scale"])
+    surfaces = press_surfaces(sensor, {**warp, "falloff": info["falloff"]}, deep, presses.radius_mm * 1e-3)
+    moved = _Design(sensor, sp, surfaces, settings).shifts(cal.table, info["blur_sigma"], sp, settings.refine_radius)
+    moved *= presses.width / sensor.width  # recording pixels
+    refined = list(presses.presses)
+    for k, i in enumerate(test):
+        col, row = refined[i].center
+        refined[i] = dataclasses.replace(refined[i], center=(col + moved[k, 0], row + moved[k, 1]))
+
+    print(f"held-out presses {test[0]}-{test[-1]}: centres moved by (columns, rows), recording pixels:")
+    print("  " + ", ".join(f"{i}: ({c:+.0f}, {r:+.0f})" for i, (c, r) in zip(test, moved, strict=True)))
+    print(f"  mean distance {float(np.hypot(*moved.T).mean()):.1f} px, largest {float(np.hypot(*moved.T).max()):.1f}")
+    for name, ps in (("annotated centres", presses), ("centres refined on the held-out frames", None)):
+        ps = ps or dataclasses.replace(presses, presses=tuple(refined))
+        rows, sp_rows = calibration_rows(ps, sensor, cal, info, warp, test, "diagnostic")
+        row = rows[2]  # the calibration at the sensor's size
+        means = report.mean_scores(report.score_rows([row], ps, sp_rows))[row.name]
+        print(
+            f"{name}: native crop SSIM {means['ssim_crop']:.3f}, MSE {means['mse_crop']:.0f}, sharpness "
+            f"{means['sharpness']:.2f}; contact region SSIM {means['ssim_region']:.3f}, MSE {means['mse_region']:.0f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
