@@ -15,6 +15,11 @@ device: steps/s and held-out PSNR per object for both (K analytic spheres of oth
     python bench/scenes.py --device cuda --batched 27 --steps 3000 --size 256 --views 48 --out bench-batched
     python bench/scenes.py --device cpu --batched 3 --steps 60 --size 24 --views 10 --tiny --eval-every 0
 
+The separate fits as a sweep of ``tnf fit-scene`` jobs sharing the device (W processes; the pool's wall time):
+
+    python bench/scenes.py --device cuda --batched 27 --steps 3000 --size 256 --views 48 --separate lightning \
+        --workers 6 --no-together --out bench-sweep
+
 Rendering only, of a scene fitted before (frames/s at 128 x 128 for batches of 64 poses, peak memory,
 samples per ray, and the difference to the dense quadrature over every sample):
 
