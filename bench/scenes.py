@@ -215,27 +215,44 @@ def main() -> None:
         print(f"{key:>36}: {value}")
 
 
+def _new_scene(params: dict, views, settings, seed: int):
+    """A hash grid of ``params`` for the training ``views``, seeded and carved as ``tnf fit-scene`` makes one."""
+    import torch
+
+    from tnf.scenes.fit import build_scene
+
+    torch.manual_seed(seed)
+    s = build_scene({"name": "hashgrid", **params}, views)
+    if settings.carve:
+        s.carve(*views.cameras(), views.rgba()[..., 3])
+    return s
+
+
+def _psnr(scene, views, settings, size: float | None) -> float:
+    """Held-out PSNR (dB) of ``scene`` on the test ``views``."""
+    import importlib.util
+
+    from tnf.scenes.fit import evaluate_scene
+
+    if importlib.util.find_spec("warp") is None:
+        scene.render_kernel = False  # render with the PyTorch encoding where Warp is not installed
+    return round(evaluate_scene(scene, views, settings.chunk, size)["metrics"]["psnr"], 2)
+
+
 def _fit_alone(folder: str, params: dict, settings, device: str, seed: int, size: float | None) -> tuple[float, float]:
     """One object fitted alone through ``fit_scene`` (as ``tnf fit-scene``): its training seconds and held-out
     PSNR. Runs in a worker process of ``--workers``."""
-    import importlib.util
-
     import torch
 
     from tnf.cameras import read_views
-    from tnf.scenes.fit import build_scene, evaluate_scene, fit_scene
+    from tnf.scenes.fit import fit_scene
 
     if device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = True
     train, test = read_views(Path(folder) / "transforms.json"), read_views(Path(folder) / "transforms_test.json")
-    torch.manual_seed(seed)
-    s = build_scene({"name": "hashgrid", **params}, train)
-    if settings.carve:
-        s.carve(*train.cameras(), train.rgba()[..., 3])
+    s = _new_scene(params, train, settings, seed)
     info = fit_scene(s, train, settings, "hashgrid", device, seed=seed)
-    if importlib.util.find_spec("warp") is None:
-        s.render_kernel = False
-    return info["train_seconds"], round(evaluate_scene(s, test, settings.chunk, size)["metrics"]["psnr"], 2)
+    return info["train_seconds"], _psnr(s, test, settings, size)
 
 
 def batched_bench(args: argparse.Namespace) -> None:
@@ -248,11 +265,17 @@ def batched_bench(args: argparse.Namespace) -> None:
 
     from tnf.cameras import read_views
     from tnf.scenes.batched import fit_batched
-    from tnf.scenes.fit import build_scene, evaluate_scene
     from tnf.scenes.settings import FitSettings
 
     if args.scene != "hashgrid":
         raise SystemExit("--batched fits hash grids only")
+    separate = args.separate
+    if separate == "auto":
+        separate = "lightning" if importlib.util.find_spec("lightning") else "loop"
+    if args.workers < 1 or (args.workers > 1 and separate != "lightning"):
+        raise SystemExit(f"--workers {args.workers}: give 1, or more with --separate lightning (got {separate})")
+    if args.no_together and separate == "skip":
+        raise SystemExit("--no-together with --separate skip leaves nothing to fit")
     if args.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = True
     K, out = args.batched, Path(args.out)
@@ -271,20 +294,11 @@ def batched_bench(args: argparse.Namespace) -> None:
     tests = [read_views(folder / "transforms_test.json") for folder, _ in data]
 
     def scene(k: int):
-        torch.manual_seed(args.seed)
-        s = build_scene({"name": "hashgrid", **params}, trains[k])
-        if settings.carve:
-            s.carve(*trains[k].cameras(), trains[k].rgba()[..., 3])
-        return s
+        return _new_scene(params, trains[k], settings, args.seed)
 
     def psnr(s, k: int) -> float:
-        if importlib.util.find_spec("warp") is None:
-            s.render_kernel = False  # render with the PyTorch encoding where Warp is not installed
-        return round(evaluate_scene(s, tests[k], settings.chunk, data[k][1])["metrics"]["psnr"], 2)
+        return _psnr(s, tests[k], settings, data[k][1])
 
-    separate = args.separate
-    if separate == "auto":
-        separate = "lightning" if importlib.util.find_spec("lightning") else "loop"
     # Warm-up (CUDA context, kernels, allocator) before anything is timed: a few steps of the batched loop.
     warm = FitSettings(**{**settings.__dict__, "steps": 3})
     fit_batched([scene(0)], trains[:1], warm, args.device, seed=args.seed)

@@ -24,7 +24,8 @@ the sharpness ratio, and the contact region at 320x240).
     python experiments/real_realism.py --recording gelsight --out results/real/gelsight
 
 Writes ``report.md``, ``realism.png`` and ``realism.json`` into ``--out``; the pipeline's data and the
-fine-tuned runs go to ``--data-root`` (default: a temporary folder; pass one to reuse its runs).
+fine-tuned runs go to ``--data-root`` (default: a temporary folder; pass one to reuse its runs; one recording per
+folder).
 """
 
 from __future__ import annotations
@@ -92,6 +93,21 @@ def calibration_name(recording: str) -> str:
     return "mini_160x120" if recording == "gelsight_mini" else f"{recording}_160x120"
 
 
+def claim_root(root: Path, recording: str) -> None:
+    """Mark ``root`` as holding ``recording``'s runs; exit with one line if it holds another recording's.
+
+    The pipeline names its pairs and its T-N by the sensor, not by the recording its calibration came from: two
+    recordings in one data root would share them."""
+    marker = root / "realism_recording.txt"
+    held = marker.read_text().strip() if marker.is_file() else None
+    if held is None and any((root / "models").glob("tn_cgan_plain-*")):  # a root of before the marker: the Mini's
+        held = "gelsight_mini"
+    if held is not None and held != recording:
+        sys.exit(f"--data-root {root} holds the runs of the {held} recording; give another for --recording {recording}")
+    root.mkdir(parents=True, exist_ok=True)
+    marker.write_text(recording + "\n")
+
+
 def run_pipeline(root: Path, seed: int, recording: str, train: list[int], test: list[int]) -> float:
     """``tnf pipeline experiment=sim_gelsight_mini`` up to training into ``root``, its calibration made on the
     training presses of ``recording``; its wall seconds.
@@ -131,6 +147,7 @@ def main() -> None:
 
     started = time.perf_counter()
     root = Path(args.data_root or tempfile.mkdtemp(prefix="tnf-realism-"))
+    claim_root(root, args.recording)
     out = Path(args.out or f"results/real/{args.recording}")
     sensor_name = RECORDINGS[args.recording]
     out.mkdir(parents=True, exist_ok=True)

@@ -444,11 +444,14 @@ def test_depth_factors_too_deep_for_the_sensor_are_left_out_of_the_search(taxim_
     kept, skipped = feasible_depth_scales([1.0, 1.5, 2.0], sp, shallow, radius)
     assert kept == [1.0, 1.5]
     assert len(skipped) == 1 and skipped[0].startswith("calibrate.fit.depth_scales: x2 left out: press ")
-    assert "max_penetration" in skipped[0]
-    with pytest.raises(TnfError, match=r"^calibrate.fit.depth_scales: every factor \[2.0\]"):
+    assert skipped[0].endswith(f"past the sensor's max_penetration {1.6e3 * deepest:g} mm")
+    with pytest.raises(TnfError, match=r"^calibrate.fit.depth_scales: every factor of \[2.0\] presses too deep: x2"):
         feasible_depth_scales([2.0], sp, shallow, radius)
     # The indenter's radius bounds the factor too: no press goes past the ball's equator.
-    assert feasible_depth_scales([1.0, 1e3], sp, SENSORS.build("gelsight_mini"), radius)[0] == [1.0]
+    deep_gel = SENSORS.build({"name": "gelsight_mini", "max_penetration": 10 * radius})
+    factor = 1.1 * radius / deepest  # deeper than the ball's radius, within that gel
+    kept, too_deep = feasible_depth_scales([1.0, factor], sp, deep_gel, radius)
+    assert kept == [1.0] and too_deep[0].endswith("past the indenter's radius 2 mm")
 
     # The fit runs on the factors left, says which it left out, and calls the largest one left no edge.
     cal, info = fit_calibration(

@@ -4,6 +4,8 @@ taxim's other recording (the check that the procedure carries over) fits the sen
 import importlib.util
 from pathlib import Path
 
+import pytest
+
 from tnf.real.presses import at_sensor_size, import_taxim
 from tnf.registry import SENSORS
 
@@ -37,3 +39,19 @@ def test_taxims_gelsight_recording_fits_the_minis_geometry(tmp_path):
         sensor = SENSORS.build({"name": "gelsight_mini", "width": size[0], "height": size[1]})
         sp = at_sensor_size(presses, sensor, list(range(48)))
         assert sp.frames.shape == (48, size[1], size[0], 3)
+
+
+def test_a_data_root_holds_one_recording(tmp_path):
+    script = _script()
+    root = tmp_path / "root"
+    script.claim_root(root, "gelsight")
+    script.claim_root(root, "gelsight")  # the same recording again: its runs are reused
+    with pytest.raises(SystemExit, match="holds the runs of the gelsight recording; give another for --recording"):
+        script.claim_root(root, "gelsight_mini")
+    assert (root / "realism_recording.txt").read_text() == "gelsight\n"  # left as it was
+    # A root written before the marker, with the pipeline's T-N in it: the Mini's.
+    old = tmp_path / "old"
+    (old / "models" / "tn_cgan_plain-gelsight_mini-hashgrid-seed0-0123abcd").mkdir(parents=True)
+    with pytest.raises(SystemExit, match="holds the runs of the gelsight_mini recording"):
+        script.claim_root(old, "gelsight")
+    script.claim_root(old, "gelsight_mini")

@@ -263,21 +263,29 @@ def feasible_depth_scales(
 
     Raises a one-line TnfError when no factor is left."""
     k = int(np.argmax(sp.depths))
-    deepest = float(sp.depths[k])
-    limit = min(float(sensor.cfg.max_penetration), radius_m)
-    kept = [float(s) for s in scales if deepest * s <= sensor.cfg.max_penetration and deepest * s < radius_m]
+    deepest, press = float(sp.depths[k]), sp.indices[k]
+    gel = float(sensor.cfg.max_penetration)
+
+    def past(depth: float) -> str | None:
+        """What a press ``depth`` (metres) deep goes past, if anything."""
+        if depth > gel:
+            return f"the sensor's max_penetration {1e3 * gel:g} mm"
+        if depth >= radius_m:
+            return f"the indenter's radius {1e3 * radius_m:g} mm"
+        return None
+
+    kept = [float(s) for s in scales if past(deepest * s) is None]
     skipped = [
-        f"calibrate.fit.depth_scales: x{s:g} left out: press {sp.indices[k]}, {1e3 * deepest:.2f} mm deep, would go "
-        f"{1e3 * deepest * s:.2f} mm, past the sensor's max_penetration {1e3 * sensor.cfg.max_penetration:g} mm "
-        f"or the indenter's radius {1e3 * radius_m:g} mm"
+        f"calibrate.fit.depth_scales: x{s:g} left out: press {press}, {1e3 * deepest:.2f} mm deep, would go "
+        f"{1e3 * deepest * s:.2f} mm, past {past(deepest * s)}"
         for s in scales
-        if float(s) not in kept
+        if past(deepest * s) is not None
     ]
     if not kept:
+        smallest = float(min(scales))
         raise TnfError(
-            f"calibrate.fit.depth_scales: every factor {list(scales)} presses press {sp.indices[k]} "
-            f"({1e3 * deepest:.2f} mm deep) past {1e3 * limit:g} mm (the sensor's max_penetration or the "
-            f"indenter's radius): add a smaller factor"
+            f"calibrate.fit.depth_scales: every factor of {list(scales)} presses too deep: x{smallest:g} takes press "
+            f"{press} ({1e3 * deepest:.2f} mm deep) past {past(deepest * smallest)}; add a smaller factor"
         )
     return kept, skipped
 

@@ -57,6 +57,7 @@ def run(cfg: Any) -> dict[str, Any] | None:
                 presses, sensor, simulator, train, test, settings, tmp,
                 grid_presses=c.grid_presses, on_step=lambda _: bar.advance(task),
             )  # fmt: skip
+        bar.update(task, total=len(record["fit"]["search"]))  # fewer where depth factors were left out
 
     for line in record["fit"]["edges"]:
         console.print(f"[yellow]warning:[/] {line}")
