@@ -1,4 +1,5 @@
 import json
+import pytest
 
 import numpy as np
 from PIL import Image
@@ -56,3 +57,51 @@ def test_a_speed_setting_leaves_the_touch_items_hash_alone():
     assert config_hash(threads) == config_hash(key)
     falloff = item_config(compose("touch", ["simulator.falloff=0.6"]), digit)
     assert config_hash(falloff) != config_hash(key)
+
+
+def test_lateral_offset_puts_a_balls_contacts_off_the_gels_centre(data_root):
+    """A bearing ball's presses all land at the gel's centre; with touch.lateral_offset they spread over the gel, and the
+    setting keys the item only when it is on."""
+    from tnf.artifacts import config_hash
+    from tnf.errors import TnfError
+    from tnf.registry import SENSORS
+    from tnf.stages.touch import item_config
+    from tnf.testing import compose
+
+    def offsets(extra):
+        assert (
+            main(
+                [
+                    "touch",
+                    "debug=tiny",
+                    "object=bearing_ball",
+                    "sensor=gelsight_mini",
+                    "progress=false",
+                    "device=cpu",
+                    *extra,
+                ]
+            )
+            == 0
+        )
+        m = json.loads(
+            (data_root / "touch" / "gelsight_mini" / "builtin" / "bearing_ball" / "manifest.json").read_text()
+        )
+        out = []
+        for t in m["touches"]:
+            c2w = np.array(t["contact_c2w"])
+            local = c2w[:3, :3].T @ (np.array(t["contact_point"]) - c2w[:3, 3])  # contact in the sensor's frame
+            out.append(local[:2])
+        return np.array(out)
+
+    mini = SENSORS.build("gelsight_mini")
+    centred = offsets([])
+    assert np.abs(centred).max() < 2e-4  # every press at the centre, to the gel grid's half cell
+    spread = offsets(["touch.lateral_offset=1.0"])
+    assert np.abs(spread[:, 0]).max() > 0.25 * mini.cfg.gel_width / 2
+    assert np.abs(spread[:, 1]).max() > 0.25 * mini.cfg.gel_height / 2
+    assert (np.abs(spread[:, 0]) <= mini.cfg.gel_width / 2 + 1e-4).all()
+    key = item_config(compose("touch"), mini)
+    assert config_hash(item_config(compose("touch", ["touch.lateral_offset=0.0"]), mini)) == config_hash(key)
+    assert config_hash(item_config(compose("touch", ["touch.lateral_offset=0.5"]), mini)) != config_hash(key)
+    with pytest.raises(TnfError, match="lateral_offset"):
+        item_config(compose("touch", ["touch.lateral_offset=1.5"]), mini)

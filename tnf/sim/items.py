@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from tnf.artifacts import require_space
-from tnf.registry import FROM_YAML, SIMULATORS, SettingError, at_least, yaml_defaults
+from tnf.registry import FROM_YAML, SIMULATORS, SettingError, at_least, yaml_defaults, yaml_field
 from tnf.runtime import progress
 from tnf.sim.forces import force_sampler
 from tnf.sim.touch import collect
@@ -54,12 +54,20 @@ class TouchSettings:
     """Half-angle of the held-out cone, degrees (training and validation starts lie outside it); 0: no cone."""
     max_attempts: int = FROM_YAML
     """Give up after ``max_attempts * n`` tries without ``n`` touches that made contact."""
+    lateral_offset: float = yaml_field(identity=lambda s: s.lateral_offset != 0)
+    """How far each press lands off the gel's centre, as a fraction of the gel's half-width and half-height: each
+    start pose moves sideways by a uniform draw within that box. 0 (the default): every press aims at the gel's
+    centre, and the setting is no part of an item's identity."""
 
     def validate(self) -> None:
         at_least(self, 0, "n_touches", "n_val", "n_novel_view", "max_attempts")
         at_least(self, 1, "batch_size")
         if self.radius <= 0:
             raise SettingError("radius", f"must be > 0 metres, got {self.radius}")
+        if not 0.0 <= self.lateral_offset <= 1.0:
+            raise SettingError(
+                "lateral_offset", f"must be in [0, 1] (a fraction of the gel), got {self.lateral_offset}"
+            )
 
 
 @dataclass
@@ -223,4 +231,5 @@ def _collect(job: TouchJob, sim: Any, mesh: Any, count: int, rng: Any, split: st
         axis=list(tc.novel_view_axis), cone_deg=tc.novel_view_cone,
         inside=split == "novel_view", up=list(tc.up), random_roll=tc.random_roll,
         seed=seed, max_attempts=tc.max_attempts,
+        lateral=(tc.lateral_offset * job.sensor.cfg.gel_width / 2, tc.lateral_offset * job.sensor.cfg.gel_height / 2),
     )  # fmt: skip

@@ -57,14 +57,23 @@ def start_poses(
     center: Sequence[float] = (0.0, 0.0, 0.0),
     up: Sequence[float] = (0.0, 0.0, 1.0),
     random_roll: bool = False,
+    lateral: Sequence[float] = (0.0, 0.0),
 ) -> np.ndarray:
-    """``[n, 4, 4]`` sensor poses at ``center + radius * direction``, looking at ``center``."""
+    """``[n, 4, 4]`` sensor poses at ``center + radius * direction``, looking at ``center``.
+
+    ``lateral`` ``(x, y)``, metres: each pose then moves along its own image x and y axes by amounts drawn
+    uniformly from ``[-x, x]`` and ``[-y, y]``, so that the press lands off the gel's centre (a small object's
+    contact then appears anywhere on the gel, not only in the middle). ``(0, 0)`` draws nothing."""
     c = np.asarray(center, dtype=np.float64)
+    half = np.asarray(lateral, dtype=np.float64)
     poses = []
     for d in directions:
         m = look_at(c + radius * d, c, up, fallback="parallel")
         if random_roll:
             m = roll_about_view(m, rng.uniform(0, 2 * np.pi))
+        if half.any():
+            dx, dy = rng.uniform(-half, half)
+            m[:3, 3] += dx * m[:3, 0] + dy * m[:3, 1]
         poses.append(m)
     return np.stack(poses)
 
@@ -95,11 +104,13 @@ def collect(
     random_roll: bool,
     seed: int,
     max_attempts: int,
+    lateral: Sequence[float] = (0.0, 0.0),
 ) -> Collected:
     """Simulate touches in batches until ``n`` made contact; touches without contact are discarded and counted.
 
     ``force`` is every press's force (newtons), or a sampler ``k -> [k]`` forces called once per batch (each
-    kept touch's target then comes back in ``target_force``).
+    kept touch's target then comes back in ``target_force``). ``lateral``: the start poses' sideways spread
+    (``start_poses``).
 
     Raises a TnfError when fewer than ``n`` touches hit after ``max_attempts * n`` tries.
     """
@@ -116,7 +127,7 @@ def collect(
             )
         b = min(batch_size, max(n - got, 1))
         dirs = sphere_directions(rng, b, axis, cone_deg, inside)
-        poses = start_poses(rng, dirs, radius, up=up, random_roll=random_roll)
+        poses = start_poses(rng, dirs, radius, up=up, random_roll=random_roll, lateral=lateral)
         f = force(b) if callable(force) else force
         out = sim.press(mesh, poses, f, seed=seed * 100003 + k)
         k += 1
