@@ -1,7 +1,7 @@
 import json
-import pytest
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from tnf.cli import main
@@ -60,8 +60,8 @@ def test_a_speed_setting_leaves_the_touch_items_hash_alone():
 
 
 def test_lateral_offset_puts_a_balls_contacts_off_the_gels_centre(data_root):
-    """A bearing ball's presses all land at the gel's centre; with touch.lateral_offset they spread over the gel, and the
-    setting keys the item only when it is on."""
+    """A bearing ball's presses all land at the gel's centre; with touch.lateral_offset they spread over the gel,
+    and the setting keys the item only when it is on."""
     from tnf.artifacts import config_hash
     from tnf.errors import TnfError
     from tnf.registry import SENSORS
