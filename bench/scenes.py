@@ -15,6 +15,10 @@ device: steps/s and held-out PSNR per object for both (K analytic spheres of oth
     python bench/scenes.py --device cuda --batched 27 --steps 3000 --size 256 --views 48 --out bench-batched
     python bench/scenes.py --device cpu --batched 3 --steps 60 --size 24 --views 10 --tiny --eval-every 0
 
+Where a batched step spends its time (the top operators of a short fit together; ``--separate skip``):
+
+    python bench/scenes.py --device cuda --batched 27 --steps 200 --size 256 --views 48 --separate skip --profile
+
 The separate fits as a sweep of ``tnf fit-scene`` jobs sharing the device (W processes; the pool's wall time):
 
     python bench/scenes.py --device cuda --batched 27 --steps 3000 --size 256 --views 48 --separate lightning \
@@ -29,6 +33,7 @@ samples per ray, and the difference to the dense quadrature over every sample):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -115,7 +120,12 @@ def main() -> None:
     ap.add_argument("--compile", action="store_true", help="torch.compile the hash grid's rendering field")
     ap.add_argument("--march-kernel", choices=["auto", "on", "off"], default="auto", help="Warp march selection")
     ap.add_argument("--distortion-weight", type=float, default=None, help="fit.distortion_weight (default: fit's)")
-    ap.add_argument("--profile", action="store_true", help="with --load: print the top operators of one batch")
+    ap.add_argument(
+        "--profile",
+        action="store_true",
+        help="with --load: print the top operators of one batch; with --batched: of the whole fit together "
+        "(give few --steps)",
+    )
     ap.add_argument("--batched", type=int, default=0, help="fit K objects together and one after another: compare")
     ap.add_argument("--objects", default=None, help="with --batched: comma-separated built-in objects (else spheres)")
     ap.add_argument(
@@ -340,7 +350,8 @@ def batched_bench(args: argparse.Namespace) -> None:
     together_seconds = peak = None
     if not args.no_together:
         scenes = [scene(k) for k in range(K)]
-        infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed)
+        with _profiled(args.profile, args.device):
+            infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed)
         together_seconds = infos[0]["train_seconds"]
         print(f"together: {together_seconds:.1f} s", flush=True)
         peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
@@ -379,6 +390,23 @@ def batched_bench(args: argparse.Namespace) -> None:
     for key, value in figures.items():
         if key != "per_object":
             print(f"{key:>36}: {value}")
+
+
+@contextlib.contextmanager
+def _profiled(on: bool, device: str):
+    """With ``on``, profile the block and print its top 25 operators by their own time on ``device`` (the
+    profiler's overhead inflates the timed seconds: read the shares, not the total)."""
+    if not on:
+        yield
+        return
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = device.startswith("cuda")
+    acts = [ProfilerActivity.CPU, ProfilerActivity.CUDA] if cuda else [ProfilerActivity.CPU]
+    with profile(activities=acts) as prof:
+        yield
+    key = "self_cuda_time_total" if cuda else "self_cpu_time_total"
+    print(prof.key_averages().table(sort_by=key, row_limit=25), flush=True)
 
 
 def load_scene_for_rendering(path: str | Path, args: argparse.Namespace):

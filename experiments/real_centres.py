@@ -29,8 +29,8 @@ def main() -> None:
     from real_realism import split
 
     from tnf.real import report
-    from tnf.real.calibrate import FitSettings, _Design, calibration_rows, fit_calibration, press_surfaces
-    from tnf.real.presses import at_sensor_size, resolve_presses
+    from tnf.real.calibrate import FitSettings, calibration_rows, centre_shifts, fit_calibration
+    from tnf.real.presses import resolve_presses
     from tnf.registry import SENSORS, from_dict
 
     conf = Path(__file__).resolve().parents[1] / "conf"
@@ -43,11 +43,15 @@ def main() -> None:
     cal, info = fit_calibration(presses, sensor, warp, train, settings)
 
     # The held-out presses' best shifts against the fitted pattern, as the fit finds them for training presses.
-    sp = at_sensor_size(presses, sensor, test)
-    deep = dataclasses.replace(sp, depths=sp.depths * info["depth_scale"])
-    surfaces = press_surfaces(sensor, {**warp, "falloff": info["falloff"]}, deep, presses.radius_mm * 1e-3)
-    moved = _Design(sensor, sp, surfaces, settings).shifts(cal.table, info["blur_sigma"], sp, settings.refine_radius)
-    moved *= presses.width / sensor.width  # recording pixels
+    moved = centre_shifts(presses, sensor, warp, cal, info, test, settings)
+    # The training presses' shifts, as the fit applied them: where the ball was, against where it is annotated.
+    fitted = np.asarray(info["center_shifts_px"]) * presses.width / sensor.width
+    for name, idx, shift in (("training", train, fitted), ("held-out", test, moved)):
+        annotated = np.array([presses.presses[i].center for i in idx])
+        print(
+            f"{name} presses: annotated centres spread {annotated.std(0).round(1).tolist()} px (columns, rows), "
+            f"refined {(annotated + shift).std(0).round(1).tolist()}"
+        )
     refined = list(presses.presses)
     for k, i in enumerate(test):
         col, row = refined[i].center

@@ -11,7 +11,7 @@ from PIL import Image
 from tnf.cli import main
 from tnf.errors import TnfError
 from tnf.real import realism
-from tnf.real.calibrate import FitSettings, calibrate_sensor, fit_calibration
+from tnf.real.calibrate import FitSettings, calibrate_sensor, centre_shifts, fit_calibration
 from tnf.real.presses import at_sensor_size, contact_radius_from_depth, disk_masks, sphere_gaps
 from tnf.registry import SENSORS, SIMULATORS
 from tnf.sensors.calibration import FILE, Calibration, load_calibration
@@ -417,6 +417,27 @@ def test_refined_centres_undo_a_shift_of_the_annotations(taxim_presses, sensor, 
     assert moved_by[0, 0] - moved_by[1:, 0].mean() == pytest.approx(-6, abs=1.5)
     assert np.abs(moved_by[:, 1]).max() <= 1
     assert len(shifted["search"]) == 2  # the search ran again on the refined centres
+
+
+def test_centre_shifts_find_a_moved_annotation_of_another_press(taxim_presses, sensor, fitted, tmp_path):
+    """A press outside the fit, its annotation moved 6 px (sensor size) to the right: the fitted pattern's best
+    match moves it back by those 6 px, in the recording's pixels, and leaves its rows alone."""
+    from tnf.real.presses import load_presses
+
+    meta = json.loads((taxim_presses.folder / "presses.json").read_text())
+    k = taxim_presses.width / sensor.width
+    for p in meta["presses"]:
+        p["image"] = str(taxim_presses.folder / p["image"])
+    meta["presses"][3]["center_px"][0] += 6 * k
+    meta["background"] = str(taxim_presses.folder / meta["background"])
+    (tmp_path / "presses.json").write_text(json.dumps(meta))
+    cal, info = fitted
+    st = FitSettings(**{**TINY, "refine_radius": 10})
+    as_given = centre_shifts(taxim_presses, sensor, WARP, cal, info, [3, 4], st)
+    moved = centre_shifts(load_presses(tmp_path), sensor, WARP, cal, info, [3, 4], st)
+    assert as_given.shape == (2, 2) and np.abs(as_given).max() <= 10 * k
+    assert moved[0, 0] - as_given[0, 0] == pytest.approx(-6 * k, abs=k)
+    assert moved[0, 1] == as_given[0, 1] and np.array_equal(moved[1], as_given[1])
 
 
 def test_search_edges_name_the_list_to_extend():

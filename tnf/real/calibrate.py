@@ -406,6 +406,26 @@ def fit_calibration(
     return cal, info
 
 
+def centre_shifts(
+    presses: PressSet,
+    sensor: Sensor,
+    simulator: dict[str, Any],
+    cal: Calibration,
+    info: dict[str, Any],
+    indices: Sequence[int],
+    settings: FitSettings,
+) -> np.ndarray:
+    """Per press of ``indices``, the shift ``[N, 2]`` ``(columns, rows)``, in the recording's pixels, that moves
+    its annotated centre to where the calibration's pattern best fits its frame: the search the fit runs on its
+    training presses (``settings.refine_radius`` pixels at the sensor's size at most). A diagnostic: on held-out
+    presses it reads their frames."""
+    sp = at_sensor_size(presses, sensor, indices)
+    deep = dataclasses.replace(sp, depths=sp.depths * info["depth_scale"])
+    surfaces = press_surfaces(sensor, {**simulator, "falloff": info["falloff"]}, deep, presses.radius_mm * 1e-3)
+    moved = _Design(sensor, sp, surfaces, settings).shifts(cal.table, info["blur_sigma"], sp, settings.refine_radius)
+    return moved * presses.width / sensor.width
+
+
 NO_CONTACT = "no contact (f0)"
 UNCALIBRATED = "tnf uncalibrated"
 CALIBRATED = "tnf calibrated"
