@@ -142,3 +142,21 @@ def test_warp_kernel_equals_the_pytorch_encoding():
     assert enc.n_dense == 1 and out.shape == ref.shape == (500, 8)
     assert torch.allclose(out, ref, atol=1e-5)
     assert torch.allclose(half, ref, atol=5e-3)  # float16 rows: 3 significant digits
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_warp_encoding_split_over_cpu_threads_is_the_one_launch(threads):
+    """On the CPU the encoding runs as several launches on threads, each a block of samples: every feature is
+    bit for bit the one launch's, whatever the blocks."""
+    from tnf.scenes import hash_kernel
+
+    if not hash_kernel.available(torch.device("cpu")):
+        pytest.skip("Warp does not run here")
+    enc = _encoding(levels=4, max_resolution=64)
+    P = 3 * hash_kernel.CPU_SPLIT_MIN + 5  # blocks of unequal size
+    x = torch.rand(P, 3, generator=torch.Generator().manual_seed(2))
+    one = hash_kernel.hash_encode(x, enc.table, enc.res, enc.n_dense, enc.table_size, threads=1)
+    split = hash_kernel.hash_encode(x, enc.table, enc.res, enc.n_dense, enc.table_size, threads=threads)
+    assert split.shape == (P, 8) and torch.equal(split, one)
+    with torch.no_grad():
+        assert torch.allclose(one[-100:], enc(x[-100:]), atol=1e-5)  # the last block is encoded too

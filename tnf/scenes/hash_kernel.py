@@ -204,14 +204,26 @@ def available(device: torch.device) -> bool:
 _OK: dict[str, bool] = {}
 
 
+CPU_SPLIT_MIN = 1 << 15
+"""Samples below which a CPU encoding runs as one launch (splitting it costs more than it saves)."""
+_CPU_LOADED: list[bool] = []
+
+
 def hash_encode(
-    x: torch.Tensor, table: torch.Tensor, resolutions: torch.Tensor, n_dense: int, table_size: int
+    x: torch.Tensor,
+    table: torch.Tensor,
+    resolutions: torch.Tensor,
+    n_dense: int,
+    table_size: int,
+    threads: int | None = None,
 ) -> torch.Tensor:
     """Hash-grid features [P, L * F] (float32) at positions x [P, 3] in [0, 1]^3.
 
     ``table``: [L * T, F] float32 or float16 rows (level l's rows start at l * T); ``resolutions``: [L]
     float32 cells per axis; levels below ``n_dense`` are indexed directly, the others hashed into T rows.
-    All tensors on one device (CPU or CUDA); nothing is differentiated.
+    All tensors on one device (CPU or CUDA); nothing is differentiated. On the CPU, where one Warp launch runs
+    on one core, ``threads`` launches (default: torch's thread count) each encode a block of samples at once;
+    every sample's features are the same either way.
     """
     init_warp()  # once per process; a no-op after
     P, L, F = x.shape[0], resolutions.shape[0], table.shape[1]
@@ -219,14 +231,27 @@ def hash_encode(
     if P == 0:
         return out
     x = x.detach().float().contiguous()
-    table = table.detach().contiguous()
-    args = [
-        wp.from_torch(x),
-        wp.from_torch(table),
+    shared = [
+        wp.from_torch(table.detach().contiguous()),
         wp.from_torch(resolutions.detach().float().contiguous()),
         int(n_dense),
         int(table_size),
-        wp.from_torch(out),
     ]
-    _launch(_encode, (P, L), args, x)
+
+    def encode(rows: slice) -> None:
+        xs, outs = x[rows], out[rows]
+        _launch(_encode, (xs.shape[0], L), [wp.from_torch(xs), *shared, wp.from_torch(outs)], x)
+
+    n = 1 if x.is_cuda else min(threads or torch.get_num_threads(), P // CPU_SPLIT_MIN)
+    if n <= 1:
+        encode(slice(0, P))
+        return out
+    if not _CPU_LOADED:  # load (or compile) the module on this thread, not in several at once
+        encode(slice(0, 1))
+        _CPU_LOADED.append(True)
+    from concurrent.futures import ThreadPoolExecutor
+
+    edges = [P * k // n for k in range(n + 1)]
+    with ThreadPoolExecutor(n) as pool:  # Warp releases the GIL while a CPU kernel runs
+        list(pool.map(encode, [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]))
     return out
