@@ -395,19 +395,24 @@ def test_slope_power_round_trips_and_changes_the_digest(sensor, tmp_path):
     assert back.digest() != _hand_calibration(sensor, _tables()["bumpy"]).digest()
 
 
+def _annotation_moved(presses, press, columns, folder):
+    """``presses`` read again from ``folder`` with press ``press``'s annotated centre moved ``columns`` recording
+    pixels to the right (the frames stay where they are)."""
+    from tnf.real.presses import load_presses
+
+    meta = json.loads((presses.folder / "presses.json").read_text())
+    for p in meta["presses"]:
+        p["image"] = str(presses.folder / p["image"])
+    meta["presses"][press]["center_px"][0] += columns
+    meta["background"] = str(presses.folder / meta["background"])
+    (folder / "presses.json").write_text(json.dumps(meta))
+    return load_presses(folder)
+
+
 def test_refined_centres_undo_a_shift_of_the_annotations(taxim_presses, sensor, tmp_path):
     """Press 0's annotation moved 6 px (sensor size) to the right: the refinement moves it back, against the
     others (the first fit's pattern, which the presses are matched to, takes up a third of the move)."""
-    meta = json.loads((taxim_presses.folder / "presses.json").read_text())
-    k = taxim_presses.width / sensor.width
-    for p in meta["presses"]:
-        p["image"] = str(taxim_presses.folder / p["image"])
-    meta["presses"][0]["center_px"][0] += 6 * k
-    meta["background"] = str(taxim_presses.folder / meta["background"])
-    (tmp_path / "presses.json").write_text(json.dumps(meta))
-    from tnf.real.presses import load_presses
-
-    moved = load_presses(tmp_path)
+    moved = _annotation_moved(taxim_presses, 0, 6 * taxim_presses.width / sensor.width, tmp_path)
     st = FitSettings(**{**TINY, "refine_radius": 10})
     _, as_given = fit_calibration(taxim_presses, sensor, WARP, TRAIN, st)
     _, shifted = fit_calibration(moved, sensor, WARP, TRAIN, st)
@@ -422,19 +427,11 @@ def test_refined_centres_undo_a_shift_of_the_annotations(taxim_presses, sensor, 
 def test_centre_shifts_find_a_moved_annotation_of_another_press(taxim_presses, sensor, fitted, tmp_path):
     """A press outside the fit, its annotation moved 6 px (sensor size) to the right: the fitted pattern's best
     match moves it back by those 6 px, in the recording's pixels, and leaves its rows alone."""
-    from tnf.real.presses import load_presses
-
-    meta = json.loads((taxim_presses.folder / "presses.json").read_text())
     k = taxim_presses.width / sensor.width
-    for p in meta["presses"]:
-        p["image"] = str(taxim_presses.folder / p["image"])
-    meta["presses"][3]["center_px"][0] += 6 * k
-    meta["background"] = str(taxim_presses.folder / meta["background"])
-    (tmp_path / "presses.json").write_text(json.dumps(meta))
     cal, info = fitted
     st = FitSettings(**{**TINY, "refine_radius": 10})
     as_given = centre_shifts(taxim_presses, sensor, WARP, cal, info, [3, 4], st)
-    moved = centre_shifts(load_presses(tmp_path), sensor, WARP, cal, info, [3, 4], st)
+    moved = centre_shifts(_annotation_moved(taxim_presses, 3, 6 * k, tmp_path), sensor, WARP, cal, info, [3, 4], st)
     assert as_given.shape == (2, 2) and np.abs(as_given).max() <= 10 * k
     assert moved[0, 0] - as_given[0, 0] == pytest.approx(-6 * k, abs=k)
     assert moved[0, 1] == as_given[0, 1] and np.array_equal(moved[1], as_given[1])
