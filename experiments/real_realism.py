@@ -12,7 +12,8 @@ geometry (``conf/sensor/gelsight_mini.yaml``); taxim's recordings share its imag
 3. T-N: ``tnf pipeline experiment=sim_gelsight_mini`` up to training (the Mini calibrated at 160x120 with the
    same settings, five objects with a 5 mm bearing ball among the training ones, T-N trained on the calibrated
    simulator's pairs), then the indenter rendered as RGB-D at each held-out press's pose with the mesh scene and
-   fed to that generator.
+   fed to that generator. ``--experiment sim_gelsight_mini_gpu --device cuda`` trains it at sim_digit's scale
+   instead (28 objects, the Mini at 320x240); ``--no-taxim`` leaves out Taxim where JAX is missing.
 4. T-N fine-tuned on the real frames of the training presses (``transfer=real``'s settings) and the same network
    from scratch on those frames (FS). With ``--tn-plus``, also T-N+ (simulated pairs kept in the mix; about a
    minute more).
@@ -22,6 +23,8 @@ the sharpness ratio, and the contact region at 320x240).
 
     python experiments/real_realism.py --out results/real/gelsight_mini
     python experiments/real_realism.py --recording gelsight --out results/real/gelsight
+    python experiments/real_realism.py --experiment sim_gelsight_mini_gpu --device cuda --no-taxim \
+        --out results/real/gelsight_mini_gpu
 
 Writes ``report.md``, ``realism.png`` and ``realism.json`` into ``--out``; the pipeline's data and the
 fine-tuned runs go to ``--data-root`` (default: a temporary folder; pass one to reuse its runs; one recording per
@@ -88,9 +91,29 @@ def taxim_frames(recording: str, presses, indices, with_shadow: bool = True) -> 
     return np.stack(out), spent / len(indices)
 
 
-def calibration_name(recording: str) -> str:
-    """The name of the pipeline's 160x120 calibration (``calibrate.name``) made on ``recording``."""
-    return "mini_160x120" if recording == "gelsight_mini" else f"{recording}_160x120"
+def calibration_name(recording: str, width: int, height: int) -> str:
+    """The name of the pipeline's calibration at ``width x height`` (``calibrate.name``) made on ``recording``."""
+    return f"mini_{width}x{height}" if recording == "gelsight_mini" else f"{recording}_{width}x{height}"
+
+
+def pipeline_settings(experiment: str, seed: int, overrides: list[str]) -> dict:
+    """What this script takes from the pipeline's config: the sensor's size, the generator's run family (the
+    model `tnf train` names, ``tnf.generators.names``) and the trainer (Lightning's arguments)."""
+    from omegaconf import OmegaConf
+
+    from tnf.generators.names import generator_option, run_family
+    from tnf.stages.train import dataset_names
+    from tnf.testing.config import hydra_job
+
+    with hydra_job("pipeline", [f"experiment={experiment}", f"seed={seed}", *overrides]) as cfg:
+        option = generator_option(str(cfg.generator.name))
+        family = run_family(option, dataset_names(cfg)[0], seed)
+        return {
+            "width": int(cfg.sensor.width),
+            "height": int(cfg.sensor.height),
+            "family": family,
+            "trainer": OmegaConf.to_container(cfg.trainer, resolve=True),
+        }
 
 
 def claim_root(root: Path, recording: str) -> None:
@@ -108,19 +131,23 @@ def claim_root(root: Path, recording: str) -> None:
     marker.write_text(recording + "\n")
 
 
-def run_pipeline(root: Path, seed: int, recording: str, train: list[int], test: list[int]) -> float:
-    """``tnf pipeline experiment=sim_gelsight_mini`` up to training into ``root``, its calibration made on the
-    training presses of ``recording``; its wall seconds.
+def run_pipeline(
+    root: Path, seed: int, recording: str, train: list[int], test: list[int], experiment: str,
+    overrides: list[str], size: tuple[int, int],
+) -> float:  # fmt: skip
+    """``tnf pipeline experiment=EXPERIMENT`` up to training into ``root``, its calibration made on the training
+    presses of ``recording``; its wall seconds.
 
     Run alone: beside the 320x240 calibration, both slowed each other down on 2 cores (the scene fits took twice
     as long) and the whole script gained nothing."""
     cmd = [
-        sys.executable, "-m", "tnf.cli", "pipeline", "experiment=sim_gelsight_mini", f"data_root={root}",
+        sys.executable, "-m", "tnf.cli", "pipeline", f"experiment={experiment}", f"data_root={root}",
         f"seed={seed}", "progress=false", f"pipeline.stages={PIPELINE}",
     ]  # fmt: skip
     if recording != "gelsight_mini":  # the Mini's run keeps the experiment's settings, and so its identity
         cmd += [f"calibrate.presses=taxim:{recording}", f"calibrate.train={train}", f"calibrate.test={test}"]
-        cmd += [f"calibrate.name={calibration_name(recording)}"]
+        cmd += [f"calibrate.name={calibration_name(recording, *size)}"]
+    cmd += overrides
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, env={**os.environ, "TNF_DATA": str(root)})
     return time.perf_counter() - t0
@@ -133,6 +160,15 @@ def main() -> None:
     ap.add_argument("--data-root", default=None, help="the pipeline's and fine-tuning's data (default: temporary)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tn-plus", action="store_true", help="also T-N+: fine-tuned with simulated pairs kept")
+    ap.add_argument("--experiment", default="sim_gelsight_mini", help="the pipeline that trains T-N")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where T-N and the fine-tunings train")
+    ap.add_argument("--no-taxim", action="store_true", help="leave Taxim's row out (it needs JAX)")
+    ap.add_argument(
+        "--no-simulator", action="store_true",
+        help="leave the simulator's rows out (their fit and renders run Warp on the CPU); the pipeline's own "
+        "calibration is still made, or found in --data-root",
+    )  # fmt: skip
+    ap.add_argument("overrides", nargs="*", help="more settings of the pipeline (key=value), e.g. for a small run")
     args = ap.parse_args()
 
     from omegaconf import OmegaConf
@@ -159,34 +195,45 @@ def main() -> None:
     wall: dict[str, float] = {}
 
     # 1. tnf's calibration at 320x240.
-    t0 = time.perf_counter()
     sensor = SENSORS.build("gelsight_mini")
-    warp = {"name": "warp_gel"}
-    cal, info = fit_calibration(presses, sensor, warp, train, settings)
-    cal.save(root / "calibration_320x240")
-    rows, sp = calibration_rows(presses, sensor, cal, info, warp, test, str(root / "calibration_320x240"))
-    wall["calibration (fit and renders)"] = time.perf_counter() - t0
-    print(f"calibration: {wall['calibration (fit and renders)']:.0f} s", flush=True)
+    info: dict | None = None
+    if args.no_simulator:
+        rows, sp = [], at_sensor_size(presses, sensor, test)
+    else:
+        t0 = time.perf_counter()
+        warp = {"name": "warp_gel"}
+        cal, info = fit_calibration(presses, sensor, warp, train, settings)
+        cal.save(root / "calibration_320x240")
+        rows, sp = calibration_rows(presses, sensor, cal, info, warp, test, str(root / "calibration_320x240"))
+        wall["calibration (fit and renders)"] = time.perf_counter() - t0
+        print(f"calibration: {wall['calibration (fit and renders)']:.0f} s", flush=True)
 
     # 2. Taxim.
-    t0 = time.perf_counter()
-    taxim, taxim_s = taxim_frames(args.recording, presses, test)
-    rows.append(report.Row("Taxim", taxim, taxim_s))
-    wall["Taxim"] = time.perf_counter() - t0
-    print(f"Taxim: {wall['Taxim']:.0f} s", flush=True)
+    if not args.no_taxim:
+        t0 = time.perf_counter()
+        taxim, taxim_s = taxim_frames(args.recording, presses, test)
+        rows.append(report.Row("Taxim", taxim, taxim_s))
+        wall["Taxim"] = time.perf_counter() - t0
+        print(f"Taxim: {wall['Taxim']:.0f} s", flush=True)
 
     # 3. T-N trained on the calibrated simulator's pairs.
     from tnf.generators.names import find_run
 
-    # The pipeline's model: the one finished run of sim_gelsight_mini's generator option, dataset and seed.
-    family = f"tn_cgan_plain-gelsight_mini-hashgrid-seed{args.seed}"
+    # The pipeline's model: the one finished run of the experiment's generator option, dataset and seed.
+    overrides = [*(["trainer=gpu"] if args.device == "cuda" else []), *args.overrides]
+    pipe = pipeline_settings(args.experiment, args.seed, overrides)
+    size = (pipe["width"], pipe["height"])
+    family = pipe["family"]
     run = find_run(root / "models", family)
-    wall["pipeline to T-N"] = 0.0 if run is not None else run_pipeline(root, args.seed, args.recording, train, test)
-    run = run or find_run(root / "models", family)
+    if run is None:
+        wall["pipeline to T-N"] = run_pipeline(
+            root, args.seed, args.recording, train, test, args.experiment, overrides, size
+        )
+        run = find_run(root / "models", family)
     assert run is not None, f"the pipeline left no finished run {family}-<hash> under {root / 'models'}"
     ckpt = root / "models" / run / "best.ckpt"
-    small_cal = root / "calibration" / "gelsight_mini" / calibration_name(args.recording)
-    small = SENSORS.build({"name": "gelsight_mini", "width": 160, "height": 120, "calibration": str(small_cal)})
+    small_cal = root / "calibration" / "gelsight_mini" / calibration_name(args.recording, *size)
+    small = SENSORS.build({"name": "gelsight_mini", "width": size[0], "height": size[1], "calibration": str(small_cal)})
     small_info = json.loads((small_cal / "realism.json").read_text())["fit"]
     depth_scale = float(small_info["depth_scale"])
     framing = checkpoint_framing(ckpt)
@@ -204,11 +251,8 @@ def main() -> None:
     import torch
 
     ft = OmegaConf.load(conf / "transfer" / "real.yaml").finetune
-    # The experiment's trainer: its precision on the CPU, as `tnf finetune experiment=sim_gelsight_mini` has it.
-    from tnf.real.finetune import CPU_TRAINER
-
-    precision = OmegaConf.load(conf / "experiment" / "sim_gelsight_mini.yaml").trainer.precision
-    trainer = {**CPU_TRAINER, "precision": str(precision)}
+    # The experiment's trainer, as `tnf finetune experiment=EXPERIMENT` has it (with trainer=gpu on a GPU).
+    trainer = pipe["trainer"]
     batch = 16
     steps = int(ft.epochs) * -(-len(train) // batch)  # the presses' batches per epoch, times its epochs
     spec = torch.load(ckpt, weights_only=False, map_location="cpu")["tnf"]["generator"]
@@ -229,22 +273,30 @@ def main() -> None:
         rows.append(report.Row(label, *generated(tuned)))
         print(f"{label}: {wall[f'{label}: training']:.0f} s", flush=True)
 
-    env = environment("cpu")
+    env = environment(args.device)
     total = time.perf_counter() - started
-    intro = [
-        f"Held-out presses {test[0]}-{test[-1]} of the {sensor_name} recording in the `taxim` package. "
-        f"tnf's calibration at 320x240: {fit_summary(info, settings, '320x240')[0]}",
-        *(line for line in fit_summary(info, settings, "320x240") if line.startswith("Warning")),
-        f"T-N: `tnf pipeline experiment=sim_gelsight_mini` (seed {args.seed}), the GelSight Mini's geometry calibrated "
-        f"on this recording's presses {train[0]}-{train[-1]} at 160x120 with the same settings, a 5 mm bearing ball "
-        "among its training objects; its touches of the indenter (a sphere "
-        "of the recorded radius, the mesh scene) at each "
-        "held-out press, 160x120, upsampled. Fine-tuned and FS: "
+    intro = [f"Held-out presses {test[0]}-{test[-1]} of the {sensor_name} recording in the `taxim` package."]
+    if info is not None:
+        summary = fit_summary(info, settings, "320x240")
+        intro[0] += f" tnf's calibration at 320x240: {summary[0]}"
+        intro += [x for x in summary if x.startswith("Warning")]
+    intro += [
+        f"T-N: `tnf pipeline experiment={args.experiment}` (seed {args.seed}"
+        + (f"; {' '.join(args.overrides)}" if args.overrides else "")
+        + f"), the GelSight Mini's geometry calibrated on this recording's presses {train[0]}-{train[-1]} at "
+        f"{size[0]}x{size[1]} with the same settings, a 5 mm bearing ball among its training objects; its touches "
+        "of the indenter (a sphere of the recorded radius, the mesh scene) at each held-out press, "
+        f"{size[0]}x{size[1]}, upsampled. Fine-tuned and FS: "
         f"{steps} batches at the generator's own learning rate on the real frames of presses "
         f"{train[0]}-{train[-1]} (`transfer=real`)."
         + (" T-N+ keeps 16 of the pipeline's simulated pairs in the mix." if args.tn_plus else ""),
-        "Taxim: its JAX backend and its own calibration of this sensor (made from this recording, the held-out "
-        "presses included), with its shadows, at 640x480. Every source sits at the annotated centres.",
+        (
+            "Taxim: its JAX backend and its own calibration of this sensor (made from this recording, the held-out "
+            "presses included), with its shadows, at 640x480. "
+            if not args.no_taxim
+            else ""
+        )
+        + "Every source sits at the annotated centres.",
         "",
         "Wall time on this machine: "
         + ", ".join(f"{k} {v:.0f} s" for k, v in wall.items())
@@ -254,10 +306,15 @@ def main() -> None:
         f"warp {env['warp']}, tnf commit {env['commit']}. Reproduce: "
         f"`pip install -e '.[real]' && python experiments/real_realism.py --recording {args.recording}"
         + (" --tn-plus" if args.tn_plus else "")
+        + (f" --experiment {args.experiment}" if args.experiment != "sim_gelsight_mini" else "")
+        + (f" --device {args.device}" if args.device != "cpu" else "")
+        + (" --no-taxim" if args.no_taxim else "")
+        + (" --no-simulator" if args.no_simulator else "")
+        + "".join(f" {o}" for o in args.overrides)
         + "`.",
     ]
     grid = [r.name for r in rows if r.name.endswith("640x480")]
-    grid += ["T-N (simulator only)", "T-N fine-tuned", "Taxim"]
+    grid += ["T-N (simulator only)", "T-N fine-tuned"] + ([] if args.no_taxim else ["Taxim"])
     record = report.write_report(
         out, f"Realism against real {sensor_name} frames", intro, rows, presses, sp, grid_rows=grid,
         region_scale=settings.region_scale, extra={"fit": info, "wall_s": wall, "total_s": total},

@@ -28,8 +28,33 @@ def test_every_recording_splits_by_the_minis_rule():
     assert script.split("gelsight", 24, conf) == mini  # the rule, on the Mini's count, gives the Mini's split
     assert script.split("gelsight", 48, conf) == (list(range(32)), list(range(32, 48)))
     assert set(script.RECORDINGS) == {"gelsight_mini", "gelsight"}
-    assert script.calibration_name("gelsight_mini") == "mini_160x120"  # the experiment's own calibration name
-    assert script.calibration_name("gelsight") == "gelsight_160x120"
+    assert script.calibration_name("gelsight_mini", 160, 120) == "mini_160x120"  # the experiment's own name
+    assert script.calibration_name("gelsight", 160, 120) == "gelsight_160x120"
+    assert script.calibration_name("gelsight_mini", 320, 240) == "mini_320x240"  # sim_gelsight_mini_gpu's
+
+
+@pytest.mark.parametrize(
+    ("experiment", "size", "family"),
+    [
+        ("sim_gelsight_mini", (160, 120), "tn_cgan_plain-gelsight_mini-hashgrid-seed3"),
+        ("sim_gelsight_mini_gpu", (320, 240), "tn_cgan-gelsight_mini-hashgrid-seed3"),
+    ],
+)
+def test_the_script_finds_each_experiments_model_and_calibration(experiment, size, family):
+    """The model the script looks for is the one `tnf pipeline` names, at the calibration's size."""
+    script = _script()
+    got = script.pipeline_settings(experiment, 3, [])
+    assert (got["width"], got["height"]) == size
+    assert got["family"] == family
+    assert got["trainer"]["accelerator"] == "cpu"
+    on_gpu = script.pipeline_settings(experiment, 3, ["trainer=gpu", "sensor.width=80", "sensor.height=60"])
+    assert (on_gpu["width"], on_gpu["height"]) == (80, 60)
+    assert on_gpu["trainer"]["accelerator"] == "gpu" and on_gpu["trainer"]["precision"] == "bf16-mixed"
+    assert on_gpu["family"] == family
+
+
+def test_the_cpu_experiment_fine_tunes_in_its_own_precision():
+    assert _script().pipeline_settings("sim_gelsight_mini", 0, [])["trainer"]["precision"] == "bf16-mixed"
 
 
 def test_taxims_gelsight_recording_fits_the_minis_geometry(tmp_path):
