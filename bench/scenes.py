@@ -19,6 +19,11 @@ Where a batched step spends its time (the top operators of a short fit together;
 
     python bench/scenes.py --device cuda --batched 27 --steps 200 --size 256 --views 48 --separate skip --profile
 
+The same fit with the hash encoding and its table gradient by Warp kernels (``--train-kernel``), to compare its
+seconds and held-out PSNR with the line above's:
+
+    python bench/scenes.py --device cuda --batched 27 --steps 200 --size 256 --views 48 --separate skip --train-kernel
+
 The separate fits as a sweep of ``tnf fit-scene`` jobs sharing the device (W processes; the pool's wall time):
 
     python bench/scenes.py --device cuda --batched 27 --steps 3000 --size 256 --views 48 --separate lightning \
@@ -137,7 +142,15 @@ def main() -> None:
     )
     ap.add_argument("--workers", type=int, default=1, help="with --separate lightning: fit in this many processes")
     ap.add_argument("--no-together", action="store_true", help="with --batched: the separate fits only")
+    ap.add_argument(
+        "--train-kernel", action="store_true",
+        help="train the hash encoding by Warp kernels (HashEncoding.train_kernel), in this process's fits",
+    )  # fmt: skip
     args = ap.parse_args()
+    if args.train_kernel:
+        from tnf.scenes.encoding import HashEncoding
+
+        HashEncoding.train_kernel = True
     if args.load:
         render_only(args)
         return

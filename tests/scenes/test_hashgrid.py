@@ -160,3 +160,42 @@ def test_warp_encoding_split_over_cpu_threads_is_the_one_launch(threads):
     assert split.shape == (P, 8) and torch.equal(split, one)
     with torch.no_grad():
         assert torch.allclose(one[-100:], enc(x[-100:]), atol=1e-5)  # the last block is encoded too
+
+
+def test_trainable_warp_encoding_matches_the_pytorch_encoding_and_its_table_gradient():
+    """``hash_encode_trainable`` (HashEncoding.train_kernel): the same features and the same gradient with respect
+    to the table as the PyTorch encoding, with every sample's rows shifted by its own offset (batched objects)."""
+    from tnf.scenes import hash_kernel
+
+    if not hash_kernel.available(torch.device("cpu")):
+        pytest.skip("Warp does not run here")
+    enc = _encoding(levels=4, max_resolution=64)
+    rows = enc.table.shape[0]
+    with torch.no_grad():  # two objects' tables stacked, the second one different
+        enc.table.data = torch.cat([enc.table, torch.randn_like(enc.table)])
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(400, 3, generator=g)
+    x[:2] = torch.tensor([[1.0, 0.0, 1.0], [-0.2, 0.5, 1.3]])  # faces, outside
+    offset = (torch.arange(400) % 2).to(torch.int32) * rows
+    upstream = torch.randn(400, 8, generator=g)
+
+    def features_and_grad(kernel: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        enc.table.grad = None
+        enc.train_kernel = kernel
+        out = enc(x, offset=offset)
+        (out * upstream).sum().backward()
+        return out.detach(), enc.table.grad.clone()
+
+    ref, ref_grad = features_and_grad(False)
+    out, grad = features_and_grad(True)
+    assert torch.allclose(out, ref, atol=1e-5)
+    assert torch.allclose(grad, ref_grad, atol=1e-5)
+    assert grad[rows:].abs().sum() > 0 and grad[:rows].abs().sum() > 0  # both objects' rows were reached
+    # Without offsets, only the first object's rows.
+    enc.table.grad = None
+    plain = enc(x)
+    assert type(plain.grad_fn).__name__ == "_TrainableEncodingBackward"  # the kernels, not the PyTorch encoding
+    (plain * upstream).sum().backward()
+    assert enc.table.grad[rows:].abs().sum() == 0
+    with pytest.raises(ValueError, match="no gradient with respect to the positions"):
+        hash_kernel.hash_encode_trainable(x.requires_grad_(), enc.table, enc.res, enc.n_dense, enc.table_size)

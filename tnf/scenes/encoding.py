@@ -24,6 +24,11 @@ class HashEncoding(nn.Module):
     Input: [P, 3] positions in [0, 1]^3. Output: [P, L * F].
     """
 
+    #: Training's encoding and table gradient by Warp kernels (``hash_kernel.hash_encode_trainable``), in
+    #: place of the [P, L, 8] tensors below. Off: not yet measured against them on a GPU
+    #: (``bench/scenes.py --train-kernel``).
+    train_kernel: bool = False
+
     # Buffers registered in ``__init__`` (declared here for type checkers).
     res: torch.Tensor
     stride: torch.Tensor
@@ -96,6 +101,10 @@ class HashEncoding(nn.Module):
         row sample p reads (``tnf.scenes.batched``: where its object's levels start in a table that stacks
         several objects' tables).
         """
+        if table is None and self.train_kernel:
+            from tnf.scenes.hash_kernel import hash_encode_trainable  # lazy: imports warp
+
+            return hash_encode_trainable(x, self.table, self.res, self.n_dense, self.table_size, offset)
         P = x.shape[0]
         scaled = x.clamp(0.0, 1.0).unsqueeze(1) * self.res.view(1, -1, 1)  # [P, L, 3]
         base = scaled.floor()

@@ -1,12 +1,14 @@
 # mypy: ignore-errors
 # (Warp kernels use Warp's types in annotations and arithmetic, which mypy cannot check.)
-"""Warp kernels for rendering the hash grid (no gradients): the hash encoding, and the march's sample selection.
+"""Warp kernels of the hash grid: the hash encoding (for rendering, and with its table gradient for training),
+and the march's sample selection.
 
 The PyTorch ``HashEncoding.forward`` builds [P, L, 8] tensors of corner indices, weights and features for P
 samples and L levels, about 2 kB of memory traffic per sample; this kernel reads the position and the
 8 L table rows and writes the L * F outputs, one thread per sample and level. It computes the same
 function (the same cells, the same hash, trilinear weights), so renders agree with the PyTorch encoding to
-float rounding.
+float rounding. ``hash_encode_trainable`` adds the gradient with respect to the table: one thread per sample
+and level adds each output gradient times its corner weight into the 8 rows it read (atomic adds).
 
 ``march_select`` finds each ray's next occupied samples: one thread per ray steps along it, looking up the
 occupancy grid, until it has K of them or leaves its range. The PyTorch form of the same selection builds
@@ -24,7 +26,7 @@ import warp as wp
 
 from tnf.runtime import init_warp
 
-wp.set_module_options({"enable_backward": False})  # forward only: rendering takes no gradients
+wp.set_module_options({"enable_backward": False})  # the table gradient is a kernel of its own (_encode_grad)
 
 
 # Instant-NGP's spatial hash primes for y and z (x's is 1), as unsigned 32-bit constants.
@@ -42,6 +44,37 @@ def _corner_row(ix: int, iy: int, iz: int, dense: int, stride: int, table_size: 
     return int(h & wp.uint32(table_size - 1))
 
 
+@wp.func
+def _scaled(v: float, r: float) -> float:
+    # A coordinate in cells of a level of r cells per axis, as in HashEncoding.forward.
+    return wp.clamp(v, 0.0, 1.0) * r
+
+
+@wp.func
+def _cell(s: float, r: float) -> float:
+    # The lowest corner of the cell holding s (the top face belongs to the last cell).
+    return wp.min(wp.floor(s), r - 1.0)
+
+
+@wp.func
+def _corner_weight(c: int, fx: float, fy: float, fz: float) -> float:
+    # The trilinear weight of corner c = (x bit 0, y bit 1, z bit 2) at the position (fx, fy, fz) in its cell.
+    w = wp.float32(1.0)
+    if (c & 1) == 1:
+        w = w * fx
+    else:
+        w = w * (1.0 - fx)
+    if ((c >> 1) & 1) == 1:
+        w = w * fy
+    else:
+        w = w * (1.0 - fy)
+    if ((c >> 2) & 1) == 1:
+        w = w * fz
+    else:
+        w = w * (1.0 - fz)
+    return w
+
+
 @wp.kernel
 def _encode(
     x: wp.array2d(dtype=wp.float32),  # [P, 3] positions in [0, 1]^3
@@ -49,52 +82,73 @@ def _encode(
     res: wp.array(dtype=wp.float32),  # [L] cells per axis of each level
     n_dense: int,
     table_size: int,
+    rows: wp.array(dtype=wp.int32),  # [P] rows added to every row sample p reads, or [1] ignored
+    use_rows: int,
     out: wp.array2d(dtype=wp.float32),  # [P, L * F]
 ):
     p, lvl = wp.tid()
     r = res[lvl]
-    # The cell and the position inside it per axis, as in HashEncoding.forward (the top face belongs to
-    # the last cell).
-    sx = wp.clamp(x[p, 0], 0.0, 1.0) * r
-    sy = wp.clamp(x[p, 1], 0.0, 1.0) * r
-    sz = wp.clamp(x[p, 2], 0.0, 1.0) * r
-    bx = wp.min(wp.floor(sx), r - 1.0)
-    by = wp.min(wp.floor(sy), r - 1.0)
-    bz = wp.min(wp.floor(sz), r - 1.0)
-    fx = sx - bx
-    fy = sy - by
-    fz = sz - bz
-    ix = int(bx)
-    iy = int(by)
-    iz = int(bz)
+    sx = _scaled(x[p, 0], r)
+    sy = _scaled(x[p, 1], r)
+    sz = _scaled(x[p, 2], r)
+    bx = _cell(sx, r)
+    by = _cell(sy, r)
+    bz = _cell(sz, r)
     dense = wp.int32(0)
     if lvl < n_dense:
         dense = 1
     stride = int(r) + 1
     offset = lvl * table_size
+    if use_rows != 0:
+        offset = offset + rows[p]
     F = table.shape[1]
     for f in range(F):
         acc = wp.float32(0.0)
         for c in range(8):
+            w = _corner_weight(c, sx - bx, sy - by, sz - bz)
             cx = c & 1
             cy = (c >> 1) & 1
             cz = (c >> 2) & 1
-            w = wp.float32(1.0)
-            if cx == 1:
-                w = w * fx
-            else:
-                w = w * (1.0 - fx)
-            if cy == 1:
-                w = w * fy
-            else:
-                w = w * (1.0 - fy)
-            if cz == 1:
-                w = w * fz
-            else:
-                w = w * (1.0 - fz)
-            row = offset + _corner_row(ix + cx, iy + cy, iz + cz, dense, stride, table_size)
+            row = offset + _corner_row(int(bx) + cx, int(by) + cy, int(bz) + cz, dense, stride, table_size)
             acc = acc + w * wp.float32(table[row, f])
         out[p, lvl * F + f] = acc
+
+
+@wp.kernel
+def _encode_grad(
+    x: wp.array2d(dtype=wp.float32),  # [P, 3] positions in [0, 1]^3
+    res: wp.array(dtype=wp.float32),  # [L] cells per axis of each level
+    n_dense: int,
+    table_size: int,
+    rows: wp.array(dtype=wp.int32),  # [P] rows added to every row sample p reads, or [1] ignored
+    use_rows: int,
+    grad_out: wp.array2d(dtype=wp.float32),  # [P, L * F] gradient of the loss with respect to the features
+    grad_table: wp.array2d(dtype=wp.float32),  # [rows, F] gradient with respect to the table, added to
+):
+    p, lvl = wp.tid()
+    r = res[lvl]
+    sx = _scaled(x[p, 0], r)
+    sy = _scaled(x[p, 1], r)
+    sz = _scaled(x[p, 2], r)
+    bx = _cell(sx, r)
+    by = _cell(sy, r)
+    bz = _cell(sz, r)
+    dense = wp.int32(0)
+    if lvl < n_dense:
+        dense = 1
+    stride = int(r) + 1
+    offset = lvl * table_size
+    if use_rows != 0:
+        offset = offset + rows[p]
+    F = grad_table.shape[1]
+    for c in range(8):
+        w = _corner_weight(c, sx - bx, sy - by, sz - bz)
+        cx = c & 1
+        cy = (c >> 1) & 1
+        cz = (c >> 2) & 1
+        row = offset + _corner_row(int(bx) + cx, int(by) + cy, int(bz) + cz, dense, stride, table_size)
+        for f in range(F):
+            wp.atomic_add(grad_table, row, f, w * grad_out[p, lvl * F + f])
 
 
 # Both table precisions compiled together (one module build instead of one per precision met).
@@ -236,6 +290,8 @@ def hash_encode(
         wp.from_torch(resolutions.detach().float().contiguous()),
         int(n_dense),
         int(table_size),
+        wp.from_torch(torch.zeros(1, dtype=torch.int32, device=x.device)),
+        0,
     ]
 
     def encode(rows: slice) -> None:
@@ -255,3 +311,63 @@ def hash_encode(
     with ThreadPoolExecutor(n) as pool:  # Warp releases the GIL while a CPU kernel runs
         list(pool.map(encode, [slice(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]))
     return out
+
+
+class _TrainableEncoding(torch.autograd.Function):
+    """The hash encoding by ``_encode``, differentiable with respect to the table by ``_encode_grad``."""
+
+    @staticmethod
+    def forward(ctx: Any, table, x, resolutions, n_dense, table_size, rows):  # noqa: ANN001, ANN205
+        P, L, F = x.shape[0], resolutions.shape[0], table.shape[1]
+        out = torch.empty(P, L * F, device=x.device, dtype=torch.float32)
+        ctx.save_for_backward(x, resolutions, rows)
+        ctx.meta = (int(n_dense), int(table_size), tuple(table.shape))
+        if P:
+            args = [wp.from_torch(x), wp.from_torch(table.detach()), wp.from_torch(resolutions), int(n_dense)]
+            args += [int(table_size), wp.from_torch(rows), 1, wp.from_torch(out)]
+            _launch(_encode, (P, L), args, x)
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad):  # noqa: ANN001, ANN205
+        x, resolutions, rows = ctx.saved_tensors
+        n_dense, table_size, shape = ctx.meta
+        grad_table = torch.zeros(shape, device=x.device, dtype=torch.float32)
+        P, L = x.shape[0], resolutions.shape[0]
+        if P:
+            args = [wp.from_torch(x), wp.from_torch(resolutions), n_dense, table_size, wp.from_torch(rows)]
+            args += [1, wp.from_torch(grad.float().contiguous())]
+            _launch(_encode_grad, (P, L), [*args, wp.from_torch(grad_table)], x)
+        return grad_table, None, None, None, None, None
+
+
+def hash_encode_trainable(
+    x: torch.Tensor,
+    table: torch.Tensor,
+    resolutions: torch.Tensor,
+    n_dense: int,
+    table_size: int,
+    rows: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``hash_encode`` of a float32 ``table`` that training differentiates: features [P, L * F] at positions
+    x [P, 3] in [0, 1]^3, with the gradient with respect to ``table`` (not to ``x``) in one kernel launch.
+
+    ``rows``: [P] integer rows added to every row sample p reads (``HashEncoding.forward``'s ``offset``). The
+    gradient's atomic adds make its float sums run in no fixed order on CUDA; on the CPU one launch runs on one
+    core.
+    """
+    init_warp()
+    if x.requires_grad:
+        raise ValueError("hash_encode_trainable gives no gradient with respect to the positions x")
+    if table.dtype != torch.float32:
+        raise ValueError(f"hash_encode_trainable trains a float32 table, not {table.dtype}")
+    if table.shape[0] > 2**31 - 1:
+        raise ValueError(f"hash_encode_trainable indexes rows in int32: {table.shape[0]} rows are too many")
+    x = x.detach().float().contiguous()
+    if rows is None:
+        rows = torch.zeros(x.shape[0], dtype=torch.int32, device=x.device)
+    rows = rows.to(device=x.device, dtype=torch.int32).reshape(-1).contiguous()
+    if rows.shape[0] != x.shape[0]:
+        raise ValueError(f"rows has {rows.shape[0]} entries for {x.shape[0]} positions")
+    res = resolutions.detach().float().contiguous()
+    return _TrainableEncoding.apply(table.contiguous(), x, res, n_dense, table_size, rows)
