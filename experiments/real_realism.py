@@ -98,14 +98,22 @@ def calibration_name(recording: str, width: int, height: int) -> str:
 
 def pipeline_settings(experiment: str, seed: int, overrides: list[str]) -> dict:
     """What this script takes from the pipeline's config: the sensor's size, the generator's run family (the
-    model `tnf train` names, ``tnf.generators.names``) and the trainer (Lightning's arguments)."""
+    model `tnf train` names, ``tnf.generators.names``) and the trainer (Lightning's arguments). An unknown
+    experiment or setting exits with the one line `tnf` gives it."""
     from omegaconf import OmegaConf
 
+    from tnf.cli import check_overrides
+    from tnf.errors import TnfError
     from tnf.generators.names import generator_option, run_family
     from tnf.stages.train import dataset_names
     from tnf.testing.config import hydra_job
 
-    with hydra_job("pipeline", [f"experiment={experiment}", f"seed={seed}", *overrides]) as cfg:
+    settings = [f"experiment={experiment}", f"seed={seed}", *overrides]
+    try:
+        check_overrides("pipeline", settings)
+    except TnfError as e:
+        sys.exit(f"real_realism.py: {e}")
+    with hydra_job("pipeline", settings) as cfg:
         option = generator_option(str(cfg.generator.name))
         family = run_family(option, dataset_names(cfg)[0], seed)
         return {
@@ -182,6 +190,9 @@ def main() -> None:
     from tnf.runtime import environment
 
     started = time.perf_counter()
+    # The pipeline's settings first: a wrong one stops the script before anything is written.
+    overrides = [*(["trainer=gpu"] if args.device == "cuda" else []), *args.overrides]
+    pipe = pipeline_settings(args.experiment, args.seed, overrides)
     root = Path(args.data_root or tempfile.mkdtemp(prefix="tnf-realism-"))
     claim_root(root, args.recording)
     out = Path(args.out or f"results/real/{args.recording}")
@@ -220,8 +231,6 @@ def main() -> None:
     from tnf.generators.names import find_run
 
     # The pipeline's model: the one finished run of the experiment's generator option, dataset and seed.
-    overrides = [*(["trainer=gpu"] if args.device == "cuda" else []), *args.overrides]
-    pipe = pipeline_settings(args.experiment, args.seed, overrides)
     size = (pipe["width"], pipe["height"])
     family = pipe["family"]
     run = find_run(root / "models", family)

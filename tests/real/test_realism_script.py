@@ -80,3 +80,11 @@ def test_a_data_root_holds_one_recording(tmp_path):
     with pytest.raises(SystemExit, match="holds the runs of the gelsight_mini recording"):
         script.claim_root(old, "gelsight")
     script.claim_root(old, "gelsight_mini")
+
+
+def test_a_wrong_pipeline_setting_is_one_line_before_anything_is_written():
+    script = _script()
+    with pytest.raises(SystemExit, match="experiment=nosuch: no such experiment"):
+        script.pipeline_settings("nosuch", 0, [])
+    with pytest.raises(SystemExit, match="fit.stepz: no such setting"):
+        script.pipeline_settings("sim_gelsight_mini_gpu", 0, ["fit.stepz=3"])

@@ -57,8 +57,14 @@ def _cell(s: float, r: float) -> float:
 
 
 @wp.func
-def _corner_weight(c: int, fx: float, fy: float, fz: float) -> float:
-    # The trilinear weight of corner c = (x bit 0, y bit 1, z bit 2) at the position (fx, fy, fz) in its cell.
+def _corner_weight(x: wp.array2d(dtype=wp.float32), p: int, r: float, c: int) -> float:
+    # The trilinear weight of corner c = (x bit 0, y bit 1, z bit 2) of sample p's cell at a level of r cells.
+    sx = _scaled(x[p, 0], r)
+    sy = _scaled(x[p, 1], r)
+    sz = _scaled(x[p, 2], r)
+    fx = sx - _cell(sx, r)
+    fy = sy - _cell(sy, r)
+    fz = sz - _cell(sz, r)
     w = wp.float32(1.0)
     if (c & 1) == 1:
         w = w * fx
@@ -75,6 +81,31 @@ def _corner_weight(c: int, fx: float, fy: float, fz: float) -> float:
     return w
 
 
+@wp.func
+def _corner_table_row(
+    x: wp.array2d(dtype=wp.float32),
+    p: int,
+    lvl: int,
+    r: float,
+    c: int,
+    n_dense: int,
+    table_size: int,
+    rows: wp.array(dtype=wp.int32),
+    use_rows: int,
+):
+    # The table row of corner c of sample p's cell at level lvl (r cells), its object's rows added.
+    dense = wp.int32(0)
+    if lvl < n_dense:
+        dense = 1
+    ix = int(_cell(_scaled(x[p, 0], r), r)) + (c & 1)
+    iy = int(_cell(_scaled(x[p, 1], r), r)) + ((c >> 1) & 1)
+    iz = int(_cell(_scaled(x[p, 2], r), r)) + ((c >> 2) & 1)
+    row = lvl * table_size + _corner_row(ix, iy, iz, dense, int(r) + 1, table_size)
+    if use_rows != 0:
+        row = row + rows[p]
+    return row
+
+
 @wp.kernel
 def _encode(
     x: wp.array2d(dtype=wp.float32),  # [P, 3] positions in [0, 1]^3
@@ -88,29 +119,12 @@ def _encode(
 ):
     p, lvl = wp.tid()
     r = res[lvl]
-    sx = _scaled(x[p, 0], r)
-    sy = _scaled(x[p, 1], r)
-    sz = _scaled(x[p, 2], r)
-    bx = _cell(sx, r)
-    by = _cell(sy, r)
-    bz = _cell(sz, r)
-    dense = wp.int32(0)
-    if lvl < n_dense:
-        dense = 1
-    stride = int(r) + 1
-    offset = lvl * table_size
-    if use_rows != 0:
-        offset = offset + rows[p]
     F = table.shape[1]
     for f in range(F):
         acc = wp.float32(0.0)
         for c in range(8):
-            w = _corner_weight(c, sx - bx, sy - by, sz - bz)
-            cx = c & 1
-            cy = (c >> 1) & 1
-            cz = (c >> 2) & 1
-            row = offset + _corner_row(int(bx) + cx, int(by) + cy, int(bz) + cz, dense, stride, table_size)
-            acc = acc + w * wp.float32(table[row, f])
+            row = _corner_table_row(x, p, lvl, r, c, n_dense, table_size, rows, use_rows)
+            acc = acc + _corner_weight(x, p, r, c) * wp.float32(table[row, f])
         out[p, lvl * F + f] = acc
 
 
@@ -127,26 +141,10 @@ def _encode_grad(
 ):
     p, lvl = wp.tid()
     r = res[lvl]
-    sx = _scaled(x[p, 0], r)
-    sy = _scaled(x[p, 1], r)
-    sz = _scaled(x[p, 2], r)
-    bx = _cell(sx, r)
-    by = _cell(sy, r)
-    bz = _cell(sz, r)
-    dense = wp.int32(0)
-    if lvl < n_dense:
-        dense = 1
-    stride = int(r) + 1
-    offset = lvl * table_size
-    if use_rows != 0:
-        offset = offset + rows[p]
     F = grad_table.shape[1]
     for c in range(8):
-        w = _corner_weight(c, sx - bx, sy - by, sz - bz)
-        cx = c & 1
-        cy = (c >> 1) & 1
-        cz = (c >> 2) & 1
-        row = offset + _corner_row(int(bx) + cx, int(by) + cy, int(bz) + cz, dense, stride, table_size)
+        row = _corner_table_row(x, p, lvl, r, c, n_dense, table_size, rows, use_rows)
+        w = _corner_weight(x, p, r, c)
         for f in range(F):
             wp.atomic_add(grad_table, row, f, w * grad_out[p, lvl * F + f])
 
