@@ -3,6 +3,7 @@ calibration files, and the ``tnf calibrate`` stage end to end (with ``tnf touch`
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -348,6 +349,13 @@ def test_calibrate_stage_then_touch_with_it(data_root, capsys):
     assert main(STAGE) == 0
     assert "done, skipped" in capsys.readouterr().out
     assert (out / "calibration.npz").stat().st_mtime_ns == mtime
+
+    # The same data root copied elsewhere: the calibration is still done there (no path in its key).
+    moved = data_root.parent / "moved-root"
+    shutil.copytree(data_root, moved)
+    assert main([*STAGE, f"data_root={moved}"]) == 0
+    assert "done, skipped" in capsys.readouterr().out
+    shutil.rmtree(moved)
 
     # Overlapping train and test: one line, exit code 1.
     assert main([*STAGE[:-5], "calibrate.name=overlap", "calibrate.test=[2,16]", *STAGE[-4:]]) == 1

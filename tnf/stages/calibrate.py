@@ -37,8 +37,9 @@ def run(cfg: Any) -> dict[str, Any] | None:
     digest = hashlib.sha256((presses.folder / INDEX).read_bytes()).hexdigest()[:16]
     spec_name, spec = split_spec(cfg.simulator, "simulator")
     simulator = {"name": spec_name, **spec}
+    # The press setting (in ``calibrate``) and the index's digest identify the presses, not the folder's path:
+    # a data root copied to another machine or path keeps its calibration.
     config = {
-        "presses": str(presses.folder),
         "presses_digest": digest,
         "sensor": sensor.describe(),
         "simulator": simulator_key(simulator),
