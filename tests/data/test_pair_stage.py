@@ -102,6 +102,50 @@ def test_sensor_mismatch(data_root):
         build(["sensor.gel_width=0.025"])
 
 
+def test_touches_of_another_calibration(data_root):
+    import json
+
+    make_inputs(data_root)
+    path = data_root / "touch" / "digit" / "builtin" / "ball" / "manifest.json"
+    manifest = json.loads(path.read_text())
+    manifest["sensor"]["calibration_digest"] = "0123456789abcdef"
+    path.write_text(json.dumps(manifest))
+    with pytest.raises(TnfError, match=r"'ball'.*made with calibration 0123456789abcdef, this config's digit has no"):
+        build()
+
+
+def test_a_calibration_is_its_content_not_its_folder(tmp_path):
+    """Touches made with a calibration at one path pass the check for a sensor with a copy of it at another (a data
+    root copied elsewhere); another calibration's content does not."""
+    from types import SimpleNamespace
+
+    from tnf.data.pairing import _check_sensor
+    from tnf.registry import SENSORS
+    from tnf.sensors.calibration import Calibration
+
+    rng = np.random.default_rng(0)
+    cal = Calibration(
+        table=rng.normal(0, 10, (9, 9, 3)).astype(np.float32), max_slope=1.5, blur_sigma=2.0, noise_std=1.0,
+        falloff=0.1, background=rng.integers(0, 256, (240, 320, 3), dtype=np.uint8),
+    )  # fmt: skip
+    for name in ("a", "b"):
+        cal.save(tmp_path / name)
+    other = Calibration(**{**cal.__dict__, "blur_sigma": 3.0})
+    other.save(tmp_path / "c")
+
+    def described(folder):
+        return SENSORS.build(
+            {"name": "gelsight_mini", "width": 320, "height": 240, "calibration": str(folder)}
+        ).describe()
+
+    a = described(tmp_path / "a")
+    assert "calibration" not in a["config"] and a["calibration_digest"] == cal.digest()
+    item = SimpleNamespace(manifest={"sensor": a}, folder=tmp_path)
+    _check_sensor(item, described(tmp_path / "b"), "ball")
+    with pytest.raises(TnfError, match=f"made with calibration {cal.digest()}, this config's gelsight_mini has"):
+        _check_sensor(item, described(tmp_path / "c"), "ball")
+
+
 def test_crop_larger_than_image(data_root):
     make_inputs(data_root)
     with pytest.raises(TnfError, match="larger than the 64x64 image"):

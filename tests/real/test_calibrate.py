@@ -379,6 +379,14 @@ def test_calibrate_stage_then_touch_with_it(data_root, capsys):
     first = np.asarray(Image.open(item / m["touches"][0]["image"]))
     assert first.shape == (240, 320, 3)
 
+    # The data root copied elsewhere, the sensor pointed at the copy's calibration: the touches are still done.
+    moved = data_root.parent / "moved-root"
+    shutil.copytree(data_root, moved)
+    capsys.readouterr()
+    copied = moved / "calibration" / "gelsight_mini" / "default"
+    assert main([*touch[:4], f"sensor.calibration={copied}", *touch[5:], f"data_root={moved}"]) == 0
+    assert "done, skipped" in capsys.readouterr().out
+
 
 # -- sharper optics: node spacing, refined centres, the search's edges ----------------------------------
 

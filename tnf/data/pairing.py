@@ -78,11 +78,11 @@ def make_pairs(job: PairJob) -> None:
     sensor_name, sensor_params = split_spec(job.sensor, "sensor")
     sensor_cfg = SENSORS.config(sensor_name, sensor_params)
     sensor = SENSORS.get(sensor_name)(sensor_cfg)
-    sensor_dict = _plain_json(config_to_dict(sensor_cfg))
+    sensor_dict = _plain_json(config_to_dict(sensor_cfg))  # the dataset manifest's record, to rebuild the sensor
     device = job_device(resolve_device(job.device), job.shard)
     console = Console(highlight=False)
 
-    inputs = _check_inputs(job, store, sensor_name, sensor_dict)
+    inputs = _check_inputs(job, store, sensor.describe())
     framing = _framing(p, inputs, sensor)
     cache_keys = _cache_keys(job, inputs, framing)
     # A finished dataset made from the same inputs needs nothing, not even its (deleted) render caches.
@@ -108,17 +108,17 @@ def make_pairs(job: PairJob) -> None:
     _assemble(job, store, inputs, novel, dataset_key, touch_force, framing, sensor_name, sensor_dict, console)
 
 
-def _check_inputs(job: PairJob, store: Any, sensor_name: str, sensor_dict: dict[str, Any]) -> dict[str, Any]:
+def _check_inputs(job: PairJob, store: Any, described: dict[str, Any]) -> dict[str, Any]:
     """Each object's touches, capture camera and fitted scene, checked before hours of rendering."""
 
-    scene_name, src = str(job.scene["name"]), job.source.name
+    scene_name, src, sensor_name = str(job.scene["name"]), job.source.name, str(described["name"])
     inputs: dict[str, dict[str, Any]] = {}
     for obj in job.names:
         touch_dir = store.require(
             "touch", sensor_name, src, obj, hint=f"run `tnf touch object={obj} sensor={sensor_name}` first"
         )
         item = TouchItem.load(touch_dir)
-        _check_sensor(item, sensor_name, sensor_dict, obj)
+        _check_sensor(item, described, obj)
         transforms = store.path("capture", src, obj) / "transforms.json"
         if not transforms.is_file():
             raise TnfError(f"object {obj!r}: capture not found ({transforms}); run `tnf capture object={obj}`")
@@ -368,12 +368,22 @@ def _plain_json(x: Any) -> Any:
     return json.loads(json.dumps(x))
 
 
-def _check_sensor(item: Any, name: str, config: dict[str, Any], obj: str) -> None:
-    """The touches must come from the configured sensor with the same settings."""
+def _check_sensor(item: Any, described: dict[str, Any], obj: str) -> None:
+    """The touches of ``item`` must come from the configured sensor (``described``: its ``Sensor.describe()``)
+    with the same settings and the same calibration's content."""
+    name, config = described["name"], _plain_json(described["config"])
     rec = item.manifest.get("sensor") or {}
     where = item.folder / "manifest.json"
     if rec.get("name") != name:
         raise TnfError(f"object {obj!r}: touches in {where} were made with sensor {rec.get('name')!r}, not {name!r}")
+    theirs, ours = rec.get("calibration_digest"), described.get("calibration_digest")
+    if theirs != ours:
+        said = {None: "no calibration"}
+        raise TnfError(
+            f"object {obj!r}: touches in {where} were made with {said.get(theirs, f'calibration {theirs}')}, this "
+            f"config's {name} has {said.get(ours, f'calibration {ours}')}; rerun `tnf touch` or set the same "
+            "sensor.calibration"
+        )
     got = _plain_json(rec.get("config", {}))
     for key in sorted(set(got) | set(config)):
         if got.get(key) != config.get(key):

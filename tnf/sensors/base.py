@@ -408,11 +408,15 @@ class Sensor:
         return type(self).shade is not Sensor.shade
 
     def describe(self) -> dict[str, Any]:
-        """``{"name", "config"}`` as plain JSON data (what the touch manifest records)."""
+        """``{"name", "config"}`` as plain JSON data: what identifies the sensor's images (touch manifests and
+        every key built from them). A calibrated sensor adds ``calibration_digest``, its calibration's content,
+        and leaves the calibration folder's path out of ``config``: a data root copied to another path or machine
+        keeps its touches, and a new calibration at the same path is new data."""
 
         out: dict[str, Any] = {"name": self.name, "config": config_to_dict(self.cfg)}
         if self.calibration is not None:
-            out["calibration_digest"] = self.calibration.digest()  # a new calibration at the same path is new data
+            out["config"].pop("calibration", None)
+            out["calibration_digest"] = self.calibration.digest()
         return out
 
 
