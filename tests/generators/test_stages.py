@@ -75,6 +75,14 @@ def test_train_stage_writes_a_loadable_run(data_root, monkeypatch):
     # Same settings again: skipped; other settings: another run; other settings into the same run folder: refused.
     assert train.run(cfg)["skipped"]
     assert train.model_run(compose("train", [*TINY, "generator.lambda_l1=10"])) != out["run_name"]
+    # The dataset rebuilt from other touches (`tnf pair` records its inputs' hash): a new run, not a skipped one.
+    path = data_root / "pairs" / "digit-hashgrid" / "manifest.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "config_hash": "0123456789abcdef"}))
+    again = train.run(cfg)
+    assert not again.get("skipped") and again["run_name"] != out["run_name"]
+    assert json.loads((data_root / "models" / again["run_name"] / "manifest.json").read_text())["config"][
+        "datasets"
+    ] == {"digit-hashgrid": "0123456789abcdef"}
     with pytest.raises(TnfError, match="another config"):
         named = [f"train.run_name={out['run_name']}", "train.resume=true"]
         train.run(compose("train", [*TINY, "generator.lambda_l1=10", *named]))

@@ -43,13 +43,15 @@ TINY = (
     "fit.eval_views=1",
     "fit.preview_views=1",
     "pair.scene_source=mesh",
+    # A run id ends in the hash of its datasets' content, unknown before the store exists: the model is named.
+    "train.run_name=late-tn",
 )
 DATASET = "digit-mesh"
 UPSTREAM = ("capture", "scenes", "touch", "pairs", "models")
 # Several batches per object, so that a kill can land between two of them.
 GENERATE_SIZE = ("generate.n_poses=8", "generate.batch_size=2")
 PIPELINE = ("pipeline", *TINY, *GENERATE_SIZE)
-MODEL = model_of(*PIPELINE)  # the pipeline's run id for the generator trained on DATASET
+MODEL = model_of(*PIPELINE)  # the pipeline's model (train.run_name above), trained on DATASET
 # What the pipeline gives the generate and evaluate stages, on the command line.
 GENERATE = ("generate", *TINY, *GENERATE_SIZE, f"generate.model={MODEL}")
 EVALUATE = (

@@ -97,11 +97,12 @@ def run(cfg: Any) -> dict[str, Any]:
 def run_config(cfg: Any, section: str, settings: TrainSettings | FinetuneSettings, **extra: Any) -> dict[str, Any]:
     """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
     run is skipped and ends the run id, ``tnf.generators.names.run_id``): ``extra`` (the generator spec, a
-    fine-tuning source), the data settings and the run's ``settings`` (that section's, by
-    ``tnf.artifacts.identity``), precision and seed."""
+    fine-tuning source), the data settings, the content of each dataset (``dataset_hashes``), the run's
+    ``settings`` (that section's, by ``tnf.artifacts.identity``), precision and seed."""
     return {
         **extra,
         "data": identity(data_settings(cfg)),
+        "datasets": dataset_hashes(cfg),
         section: identity(settings),
         "precision": str(cfg.trainer.precision),
         "seed": int(cfg.seed),
@@ -171,6 +172,13 @@ def dataset_names(cfg: Any) -> list[str]:
     if not names:
         raise TnfError("data.datasets is empty: name the paired dataset(s) under pairs/ to train on")
     return names
+
+
+def dataset_hashes(cfg: Any) -> dict[str, str | None]:
+    """Each dataset of ``dataset_names(cfg)`` -> the key hash its manifest records (None while it is not built): a
+    dataset rebuilt from other touches makes a new model run, not a skipped one."""
+    store = ArtifactStore(cfg.data_root)
+    return {name: (store.manifest("pairs", name) or {}).get("config_hash") for name in dataset_names(cfg)}
 
 
 def trainer_args(cfg: Any) -> dict[str, Any]:
