@@ -144,13 +144,9 @@ def main() -> None:
     ap.add_argument("--no-together", action="store_true", help="with --batched: the separate fits only")
     ap.add_argument(
         "--train-kernel", action="store_true",
-        help="train the hash encoding by Warp kernels (HashEncoding.train_kernel), in this process's fits",
+        help="train the hash encoding by Warp kernels (fit.train_kernel)",
     )  # fmt: skip
     args = ap.parse_args()
-    if args.train_kernel:
-        from tnf.scenes.encoding import HashEncoding
-
-        HashEncoding.train_kernel = True
     if args.load:
         render_only(args)
         return
@@ -174,7 +170,9 @@ def main() -> None:
     for kv in args.set:
         k, v = kv.split("=", 1)
         params[k] = json.loads(v)
-    extra = {} if args.distortion_weight is None else {"distortion_weight": args.distortion_weight}
+    extra = {"train_kernel": args.train_kernel}
+    if args.distortion_weight is not None:
+        extra["distortion_weight"] = args.distortion_weight
     settings = FitSettings(steps=args.steps, batch_rays=args.batch_rays, lr=args.lr, chunk=args.chunk, **extra)
     run_dir = out / f"{args.scene}-{args.object}"
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -310,7 +308,9 @@ def batched_bench(args: argparse.Namespace) -> None:
     for kv in args.set:
         k, v = kv.split("=", 1)
         params[k] = json.loads(v)
-    extra = {} if args.distortion_weight is None else {"distortion_weight": args.distortion_weight}
+    extra = {"train_kernel": args.train_kernel}
+    if args.distortion_weight is not None:
+        extra["distortion_weight"] = args.distortion_weight
     settings = FitSettings(steps=args.steps, batch_rays=args.batch_rays, lr=args.lr, chunk=args.chunk, **extra)
     settings = settings.resolved("hashgrid")
     trains = [read_views(folder / "transforms.json") for folder, _ in data]

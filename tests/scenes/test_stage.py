@@ -59,3 +59,34 @@ def test_bad_scene_setting_is_named(data_root):
     cfg = compose("fit-scene", [*OVERRIDES, "object=sphere", "scene.levels=0"])
     with pytest.raises(TnfError, match="levels"):
         fit_scene.run(cfg)
+
+
+@pytest.mark.parametrize("together", [1, 2])
+def test_train_kernel_setting_trains_by_the_warp_kernels(data_root, monkeypatch, together):
+    """``fit.train_kernel=true``: each training step's encoding goes through the Warp kernels (one object alone and
+    two batched), the scenes' keys record the setting, and a fit without it keeps the keys it had."""
+    from tnf.scenes import hash_kernel
+
+    calls = []
+    real = hash_kernel.hash_encode_trainable
+    monkeypatch.setattr(hash_kernel, "hash_encode_trainable", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for name in ("a", "b"):
+        _capture(data_root, name)
+    base = [*OVERRIDES, "object_names=[a,b]", f"fit.batch_objects={together}"]
+    rows = fit_scene.run(compose("fit-scene", [*base, "fit.train_kernel=true"]))
+    assert [r["status"] for r in rows] == ["fitted", "fitted"]
+    assert len(calls) >= 30  # every training step of the 30 (evaluation renders with the rendering kernel)
+    for name in ("a", "b"):
+        manifest = json.loads((data_root / "scenes" / "hashgrid" / "builtin" / name / "manifest.json").read_text())
+        assert manifest["config"]["fit"]["train_kernel"] is True
+    calls.clear()
+    rows = fit_scene.run(compose("fit-scene", base))
+    assert [r["status"] for r in rows] == ["fitted", "fitted"] and calls == []
+    manifest = json.loads((data_root / "scenes" / "hashgrid" / "builtin" / "a" / "manifest.json").read_text())
+    assert "train_kernel" not in manifest["config"]["fit"]
+
+
+def test_train_kernel_needs_a_hash_grid(data_root):
+    _capture(data_root, "sphere")
+    with pytest.raises(TnfError, match="fit.train_kernel trains hashgrid scenes' encoding, not nerf's"):
+        fit_scene.run(compose("fit-scene", [*OVERRIDES, "object=sphere", "scene=nerf", "fit.train_kernel=true"]))

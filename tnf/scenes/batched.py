@@ -321,6 +321,7 @@ def fit_batched(
     names = list(names) if names is not None else [str(k) for k in range(K)]
     dev = torch.device(device)
     model = BatchedHashGrid(scenes).to(dev).train()
+    model.encoding.train_kernel = s.train_kernel
     rays = _Rays(views, dev)
     opt = torch.optim.Adam(model.param_groups(s.lr), lr=s.lr, betas=(0.9, 0.99), eps=1e-15)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, s.lr_final_factor ** (1.0 / max(steps, 1)))
@@ -436,6 +437,7 @@ def _fingerprint(s: FitSettings, seed: int, counts: Sequence[int], model: Batche
         "random_background": s.random_background,
         "distortion_weight": s.distortion_weight,
         "distortion_start": s.distortion_start,
+        **({"train_kernel": True} if s.train_kernel else {}),
         "seed": seed,
         "rays": list(counts),
         "bounds": list(model.bounds),

@@ -25,8 +25,7 @@ class HashEncoding(nn.Module):
     """
 
     #: Training's encoding and table gradient by Warp kernels (``hash_kernel.hash_encode_trainable``), in
-    #: place of the [P, L, 8] tensors below. Off: not yet measured against them on a GPU
-    #: (``bench/scenes.py --train-kernel``).
+    #: place of the [P, L, 8] tensors below; a fit sets it from ``fit.train_kernel``.
     train_kernel: bool = False
 
     # Buffers registered in ``__init__`` (declared here for type checkers).

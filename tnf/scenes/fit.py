@@ -82,6 +82,19 @@ def build_scene(spec: dict[str, Any], views: Views) -> FieldScene:
     return scene
 
 
+def use_kernel(model: Any, settings: FitSettings) -> None:
+    """Set ``model``'s hash encoding (a hash grid's, or the batched one's) to train by Warp kernels when
+    ``settings.train_kernel`` is on; a TnfError for a scene without one."""
+    from tnf.scenes.encoding import HashEncoding
+
+    encoding = getattr(model, "encoding", None)
+    if not isinstance(encoding, HashEncoding):
+        if settings.train_kernel:
+            raise TnfError(f"fit.train_kernel trains a hash grid's encoding; this {type(model).__name__} has none")
+        return
+    encoding.train_kernel = settings.train_kernel
+
+
 def fit_scene(
     scene: FieldScene,
     views: Views,
@@ -108,6 +121,7 @@ def fit_scene(
     from tnf.scenes.system import SceneFitSystem
 
     s = settings.resolved(kind)
+    use_kernel(scene, s)
     system = SceneFitSystem(scene, views, s, seed=seed, resume_path=resume_path, on_step=on_step)
     resume = Path(resume_path) if resume_path else None
     ckpt_path = None

@@ -119,6 +119,7 @@ class SceneFitSystem(L.LightningModule):
             "random_background": s.random_background,
             "distortion_weight": s.distortion_weight,
             "distortion_start": s.distortion_start,
+            **({"train_kernel": True} if s.train_kernel else {}),
             "seed": self.seed,
             "rays": self.num_rays,
             "shapes": {k: list(v.shape) for k, v in self.scene.state_dict().items()},

@@ -86,6 +86,8 @@ def run(cfg: Any) -> list[dict[str, Any]]:
         )
     steps = settings.resolved(kind).steps
     together = settings.batch_objects
+    if settings.train_kernel and kind != "hashgrid":
+        raise TnfError(f"fit.train_kernel trains hashgrid scenes' encoding, not {kind}'s; set fit.train_kernel=false")
     if together > 1 and kind != "hashgrid":
         raise TnfError(
             f"fit.batch_objects={together} fits hashgrid scenes together, not {kind}; set fit.batch_objects=1"
