@@ -100,7 +100,7 @@ def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
     from tnf.generators.names import finetune_option
     from tnf.generators.settings import FinetuneSettings
     from tnf.registry import from_dict
-    from tnf.stages.train import run_config
+    from tnf.stages.train import dataset_names, run_config
     from tnf.testing import hydra_job
 
     options, settings = {}, {}
@@ -110,7 +110,8 @@ def test_the_transfer_variants_are_the_papers_and_train_distinct_models():
             assert cfg.data.extra_touches == (45 if variant == "tn_plus" else 0)
             options[variant] = finetune_option("tn_cgan")
             finetune = from_dict(FinetuneSettings, cfg.finetune, where="finetune")
-            settings[variant] = run_config(cfg, "finetune", finetune, source=cfg.finetune.checkpoint)
+            datasets = dataset_names(cfg)
+            settings[variant] = run_config(cfg, "finetune", finetune, datasets, source=cfg.finetune.checkpoint)
     assert all(options[v].endswith(f"+{v}") for v in options) and len(set(options.values())) == 3
     assert settings["tn"] != settings["tn_plus"] != settings["fs"] != settings["tn"]
 

@@ -122,6 +122,9 @@ def test_finetune_stage_on_a_press_folder(checkpoint, root, taxim_presses, capsy
     assert "crop SSIM" in capsys.readouterr().out
     pairs = open_pairs(root / "pairs" / f"presses-{taxim_presses.folder.name}-gelsight_mini")
     assert pairs.manifest["counts"]["train"] == 3 and list(pairs.touch_index) == [0, 1, 2, 0, 1, 2]
+    # The run's key holds the press pairs' content (the dataset it trained on), not the simulated dataset's.
+    keyed = json.loads((run_dir / "manifest.json").read_text())["config"]["datasets"]
+    assert keyed == {pairs.folder.name: pairs.manifest["config_hash"]}
     # The same settings again: skipped; from scratch: its own run.
     assert finetune.run(compose("finetune", real))["skipped"]
     scratch = finetune.run(compose("finetune", [*real[:-1], "finetune.checkpoint=null", "finetune.press_test=[]"]))

@@ -85,7 +85,7 @@ def run(cfg: Any) -> dict[str, Any]:
         datasets, extra["presses"] = _press_dataset(cfg, store, real, ckpt, datasets, console)
     spec = dict(system.hparams["generator"])
     frozen = system.generator.freeze(f.freeze) if f.freeze else []
-    config = run_config(cfg, "finetune", f, generator=spec, source=source, **extra)
+    config = run_config(cfg, "finetune", f, datasets, generator=spec, source=source, **extra)
     run_name = f.run_name or run_id(finetune_option(spec["name"]), datasets[0], cfg.seed, config)
     run_dir = store.path("models", run_name)
     if not f.force and store.is_done("models", run_name, config=config):

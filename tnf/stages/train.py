@@ -49,7 +49,7 @@ def plan(cfg: Any) -> TrainPlan:
     spec = {"name": checked[0], **config_to_dict(checked[1])}
     datasets = dataset_names(cfg)
     settings = from_dict(TrainSettings, cfg.train, where="train")
-    config = run_config(cfg, "train", settings, generator=spec)
+    config = run_config(cfg, "train", settings, datasets, generator=spec)
     name = settings.run_name or run_id(generator_option(spec["name"]), datasets[0], cfg.seed, config)
     return TrainPlan(checked, spec, datasets, config, name, settings)
 
@@ -94,15 +94,17 @@ def run(cfg: Any) -> dict[str, Any]:
     return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
 
-def run_config(cfg: Any, section: str, settings: TrainSettings | FinetuneSettings, **extra: Any) -> dict[str, Any]:
+def run_config(
+    cfg: Any, section: str, settings: TrainSettings | FinetuneSettings, datasets: list[str], **extra: Any
+) -> dict[str, Any]:
     """What identifies a model run of the ``train`` or ``finetune`` section (its hash decides whether a finished
     run is skipped and ends the run id, ``tnf.generators.names.run_id``): ``extra`` (the generator spec, a
-    fine-tuning source), the data settings, the content of each dataset (``dataset_hashes``), the run's
+    fine-tuning source), the data settings, the content of each of ``datasets`` (``dataset_hashes``), the run's
     ``settings`` (that section's, by ``tnf.artifacts.identity``), precision and seed."""
     return {
         **extra,
         "data": identity(data_settings(cfg)),
-        "datasets": dataset_hashes(cfg),
+        "datasets": dataset_hashes(cfg, datasets),
         section: identity(settings),
         "precision": str(cfg.trainer.precision),
         "seed": int(cfg.seed),
@@ -174,11 +176,11 @@ def dataset_names(cfg: Any) -> list[str]:
     return names
 
 
-def dataset_hashes(cfg: Any) -> dict[str, str | None]:
-    """Each dataset of ``dataset_names(cfg)`` -> the key hash its manifest records (None while it is not built): a
+def dataset_hashes(cfg: Any, datasets: list[str]) -> dict[str, str | None]:
+    """Each dataset name under ``pairs/`` -> the key hash its manifest records (None while it is not built): a
     dataset rebuilt from other touches makes a new model run, not a skipped one."""
     store = ArtifactStore(cfg.data_root)
-    return {name: (store.manifest("pairs", name) or {}).get("config_hash") for name in dataset_names(cfg)}
+    return {name: (store.manifest("pairs", name) or {}).get("config_hash") for name in datasets}
 
 
 def trainer_args(cfg: Any) -> dict[str, Any]:
