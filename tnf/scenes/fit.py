@@ -83,8 +83,8 @@ def build_scene(spec: dict[str, Any], views: Views) -> FieldScene:
 
 
 def use_kernel(model: Any, settings: FitSettings) -> None:
-    """Set ``model``'s hash encoding (a hash grid's, or the batched one's) to train by Warp kernels when
-    ``settings.train_kernel`` is on; a TnfError for a scene without one."""
+    """Set the hash encoding of ``model`` (a hash-grid scene) to train by Warp kernels when
+    ``settings.train_kernel`` is on; a TnfError when it is on for a scene without one (nerf)."""
     from tnf.scenes.encoding import HashEncoding
 
     encoding = getattr(model, "encoding", None)
