@@ -102,6 +102,35 @@ def test_one_object_batched_follows_its_separate_fit(captures):
             torch.testing.assert_close(sb[key], sa[key], rtol=1e-4, atol=1e-5, msg=key)
 
 
+def test_objects_of_very_unequal_sample_counts_each_get_their_own_field(captures):
+    # Tiles of one object each: 3, 1,500 and 40 samples, so the objects fill 1, several and 1 tiles, and the
+    # first and last tiles are mostly padding. Each sample's density, colour and gradients must be those of its
+    # own scene, as the separate fit computes them.
+    scenes = []
+    for k, c in enumerate(captures):
+        scene, _ = _scene(c, seed=k)  # other weights per object
+        scenes.append(scene)
+    model = BatchedHashGrid(scenes)
+    counts = [3, 1500, 40]
+    gen = torch.Generator().manual_seed(0)
+    obj = torch.repeat_interleave(torch.arange(3), torch.tensor(counts))
+    x = torch.rand(sum(counts), 3, generator=gen)
+    dirs = torch.nn.functional.normalize(torch.randn(sum(counts), 3, generator=gen), dim=-1)
+    sigma, rgb = model.field(x, dirs, obj)
+    (sigma.sum() + rgb.sum()).backward()
+    assert torch.equal(model.density(x, obj), sigma.detach())
+    start = 0
+    for k, (scene, n) in enumerate(zip(scenes, counts, strict=True)):
+        pos = x[start : start + n] * (2 * scene.bound) - scene.bound  # the scene's own world positions
+        s_ref, c_ref = scene.field(pos, dirs[start : start + n])
+        (s_ref.sum() + c_ref.sum()).backward()
+        torch.testing.assert_close(sigma[start : start + n], s_ref, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(rgb[start : start + n], c_ref, rtol=1e-5, atol=1e-6)
+        weights = [m.weight for m in scene.density_net.modules() if isinstance(m, torch.nn.Linear)]
+        torch.testing.assert_close(model.density_w[0].grad[k], weights[0].grad, rtol=1e-4, atol=1e-6)
+        start += n
+
+
 class Stop(Exception):
     pass
 

@@ -8,7 +8,8 @@ bound, step size, background and occupancy grid, stacked along a first dimension
 - the hash tables as one table of K * L * T rows (object k's rows start at k * L * T; each sample reads its
   object's rows through ``HashEncoding``'s ``offset``);
 - each MLP layer as weights [K, out, in] and biases [K, out], applied with ``torch.baddbmm`` to the samples
-  grouped per object (padded to the object with the most samples);
+  grouped per object in tiles of one object each (``_Tiles``: an object with few samples fills few tiles, so
+  the MLPs do not run on padding as wide as the object with the most);
 - the occupancy grids as [K, G^3].
 
 What each object sees is what its separate fit sees: the same initial weights (built with the same seed),
@@ -112,28 +113,27 @@ class BatchedHashGrid(nn.Module):
         """Hash features [P, L * F] of normalised positions x [P, 3] of objects ``obj`` [P] (int64)."""
         return self.encoding(x, offset=obj * self.rows_per_object)
 
-    def _density_head(self, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Density [K, P] (1/metre) and geometry features [K, P, geo] from hash features [K, P, L * F]."""
-        h = _batched_mlp(self.density_w, self.density_b, feats)
+    def _density_head(self, feats: torch.Tensor, tile_obj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density [M, T] (1/metre) and geometry features [M, T, geo] from hash features [M, T, L * F] laid out
+        in M tiles, tile m of object ``tile_obj[m]``."""
+        h = _batched_mlp(self.density_w, self.density_b, feats, tile_obj)
         # As HashGridScene.density: exp activation, clamped, biased down.
         return torch.exp((h[..., 0] - 1.0).clamp(max=15.0)), h[..., 1:]
 
     def field(self, x: torch.Tensor, dirs: torch.Tensor, obj: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density [P] and colour [P, 3] in [0, 1] at normalised positions x [P, 3] seen along unit ``dirs``
         [P, 3], sample p belonging to object ``obj[p]``; ``obj`` must be non-decreasing (samples grouped per
-        object). The MLPs run on the samples padded to [K, Pmax, ...] (Pmax: the most samples of one object)."""
-        K, P = self.K, x.shape[0]
-        counts = torch.bincount(obj, minlength=K)
-        pmax = int(counts.max())
-        first = torch.cumsum(counts, 0) - counts
-        slot = obj * pmax + (torch.arange(P, device=x.device) - first[obj])  # row in the padded [K * Pmax]
-        feats = self._encode(x, obj)
-        padded = feats.new_zeros(K * pmax, feats.shape[1]).index_put((slot,), feats).view(K, pmax, -1)
-        sh = spherical_harmonics(dirs)
-        sh_padded = sh.new_zeros(K * pmax, sh.shape[1]).index_put((slot,), sh).view(K, pmax, -1)
-        sigma, geo = self._density_head(padded)
-        rgb = _batched_mlp(self.color_w, self.color_b, torch.cat([sh_padded, geo], dim=-1))
-        return sigma.reshape(-1)[slot], torch.sigmoid(rgb.reshape(K * pmax, 3)[slot])
+        object). The MLPs run on the samples laid out in tiles of one object each (``_Tiles``)."""
+        tiles = _Tiles(obj, self.K)
+        sigma, geo = self._density_head(tiles.pack(self._encode(x, obj)), tiles.obj)
+        color_in = torch.cat([tiles.pack(spherical_harmonics(dirs)), geo], dim=-1)
+        rgb = _batched_mlp(self.color_w, self.color_b, color_in, tiles.obj)
+        return tiles.unpack(sigma.unsqueeze(-1))[:, 0], torch.sigmoid(tiles.unpack(rgb))
+
+    def density(self, x: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
+        """Density [P] (1/metre) at normalised positions x [P, 3] of objects ``obj`` [P] (non-decreasing)."""
+        tiles = _Tiles(obj, self.K)
+        return tiles.unpack(self._density_head(tiles.pack(self._encode(x, obj)), tiles.obj)[0].unsqueeze(-1))[:, 0]
 
     # -- rendering with gradients -------------------------------------------------------------------
     def render_rays(
@@ -184,29 +184,21 @@ class BatchedHashGrid(nn.Module):
         ar = torch.arange(G, device=dev)
         cells = torch.stack(torch.meshgrid(ar, ar, ar, indexing="ij"), dim=-1).reshape(-1, 3).float()
         # Per object: its hull cells and a random point in each (drawn in the separate fit's chunks).
-        inside = [self.hull[k].nonzero(as_tuple=True)[0] for k in range(K)]
-        n = max(int(i.numel()) for i in inside)
-        x = torch.zeros(K, n, 3, device=dev)
-        index = torch.zeros(K, n, dtype=torch.long, device=dev)
-        for k, (sel, g, b) in enumerate(zip(inside, generators, self.bounds, strict=True)):
+        xs, index = [], []
+        for k, (g, b) in enumerate(zip(generators, self.bounds, strict=True)):
+            sel = self.hull[k].nonzero(as_tuple=True)[0]
             c = cells[sel]
             r = [
                 torch.rand(c[i : i + _DRAW_CHUNK].shape, device=dev, generator=g) for i in range(0, len(c), _DRAW_CHUNK)
             ]
             pos = ((c + torch.cat(r)) / G) * (2 * b) - b if r else c
-            x[k, : len(sel)] = (pos + b) / (2.0 * b)
-            index[k, : len(sel)] = sel + k * G**3
-        real = torch.arange(n, device=dev) < torch.tensor([len(i) for i in inside], device=dev).unsqueeze(1)
-        sigma = torch.zeros(K, n, device=dev)
-        per = max(1, OCCUPANCY_CHUNK // K)
-        obj = torch.arange(K, device=dev)
-        for i in range(0, n, per):
-            xc = x[:, i : i + per]
-            m = xc.shape[1]
-            feats = self._encode(xc.reshape(-1, 3), obj.repeat_interleave(m)).view(K, m, -1)
-            sigma[:, i : i + per] = self._density_head(feats)[0]
+            xs.append((pos + b) / (2.0 * b))
+            index.append(sel + k * G**3)
+        x, flat = torch.cat(xs), torch.cat(index)
+        obj = flat // G**3  # non-decreasing: the objects' points one after the other
         full = torch.zeros(K * G**3, device=dev)
-        full[index[real]] = sigma[real]
+        for i in range(0, len(x), OCCUPANCY_CHUNK):
+            full[flat[i : i + OCCUPANCY_CHUNK]] = self.density(x[i : i + OCCUPANCY_CHUNK], obj[i : i + OCCUPANCY_CHUNK])
         self.occ_density.copy_(torch.maximum(self.occ_density * cfg.occupancy_decay, full.view(K, -1)))
         if step < cfg.occupancy_warmup:
             self.occupied.copy_(self.hull)
@@ -259,14 +251,43 @@ def _stack_linear(nets: Sequence[nn.Module]) -> tuple[nn.ParameterList, nn.Param
     return ws, bs
 
 
-def _batched_mlp(ws: nn.ParameterList, bs: nn.ParameterList, x: torch.Tensor) -> torch.Tensor:
-    """K MLPs (``tnf.scenes.encoding.mlp``: linear layers with ReLU between) on x [K, P, in] -> [K, P, out]."""
+def _batched_mlp(ws: nn.ParameterList, bs: nn.ParameterList, x: torch.Tensor, tile_obj: torch.Tensor) -> torch.Tensor:
+    """K MLPs (``tnf.scenes.encoding.mlp``: linear layers with ReLU between) on M tiles x [M, T, in] -> [M, T,
+    out], tile m through the MLP of object ``tile_obj[m]``."""
     last = len(ws) - 1
     for i, (w, b) in enumerate(zip(ws, bs, strict=True)):
-        x = torch.baddbmm(b.unsqueeze(1), x, w.transpose(1, 2))
+        x = torch.baddbmm(b[tile_obj].unsqueeze(1), x, w[tile_obj].transpose(1, 2))
         if i < last:
             x = torch.relu(x)
     return x
+
+
+class _Tiles:
+    """P samples grouped per object (``obj`` [P] non-decreasing, K objects) laid out in M tiles of T rows, each
+    tile holding samples of one object only (the last tile of an object padded with zeros), so that batched
+    matrix products run on about P rows rather than K times the most samples of one object. T is a power of two
+    of at least 256 and about P / 8K, so padding adds at most an eighth."""
+
+    def __init__(self, obj: torch.Tensor, K: int):
+        P = obj.shape[0]
+        self.size = max(256, 1 << max(0, (P // (8 * K)).bit_length() - 1))
+        counts = torch.bincount(obj, minlength=K)
+        per_object = (counts + self.size - 1) // self.size
+        self.count = int(per_object.sum())
+        first_row = torch.cumsum(counts, 0) - counts
+        first_tile = torch.cumsum(per_object, 0) - per_object
+        #: Row of each sample in the tiles' [M * T] rows, and the object of each tile [M].
+        self.slot = first_tile[obj] * self.size + torch.arange(P, device=obj.device) - first_row[obj]
+        self.obj = torch.repeat_interleave(torch.arange(K, device=obj.device), per_object, output_size=self.count)
+
+    def pack(self, values: torch.Tensor) -> torch.Tensor:
+        """Per-sample values [P, C] as tiles [M, T, C]."""
+        rows = values.new_zeros(self.count * self.size, values.shape[1]).index_put((self.slot,), values)
+        return rows.view(self.count, self.size, -1)
+
+    def unpack(self, tiles: torch.Tensor) -> torch.Tensor:
+        """Tiles [M, T, C] back to per-sample values [P, C]."""
+        return tiles.reshape(self.count * self.size, -1)[self.slot]
 
 
 class _Rays:
