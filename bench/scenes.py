@@ -360,19 +360,36 @@ def batched_bench(args: argparse.Namespace) -> None:
             print(f"alone {names[k]}: {info['train_seconds']:.1f} s, PSNR {rows[k]['psnr_alone_db']} dB", flush=True)
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
+    steps = settings.steps
+    assert steps is not None
     together_seconds = peak = None
+    phases: dict[str, float] = {}
     if not args.no_together:
         scenes = [scene(k) for k in range(K)]
+        # Seconds per step before and after the occupancy grid's warm-up (the grid is the carved hull until then,
+        # so those steps render many more samples): a short run's mix of the two is not a full fit's.
+        warmup, marks = scenes[0].cfg.occupancy_warmup, {}
+
+        def mark(step: int, loss: float) -> None:
+            if step in (0, warmup - 1, steps - 1):
+                if args.device.startswith("cuda"):
+                    torch.cuda.synchronize()
+                marks[step] = time.perf_counter()
+
         with _profiled(args.profile, args.device):
-            infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed)
+            infos = fit_batched(scenes, trains, settings, args.device, seed=args.seed, on_step=mark)
         together_seconds = infos[0]["train_seconds"]
         print(f"together: {together_seconds:.1f} s", flush=True)
+        if 1 < warmup < steps - 1:
+            before = (marks[warmup - 1] - marks[0]) / (warmup - 1)
+            after = (marks[steps - 1] - marks[warmup - 1]) / (steps - warmup)
+            phases = {"ms_per_step_warmup": round(1e3 * before, 1), "ms_per_step_after": round(1e3 * after, 1)}
+            print(f"per step: {phases['ms_per_step_warmup']} ms in the {warmup} warm-up steps, "
+                  f"{phases['ms_per_step_after']} ms after them", flush=True)  # fmt: skip
         peak = torch.cuda.max_memory_allocated() / 2**30 if args.device.startswith("cuda") else None
         for k, s in enumerate(scenes):
             rows[k]["bound_m"] = round(s.bound, 4)
             rows[k]["psnr_together_db"] = psnr(s, k)
-    steps = settings.steps
-    assert steps is not None
     figures = {
         "device": torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu",
         "objects": K,
@@ -389,6 +406,7 @@ def batched_bench(args: argparse.Namespace) -> None:
         "together_steps_per_s": round(steps / together_seconds, 2) if together_seconds else None,
         "together_object_steps_per_s": round(K * steps / together_seconds, 1) if together_seconds else None,
         "speed_up": round(alone_seconds / together_seconds, 2) if alone_seconds and together_seconds else None,
+        **phases,
         "peak_gpu_memory_together_gib": round(peak, 2) if peak is not None else None,
         "peak_cpu_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 2),
         "scene_config": params,
