@@ -6,6 +6,10 @@ best matches that press's real frame (``refine_radius`` pixels at 320x240 at mos
 training presses). The second score uses the held-out frames to place the presses: it says what the optics reach
 with the poses right, and is no result of the method.
 
+Then a ceiling for any simulator placed at the annotated centres: each held-out real frame's change from the
+no-contact frame, moved back by its refined shift (so its contact sits at the annotated centre), over the
+no-contact frame. That image has the sensor's own optics and sharpness; what it loses is the pose error alone.
+
     python experiments/real_centres.py --recording gelsight_mini
 """
 
@@ -60,6 +64,13 @@ def main() -> None:
     print(f"held-out presses {test[0]}-{test[-1]}: centres moved by (columns, rows), recording pixels:")
     print("  " + ", ".join(f"{i}: ({c:+.0f}, {r:+.0f})" for i, (c, r) in zip(test, moved, strict=True)))
     print(f"  mean distance {float(np.hypot(*moved.T).mean()):.1f} px, largest {float(np.hypot(*moved.T).max()):.1f}")
+    rows, sp_rows = calibration_rows(presses, sensor, cal, info, warp, test, "diagnostic")
+    ceiling = report.Row("real frames moved to the annotated centres", moved_back(presses, test, moved))
+    means = report.mean_scores(report.score_rows([ceiling], presses, sp_rows))[ceiling.name]
+    print(
+        f"{ceiling.name}: native crop SSIM {means['ssim_crop']:.3f}, MSE {means['mse_crop']:.0f}, sharpness "
+        f"{means['sharpness']:.2f} (the ceiling of a simulator as sharp as the sensor at the annotated centres)"
+    )
     for name, ps in (("annotated centres", presses), ("centres refined on the held-out frames", None)):
         ps = ps or dataclasses.replace(presses, presses=tuple(refined))
         rows, sp_rows = calibration_rows(ps, sensor, cal, info, warp, test, "diagnostic")
@@ -69,6 +80,20 @@ def main() -> None:
             f"{name}: native crop SSIM {means['ssim_crop']:.3f}, MSE {means['mse_crop']:.0f}, sharpness "
             f"{means['sharpness']:.2f}; contact region SSIM {means['ssim_region']:.3f}, MSE {means['mse_region']:.0f}"
         )
+
+
+def moved_back(presses, test, shifts: np.ndarray) -> np.ndarray:
+    """Held-out real frames [N, H, W, 3] (uint8, native size) whose change from the no-contact frame is moved by
+    minus ``shifts`` [N, 2] (columns, rows; bilinear), so that each contact sits at its annotated centre."""
+    from scipy.ndimage import shift as move
+
+    f0 = presses.background().astype(np.float32)
+    out = []
+    for k, i in enumerate(test):
+        change = presses.frame(i).astype(np.float32) - f0
+        back = move(change, (-shifts[k, 1], -shifts[k, 0], 0.0), order=1, mode="constant", cval=0.0)
+        out.append(np.clip(np.rint(f0 + back), 0, 255).astype(np.uint8))
+    return np.stack(out)
 
 
 if __name__ == "__main__":
