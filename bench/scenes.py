@@ -320,6 +320,7 @@ def batched_bench(args: argparse.Namespace) -> None:
         return _new_scene(params, trains[k], settings, args.seed)
 
     def psnr(s, k: int) -> float:
+        s.march_kernel = {"auto": None, "on": True, "off": False}[args.march_kernel]
         return _psnr(s, tests[k], settings, data[k][1])
 
     # Warm-up (CUDA context, kernels, allocator) before anything is timed: a few steps of the batched loop.
