@@ -119,15 +119,12 @@ def test_a_calibration_is_its_content_not_its_folder(tmp_path):
     root copied elsewhere); another calibration's content does not."""
     from types import SimpleNamespace
 
+    from tests.sensors.calibrations import random_calibration
     from tnf.data.pairing import _check_sensor
     from tnf.registry import SENSORS
     from tnf.sensors.calibration import Calibration
 
-    rng = np.random.default_rng(0)
-    cal = Calibration(
-        table=rng.normal(0, 10, (9, 9, 3)).astype(np.float32), max_slope=1.5, blur_sigma=2.0, noise_std=1.0,
-        falloff=0.1, background=rng.integers(0, 256, (240, 320, 3), dtype=np.uint8),
-    )  # fmt: skip
+    cal = random_calibration()
     for name in ("a", "b"):
         cal.save(tmp_path / name)
     other = Calibration(**{**cal.__dict__, "blur_sigma": 3.0})

@@ -7,22 +7,15 @@ import sys
 import numpy as np
 import pytest
 
+from tests.sensors.calibrations import random_calibration
 from tnf.errors import TnfError
-from tnf.sensors.calibration import FILE, Calibration, load_calibration
+from tnf.sensors.calibration import FILE, load_calibration
 
 
 @pytest.fixture
 def saved(tmp_path):
     """A valid calibration folder for a 320x240 sensor, as ``tnf calibrate`` writes it."""
-    rng = np.random.default_rng(0)
-    cal = Calibration(
-        table=rng.normal(0, 10, (9, 9, 3)).astype(np.float32),
-        max_slope=1.5,
-        blur_sigma=2.0,
-        noise_std=1.0,
-        falloff=0.1,
-        background=rng.integers(0, 256, (240, 320, 3), dtype=np.uint8),
-    )
+    cal = random_calibration()
     folder = tmp_path / "cal"
     cal.save(folder)
     assert load_calibration(folder).digest() == cal.digest()
