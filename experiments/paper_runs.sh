@@ -4,7 +4,8 @@
 #   digit-data    digit-scenes with touch beside it, then pair (OVERLAP=0: digit-scenes, digit-pairs)  (sim_digit)
 #   digit-scenes  capture, fit-scene (a sweep of FIT_WORKERS jobs over object shards through Hydra's joblib launcher,
 #                 spread over the visible GPUs by tnf); every scene's figures to scenes.txt/.csv
-#   digit-pairs   touch, pair (with PROFILE=1 under cProfile: the top functions go to $OUT/pair_profile.txt)
+#   digit-pairs   touch, pair (with PROFILE=1, here and in digit-data, pair runs under cProfile: the top functions
+#                 go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
 #                 process each (on one H100, one seed's three generators take 664-712 s, three tn_cgan seeds of 45
 #                 epochs 610-760 s: a 10-minute job stops them, and the next resumes them)
@@ -44,6 +45,15 @@ timed() {  # timed NAME CMD...: run, log to $out/NAME.log, append the wall time 
   "$@" >"$out/$name.log" 2>&1 || { tail -40 "$out/$name.log"; echo "FAILED: $name" | tee -a "$out/stage_times.txt"; return 1; }
   echo "$name: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
 }
+pair_stage() {  # tnf pair, timed; with PROFILE=1 under cProfile (the top functions to $out/pair_profile.txt)
+  if [[ ${PROFILE:-0} == 1 ]]; then
+    timed pair python -m cProfile -o "$out/pair.prof" -m tnf.cli pair "${digit[@]}" || return 1
+    python -c "import pstats; pstats.Stats('$out/pair.prof').sort_stats('tottime').print_stats(40)" >"$out/pair_profile.txt"
+    rm -f "$out/pair.prof"
+  else
+    timed pair tnf pair "${digit[@]}"
+  fi
+}
 case "$1" in
   bench)
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/hardware.txt"
@@ -60,7 +70,7 @@ case "$1" in
       timed touch tnf touch "${digit[@]}" & touch_pid=$!
       rc=0; bash "$0" digit-scenes || rc=1
       wait $touch_pid || rc=1
-      ((rc == 0)) && { timed pair tnf pair "${digit[@]}" || rc=1; }
+      ((rc == 0)) && { pair_stage || rc=1; }
       echo "digit-data: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
       exit $rc
     else
@@ -81,13 +91,7 @@ case "$1" in
   digit-pairs)
     t0=$SECONDS
     timed touch tnf touch "${digit[@]}"
-    if [[ ${PROFILE:-0} == 1 ]]; then
-      timed pair python -m cProfile -o "$out/pair.prof" -m tnf.cli pair "${digit[@]}"
-      python -c "import pstats; pstats.Stats('$out/pair.prof').sort_stats('tottime').print_stats(40)" >"$out/pair_profile.txt"
-      rm -f "$out/pair.prof"
-    else
-      timed pair tnf pair "${digit[@]}"
-    fi
+    pair_stage
     echo "digit-pairs: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     ;;
   digit-models)

@@ -64,22 +64,21 @@ def main() -> None:
     print(f"held-out presses {test[0]}-{test[-1]}: centres moved by (columns, rows), recording pixels:")
     print("  " + ", ".join(f"{i}: ({c:+.0f}, {r:+.0f})" for i, (c, r) in zip(test, moved, strict=True)))
     print(f"  mean distance {float(np.hypot(*moved.T).mean()):.1f} px, largest {float(np.hypot(*moved.T).max()):.1f}")
-    rows, sp_rows = calibration_rows(presses, sensor, cal, info, warp, test, "diagnostic")
     ceiling = report.Row("real frames moved to the annotated centres", moved_back(presses, test, moved))
-    means = report.mean_scores(report.score_rows([ceiling], presses, sp_rows))[ceiling.name]
-    print(
-        f"{ceiling.name}: native crop SSIM {means['ssim_crop']:.3f}, MSE {means['mse_crop']:.0f}, sharpness "
-        f"{means['sharpness']:.2f} (the ceiling of a simulator as sharp as the sensor at the annotated centres)"
-    )
-    for name, ps in (("annotated centres", presses), ("centres refined on the held-out frames", None)):
-        ps = ps or dataclasses.replace(presses, presses=tuple(refined))
+    moved_presses = dataclasses.replace(presses, presses=tuple(refined))
+    for name, ps, extra in (
+        ("annotated centres", presses, [ceiling]),
+        ("centres refined on the held-out frames", moved_presses, []),
+    ):
         rows, sp_rows = calibration_rows(ps, sensor, cal, info, warp, test, "diagnostic")
-        row = rows[2]  # the calibration at the sensor's size
-        means = report.mean_scores(report.score_rows([row], ps, sp_rows))[row.name]
-        print(
-            f"{name}: native crop SSIM {means['ssim_crop']:.3f}, MSE {means['mse_crop']:.0f}, sharpness "
-            f"{means['sharpness']:.2f}; contact region SSIM {means['ssim_region']:.3f}, MSE {means['mse_region']:.0f}"
-        )
+        scored = [rows[2], *extra]  # the calibration at the sensor's size, and the ceiling at the annotated centres
+        for row, label in zip(scored, [name, *(r.name for r in extra)], strict=True):
+            means = report.mean_scores(report.score_rows([row], ps, sp_rows))[row.name]
+            print(
+                f"{label}: native crop SSIM {means['ssim_crop']:.3f}, MSE {means['mse_crop']:.0f}, sharpness "
+                f"{means['sharpness']:.2f}; contact region SSIM {means['ssim_region']:.3f}, "
+                f"MSE {means['mse_region']:.0f}"
+            )
 
 
 def moved_back(presses, test, shifts: np.ndarray) -> np.ndarray:

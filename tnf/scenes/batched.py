@@ -128,12 +128,12 @@ class BatchedHashGrid(nn.Module):
         sigma, geo = self._density_head(tiles.pack(self._encode(x, obj)), tiles.obj)
         color_in = torch.cat([tiles.pack(spherical_harmonics(dirs)), geo], dim=-1)
         rgb = _batched_mlp(self.color_w, self.color_b, color_in, tiles.obj)
-        return tiles.unpack(sigma.unsqueeze(-1))[:, 0], torch.sigmoid(tiles.unpack(rgb))
+        return tiles.unpack(sigma), torch.sigmoid(tiles.unpack(rgb))
 
     def density(self, x: torch.Tensor, obj: torch.Tensor) -> torch.Tensor:
         """Density [P] (1/metre) at normalised positions x [P, 3] of objects ``obj`` [P] (non-decreasing)."""
         tiles = _Tiles(obj, self.K)
-        return tiles.unpack(self._density_head(tiles.pack(self._encode(x, obj)), tiles.obj)[0].unsqueeze(-1))[:, 0]
+        return tiles.unpack(self._density_head(tiles.pack(self._encode(x, obj)), tiles.obj)[0])
 
     # -- rendering with gradients -------------------------------------------------------------------
     def render_rays(
@@ -265,8 +265,9 @@ def _batched_mlp(ws: nn.ParameterList, bs: nn.ParameterList, x: torch.Tensor, ti
 class _Tiles:
     """P samples grouped per object (``obj`` [P] non-decreasing, K objects) laid out in M tiles of T rows, each
     tile holding samples of one object only (the last tile of an object padded with zeros), so that batched
-    matrix products run on about P rows rather than K times the most samples of one object. T is a power of two
-    of at least 256 and about P / 8K, so padding adds at most an eighth."""
+    matrix products run on about P rows rather than K times the most samples of one object. T is a power of two,
+    P / 8K rounded down and at least 256: padding adds fewer than K * T rows, at most an eighth of P once P
+    reaches 2048 K."""
 
     def __init__(self, obj: torch.Tensor, K: int):
         P = obj.shape[0]
@@ -286,8 +287,8 @@ class _Tiles:
         return rows.view(self.count, self.size, -1)
 
     def unpack(self, tiles: torch.Tensor) -> torch.Tensor:
-        """Tiles [M, T, C] back to per-sample values [P, C]."""
-        return tiles.reshape(self.count * self.size, -1)[self.slot]
+        """Tiles [M, T, ...] back to per-sample values [P, ...]."""
+        return tiles.reshape(self.count * self.size, *tiles.shape[2:])[self.slot]
 
 
 class _Rays:
