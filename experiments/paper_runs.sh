@@ -3,7 +3,8 @@
 # Usage: bash experiments/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
 #   digit-data    digit-scenes with touch beside it, then pair (OVERLAP=0: digit-scenes, digit-pairs)  (sim_digit)
 #   digit-scenes  capture, fit-scene (a sweep of FIT_WORKERS jobs over object shards through Hydra's joblib launcher,
-#                 spread over the visible GPUs by tnf); every scene's figures to scenes.txt/.csv
+#                 spread over the visible GPUs by tnf; FIT_WORKERS=1: one process); every scene's figures to
+#                 scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1, here and in digit-data, pair runs under cProfile: the top functions
 #                 go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
@@ -80,9 +81,21 @@ case "$1" in
   digit-scenes)
     t0=$SECONDS
     timed capture tnf capture "${digit[@]}"
-    # Each fit is small for an H100: several jobs keep it busy. One sweep over object shards, as a user would run it.
-    timed fit tnf fit-scene -m hydra/launcher=joblib hydra.launcher.n_jobs=$fit_workers shards=$fit_workers \
-      "shard=range($fit_workers)" "${digit[@]}"
+    if ((fit_workers == 1)); then
+      # One process (with fit.batch_objects=27 in EXTRA: all objects in one training loop); PROFILE=1 runs it under
+      # cProfile, the top functions by cumulative time to $out/fit_profile.txt.
+      if [[ ${PROFILE:-0} == 1 ]]; then
+        timed fit python -m cProfile -o "$out/fit.prof" -m tnf.cli fit-scene "${digit[@]}"
+        python -c "import pstats; pstats.Stats('$out/fit.prof').sort_stats('cumulative').print_stats(60)" >"$out/fit_profile.txt"
+        rm -f "$out/fit.prof"
+      else
+        timed fit tnf fit-scene "${digit[@]}"
+      fi
+    else
+      # Each fit is small for an H100: several jobs keep it busy. One sweep over object shards, as a user would run it.
+      timed fit tnf fit-scene -m hydra/launcher=joblib hydra.launcher.n_jobs=$fit_workers shards=$fit_workers \
+        "shard=range($fit_workers)" "${digit[@]}"
+    fi
     echo "digit-scenes: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
     # The table of every scene (hashgrid, builtin: sim_digit's); a failure here leaves the fitted scenes usable.
     python experiments/scene_table.py "$TNF_DATA" --csv "$out/scenes.csv" >"$out/scenes.txt" 2>&1 && tail -2 "$out/scenes.txt" ||

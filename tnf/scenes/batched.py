@@ -321,7 +321,8 @@ def fit_batched(
     names: Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
     """Train K hash-grid ``scenes`` on their ``views`` together, in place; returns per object what
-    ``fit_scene`` returns (``steps``, ``train_seconds``: the group's wall time, ``final_loss``, ``log``).
+    ``fit_scene`` returns (``steps``, ``train_seconds``: the group's wall time, ``final_loss``, ``log``) and
+    ``checkpoint_seconds``, the part of ``train_seconds`` spent writing resume checkpoints in this call.
 
     Each step draws ``batch_rays`` rays of every object and takes one Adam step over all of them; the
     objects' learning-rate schedule, loss (colour, distortion), random backgrounds and occupancy refreshes
@@ -367,6 +368,7 @@ def fit_batched(
     recent = torch.empty(s.log_every, K, device=dev)  # per-object losses since the last read
     recent_from = first
     last_loss = [float(x[-1]["loss"]) if x else float("nan") for x in logs]
+    checkpoint_seconds = 0.0
     started = time.perf_counter()
     for step in range(first, steps):
         for g in generators:
@@ -405,7 +407,9 @@ def fit_batched(
         if save_now:
             assert resume is not None
             seconds = earlier_seconds + time.perf_counter() - started
+            t_save = time.perf_counter()
             _write_resume(resume, fingerprint, step + 1, seconds, logs, model, opt, sched)
+            checkpoint_seconds += time.perf_counter() - t_save
         if on_step is not None:
             on_step(step, sum(last_loss) / K)
     if dev.type == "cuda":
@@ -422,6 +426,7 @@ def fit_batched(
         {
             "steps": steps,
             "train_seconds": seconds,
+            "checkpoint_seconds": checkpoint_seconds,
             "final_loss": logs[k][-1]["loss"] if logs[k] else None,
             "log": logs[k],
         }
@@ -533,6 +538,7 @@ def fit_objects(
     if kinds != {"hashgrid"}:
         raise TnfError(f"fit.batch_objects > 1 fits hashgrid scenes only, not {sorted(kinds)}; set fit.batch_objects=1")
     s = settings.resolved("hashgrid")
+    t_setup = time.perf_counter()
     trains = [read_views(Path(c) / "transforms.json") for c in capture_dirs]
     scenes: list[HashGridScene] = []
     for spec, train in zip(scene_specs, trains, strict=True):
@@ -544,14 +550,30 @@ def fit_objects(
         scenes.append(scene)
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
+    setup_seconds = time.perf_counter() - t_setup
     infos = fit_batched(scenes, trains, s, device, resume_path, on_step, seed, names)
+    t_write = time.perf_counter()
     out = []
     for k in range(K):
         info = dict(infos[k], train_seconds=infos[k]["train_seconds"] / K)
-        extra = {"group_train_seconds": infos[k]["train_seconds"], "batch_objects": K}
+        extra = {
+            "group_train_seconds": infos[k]["train_seconds"],
+            "group_checkpoint_seconds": infos[k]["checkpoint_seconds"],
+            "group_setup_seconds": setup_seconds,
+            "batch_objects": K,
+        }
         size = sizes_m[k] if sizes_m is not None else None
         out.append(
             write_fit(scenes[k], "hashgrid", trains[k], capture_dirs[k], out_dirs[k], s, info, device, size, extra)
         )
         scenes[k].cpu()  # the fitted objects' device memory is not needed any more
+    log.info(
+        "batched fit of %d objects: %.1f s reading and carving, %.1f s training (%.1f s of it writing checkpoints), "
+        "%.1f s evaluating and writing",
+        K,
+        setup_seconds,
+        infos[0]["train_seconds"],
+        infos[0]["checkpoint_seconds"],
+        time.perf_counter() - t_write,
+    )
     return out
