@@ -465,13 +465,14 @@ def test_callbacks_group_builds_each_callback_with_its_settings():
 
     cfg = compose("train", ["callbacks.image_grids.folder=pictures", "callbacks.discriminator_watch=null"])
     built = build_callbacks(cfg.callbacks)
-    assert [type(c).__name__ for c in built] == ["WeightAverage", "FiniteCheck", "ImageGrids"]
+    assert [type(c).__name__ for c in built] == ["WeightAverage", "FiniteCheck", "ImageGrids", "EpochTimes"]
     assert isinstance(built[2], ImageGrids) and built[2].config.folder == "pictures"
     assert [type(c).__name__ for c in build_callbacks()] == [
         "WeightAverage",
         "FiniteCheck",
         "DiscriminatorWatch",
         "ImageGrids",
+        "EpochTimes",
     ]
     with pytest.raises(TnfError, match="unknown callback 'early_stop'.*available: weight_average"):
         build_callbacks({"early_stop": {}})
@@ -491,6 +492,18 @@ def test_callbacks_left_out_leave_their_outputs_out(tmp_path):
     assert "train/d_real_epoch" in header and "train/d_saturated" not in header
     train(tmp_path / "other", epochs=1, callbacks=build_callbacks({"image_grids": {"folder": "pictures"}}))
     assert sorted(p.name for p in (tmp_path / "other" / "pictures").iterdir()) == ["epoch_000.png"]
+
+
+def test_epoch_times_split_each_epoch_into_training_validation_and_the_rest(tmp_path):
+    """Every epoch's row holds the three times; validation runs inside the epoch (before its end), so its time
+    is measured; the first epoch has nothing before it, the second the first one's checkpoint writing."""
+    run_dir = tmp_path / "run"
+    train(run_dir, epochs=2, callbacks=build_callbacks({"finite_check": {}, "epoch_times": {}}))
+    rows = [r for r in csv.DictReader(open(run_dir / "metrics.csv")) if r.get("time/train_s")]
+    assert len(rows) == 2
+    for r in rows:
+        assert float(r["time/train_s"]) > 0 and float(r["time/val_s"]) > 0
+    assert float(rows[0]["time/other_s"]) == 0.0 and float(rows[1]["time/other_s"]) > 0
 
 
 def test_a_weight_average_without_its_callback_is_refused(tmp_path):

@@ -7,6 +7,7 @@ Each callback holds one idea and works on a ``GeneratorSystem``:
 - ``FiniteCheck``: stops training on a NaN or Inf training loss.
 - ``DiscriminatorWatch``: logs whether the discriminator tells real from generated images apart almost always.
 - ``ImageGrids``: writes an image grid of validation pairs each epoch and shows it in TensorBoard or W&B.
+- ``EpochTimes``: logs where each epoch's wall time went: training steps, validation, and the rest.
 
 ``conf/callbacks/default.yaml`` lists them by name with their settings (:func:`build_callbacks`);
 ``callbacks.NAME=null`` on the command line leaves one out. Every run also has ``LatestCheckpoint``
@@ -350,12 +351,62 @@ def _log_image(logger: Any, grid: np.ndarray, step: int) -> None:
         pass
 
 
+class EpochTimes(Callback):
+    """Logs each epoch's wall time, seconds, split three ways (in ``metrics.csv`` and any logger):
+
+    - ``time/train_s``: the training batches, from the epoch's start to its end less its validation;
+    - ``time/val_s``: the validation loop;
+    - ``time/other_s``: from the previous epoch's end to this one's start (checkpoint writing, loader start-up).
+
+    The clock is the host's: queued GPU work counts where the host next waits for it (a validation metric, a
+    loss check), so the split is accurate to the length of one queued step.
+    """
+
+    @dataclasses.dataclass
+    @yaml_defaults(DEFAULTS, node="epoch_times")
+    class Config:
+        """No settings."""
+
+    def __init__(self, config: Config | None = None):
+        self.config = config or self.Config()
+        self._epoch_start = 0.0
+        self._val_start: float | None = None
+        self._val = 0.0
+        self._last_end: float | None = None
+        self._other = 0.0
+
+    def on_train_epoch_start(self, trainer: Any, pl_module: Any) -> None:
+        now = time.perf_counter()
+        self._other = now - self._last_end if self._last_end is not None else 0.0
+        self._epoch_start, self._val = now, 0.0
+
+    def on_validation_start(self, trainer: Any, pl_module: Any) -> None:
+        if not trainer.sanity_checking:
+            self._val_start = time.perf_counter()
+
+    def on_validation_end(self, trainer: Any, pl_module: Any) -> None:
+        if self._val_start is not None:
+            self._val += time.perf_counter() - self._val_start
+            self._val_start = None
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
+        now = time.perf_counter()
+        times = {
+            "time/train_s": now - self._epoch_start - self._val,
+            "time/val_s": self._val,
+            "time/other_s": self._other,
+        }
+        pl_module.log_dict(times, on_step=False, on_epoch=True, rank_zero_only=True)
+        self._last_end = now
+
+
 #: The callbacks a ``callbacks`` config can name, by name.
 CALLBACKS: dict[str, type[Any]] = {
     "weight_average": WeightAverage,
     "finite_check": FiniteCheck,
     "discriminator_watch": DiscriminatorWatch,
     "image_grids": ImageGrids,
+    "epoch_times": EpochTimes,
 }
 
 
