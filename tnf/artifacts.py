@@ -93,7 +93,7 @@ def write_json(path: str | os.PathLike[str], data: Any) -> None:
     write_bytes(path, (json.dumps(_jsonable(data), indent=2) + "\n").encode())
 
 
-def write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+def write_bytes(path: str | os.PathLike[str], data: bytes | memoryview) -> None:
     """Write bytes atomically: readers see the old file or the whole new one, never a part."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

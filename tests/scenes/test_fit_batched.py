@@ -170,6 +170,16 @@ def test_a_group_resumes_from_its_checkpoint_as_if_never_stopped(captures, tmp_p
             assert torch.equal(value, b.state_dict()[key]), key
 
 
+def test_a_checkpoint_write_that_fails_in_the_background_raises_in_the_fit(captures, tmp_path):
+    """The checkpoint is written in a background thread; its error reaches the training thread."""
+    settings = FitSettings(steps=12, batch_rays=64, checkpoint_every=4, log_every=3).resolved("hashgrid")
+    scenes, views = zip(*(_scene(c) for c in captures[:2]), strict=True)
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("a file where the checkpoint's folder should be")
+    with pytest.raises(OSError):
+        fit_batched(list(scenes), list(views), settings, resume_path=blocker / "group.pt", seed=0)
+
+
 def test_scenes_of_other_configs_are_refused(captures):
     a, _ = _scene(captures[0])
     views = read_views(captures[1] / "transforms.json")

@@ -29,6 +29,7 @@ import io
 import logging
 import math
 import os
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -368,50 +369,58 @@ def fit_batched(
     recent = torch.empty(s.log_every, K, device=dev)  # per-object losses since the last read
     recent_from = first
     last_loss = [float(x[-1]["loss"]) if x else float("nan") for x in logs]
-    checkpoint_seconds = 0.0
+    checkpoint_seconds = 0.0  # the loop's waits for checkpoints: serialising them, not writing them
+    writer = _ResumeWriter()
     started = time.perf_counter()
-    for step in range(first, steps):
-        for g in generators:
-            g.manual_seed(step_seed(seed, step))
-        model.update_occupancy(step, generators)
-        # Object by object, its draws in the order of its separate fit: ray batch, backgrounds, offsets.
-        idx, bg, off = [], [], []
-        for k, g in enumerate(generators):
-            idx.append(torch.randint(0, rays.count[k], (B,), device=dev, generator=g) + rays.start[k])
-            bg.append(
-                torch.rand(B, 3, device=dev, generator=g) if s.random_background else model.background[k].expand(B, 3)
-            )
-            off.append(torch.rand(B, 1, device=dev, generator=g))
-        sel, background = torch.cat(idx), torch.cat(bg)
-        gt = composite(rays.targets[sel], background)
-        out = model.render_rays(rays.origins[sel], rays.directions[sel], background, torch.cat(off))
-        per_object = ((out["rgb"] - gt) ** 2).view(K, -1).mean(1)
-        if s.distortion_weight and step >= distortion_from:
-            per_object = per_object + s.distortion_weight * out["distortion"].view(K, B).mean(1)
-        opt.zero_grad(set_to_none=True)
-        per_object.sum().backward()
-        opt.step()
-        sched.step()
-        recent[step - recent_from] = per_object.detach()
-        last = step == steps - 1
-        log_now = step % s.log_every == 0 or last
-        every = s.checkpoint_every
-        save_now = resume is not None and every > 0 and (step + 1) % every == 0 and not last
-        if log_now or save_now:
-            losses = _read_losses(recent[: step - recent_from + 1], recent_from, names, resume)
-            recent_from = step + 1
-            if log_now:
-                last_loss = losses
-                for k in range(K):
-                    logs[k].append({"step": step, "loss": losses[k]})
-        if save_now:
-            assert resume is not None
-            seconds = earlier_seconds + time.perf_counter() - started
-            t_save = time.perf_counter()
-            _write_resume(resume, fingerprint, step + 1, seconds, logs, model, opt, sched)
-            checkpoint_seconds += time.perf_counter() - t_save
-        if on_step is not None:
-            on_step(step, sum(last_loss) / K)
+    try:
+        for step in range(first, steps):
+            for g in generators:
+                g.manual_seed(step_seed(seed, step))
+            model.update_occupancy(step, generators)
+            # Object by object, its draws in the order of its separate fit: ray batch, backgrounds, offsets.
+            idx, bg, off = [], [], []
+            for k, g in enumerate(generators):
+                idx.append(torch.randint(0, rays.count[k], (B,), device=dev, generator=g) + rays.start[k])
+                bg.append(
+                    torch.rand(B, 3, device=dev, generator=g)
+                    if s.random_background
+                    else model.background[k].expand(B, 3)
+                )
+                off.append(torch.rand(B, 1, device=dev, generator=g))
+            sel, background = torch.cat(idx), torch.cat(bg)
+            gt = composite(rays.targets[sel], background)
+            out = model.render_rays(rays.origins[sel], rays.directions[sel], background, torch.cat(off))
+            per_object = ((out["rgb"] - gt) ** 2).view(K, -1).mean(1)
+            if s.distortion_weight and step >= distortion_from:
+                per_object = per_object + s.distortion_weight * out["distortion"].view(K, B).mean(1)
+            opt.zero_grad(set_to_none=True)
+            per_object.sum().backward()
+            opt.step()
+            sched.step()
+            recent[step - recent_from] = per_object.detach()
+            last = step == steps - 1
+            log_now = step % s.log_every == 0 or last
+            every = s.checkpoint_every
+            save_now = resume is not None and every > 0 and (step + 1) % every == 0 and not last
+            if log_now or save_now:
+                losses = _read_losses(recent[: step - recent_from + 1], recent_from, names, resume, writer.wait)
+                recent_from = step + 1
+                if log_now:
+                    last_loss = losses
+                    for k in range(K):
+                        logs[k].append({"step": step, "loss": losses[k]})
+            if save_now:
+                assert resume is not None
+                seconds = earlier_seconds + time.perf_counter() - started
+                t_save = time.perf_counter()
+                writer.write(resume, _resume_bytes(fingerprint, step + 1, seconds, logs, model, opt, sched))
+                checkpoint_seconds += time.perf_counter() - t_save
+            if on_step is not None:
+                on_step(step, sum(last_loss) / K)
+    except BaseException:
+        writer.wait(reraise=False)
+        raise
+    writer.wait()
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     seconds = earlier_seconds + time.perf_counter() - started
@@ -434,12 +443,20 @@ def fit_batched(
     ]
 
 
-def _read_losses(recent: torch.Tensor, recent_from: int, names: Sequence[str], resume: Path | None) -> list[float]:
+def _read_losses(
+    recent: torch.Tensor,
+    recent_from: int,
+    names: Sequence[str],
+    resume: Path | None,
+    settle: Callable[[], None] = lambda: None,
+) -> list[float]:
     """The per-object losses of the last step in ``recent`` [steps, K] (steps from ``recent_from``);
-    ``NonFiniteLoss`` names the first object and step with a NaN or infinite loss."""
+    ``NonFiniteLoss`` names the first object and step with a NaN or infinite loss, and the checkpoint left
+    once ``settle()`` (a checkpoint write in progress) returns."""
     r = recent.cpu()
     bad = (~torch.isfinite(r)).nonzero()
     if bad.numel():
+        settle()
         step, k = recent_from + int(bad[0, 0]), int(bad[0, 1])
         note = (
             f"the last good checkpoint is {resume}"
@@ -472,8 +489,7 @@ def _fingerprint(s: FitSettings, seed: int, counts: Sequence[int], model: Batche
     }
 
 
-def _write_resume(
-    path: Path,
+def _resume_bytes(
     fingerprint: dict[str, Any],
     step: int,
     seconds: float,
@@ -481,15 +497,47 @@ def _write_resume(
     model: BatchedHashGrid,
     opt: torch.optim.Optimizer,
     sched: Any,
-) -> None:
-    """Write the group's checkpoint atomically: the next step to take, the model, optimiser, scheduler, logs."""
+) -> memoryview:
+    """The group's checkpoint, serialised on the host: the next step to take, the model, optimiser, scheduler,
+    logs. A copy: the training steps after it do not change it."""
     meta = {"format": RESUME_FORMAT, "kind": "scene_fit_batched", "fit": fingerprint, "step": step}
     meta.update({"train_seconds": seconds, "log": logs})
     blob = {"tnf": meta, "model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict()}
     buf = io.BytesIO()
     torch.save(blob, buf)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_bytes(path, buf.getvalue())
+    return buf.getbuffer()
+
+
+class _ResumeWriter:
+    """Writes resume checkpoints atomically in a background thread, one at a time, so that training goes on
+    while the file is written and flushed to disk. ``wait`` returns once the last write is done and raises
+    its error, if any (a full disk: ``tnf.artifacts.DiskFull``)."""
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def write(self, path: Path, data: memoryview) -> None:
+        """Write ``data`` to ``path`` once the previous write is done."""
+        self.wait()
+
+        def run() -> None:
+            try:
+                write_bytes(path, data)
+            except BaseException as e:  # raised in the training thread by wait()
+                self._error = e
+
+        self._thread = threading.Thread(target=run, name="tnf-resume-writer", daemon=True)
+        self._thread.start()
+
+    def wait(self, reraise: bool = True) -> None:
+        """Wait for the write in progress; raise its error unless ``reraise`` is false."""
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        error, self._error = self._error, None
+        if error is not None and reraise:
+            raise error
 
 
 def _read_resume(path: Path, fingerprint: dict[str, Any]) -> tuple[dict[str, Any] | None, str]:
