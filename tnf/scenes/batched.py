@@ -23,6 +23,7 @@ no sample in the occupancy grid during a step (module docs of ``fit_batched``).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import io
@@ -369,7 +370,7 @@ def fit_batched(
     recent = torch.empty(s.log_every, K, device=dev)  # per-object losses since the last read
     recent_from = first
     last_loss = [float(x[-1]["loss"]) if x else float("nan") for x in logs]
-    checkpoint_seconds = 0.0  # the loop's waits for checkpoints: serialising them, not writing them
+    checkpoint_seconds = 0.0  # the loop's waits for checkpoints: copying them to the host, not writing them
     writer = _ResumeWriter()
     started = time.perf_counter()
     try:
@@ -413,7 +414,7 @@ def fit_batched(
                 assert resume is not None
                 seconds = earlier_seconds + time.perf_counter() - started
                 t_save = time.perf_counter()
-                writer.write(resume, _resume_bytes(fingerprint, step + 1, seconds, logs, model, opt, sched))
+                writer.write(resume, _resume_state(fingerprint, step + 1, seconds, logs, model, opt, sched))
                 checkpoint_seconds += time.perf_counter() - t_save
             if on_step is not None:
                 on_step(step, sum(last_loss) / K)
@@ -489,7 +490,7 @@ def _fingerprint(s: FitSettings, seed: int, counts: Sequence[int], model: Batche
     }
 
 
-def _resume_bytes(
+def _resume_state(
     fingerprint: dict[str, Any],
     step: int,
     seconds: float,
@@ -497,33 +498,49 @@ def _resume_bytes(
     model: BatchedHashGrid,
     opt: torch.optim.Optimizer,
     sched: Any,
-) -> memoryview:
-    """The group's checkpoint, serialised on the host: the next step to take, the model, optimiser, scheduler,
-    logs. A copy: the training steps after it do not change it."""
+) -> dict[str, Any]:
+    """The group's checkpoint, a copy on the host that the training steps after it do not change: the next
+    step to take, the model, optimiser, scheduler, logs."""
     meta = {"format": RESUME_FORMAT, "kind": "scene_fit_batched", "fit": fingerprint, "step": step}
-    meta.update({"train_seconds": seconds, "log": logs})
-    blob = {"tnf": meta, "model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict()}
+    meta.update({"train_seconds": seconds, "log": copy.deepcopy(logs)})
+    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict()}
+    return {"tnf": meta, **_host_copy(state)}
+
+
+def _host_copy(obj: Any) -> Any:
+    """``obj`` with every tensor in it (in dicts, lists and tuples) copied to host memory."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().to("cpu", copy=True)
+    if isinstance(obj, dict):
+        return {k: _host_copy(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return type(obj)(_host_copy(v) for v in obj)
+    return copy.deepcopy(obj)
+
+
+def _write_resume(path: Path, state: dict[str, Any]) -> None:
+    """Write a checkpoint of ``_resume_state`` atomically."""
     buf = io.BytesIO()
-    torch.save(blob, buf)
-    return buf.getbuffer()
+    torch.save(state, buf)
+    write_bytes(path, buf.getbuffer())
 
 
 class _ResumeWriter:
     """Writes resume checkpoints atomically in a background thread, one at a time, so that training goes on
-    while the file is written and flushed to disk. ``wait`` returns once the last write is done and raises
-    its error, if any (a full disk: ``tnf.artifacts.DiskFull``)."""
+    while the checkpoint is serialised, written and flushed to disk. ``wait`` returns once the last write is
+    done and raises its error, if any (a full disk: ``tnf.artifacts.DiskFull``)."""
 
     def __init__(self) -> None:
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
 
-    def write(self, path: Path, data: memoryview) -> None:
-        """Write ``data`` to ``path`` once the previous write is done."""
+    def write(self, path: Path, state: dict[str, Any]) -> None:
+        """Write ``state`` (``_resume_state``) to ``path`` once the previous write is done."""
         self.wait()
 
         def run() -> None:
             try:
-                write_bytes(path, data)
+                _write_resume(path, state)
             except BaseException as e:  # raised in the training thread by wait()
                 self._error = e
 
