@@ -3,8 +3,8 @@
 # Usage: bash experiments/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
 #   digit-data    digit-scenes with touch beside it, then pair (OVERLAP=0: digit-scenes, digit-pairs)  (sim_digit)
 #   digit-scenes  capture, fit-scene (a sweep of FIT_WORKERS jobs over object shards through Hydra's joblib launcher,
-#                 spread over the visible GPUs by tnf; FIT_WORKERS=1: one process); every scene's figures to
-#                 scenes.txt/.csv
+#                 spread over the visible GPUs by tnf; FIT_WORKERS=1: one process, under cProfile with
+#                 FIT_PROFILE=1); every scene's figures to scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1, here and in digit-data, pair runs under cProfile: the top functions
 #                 go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
@@ -82,9 +82,9 @@ case "$1" in
     t0=$SECONDS
     timed capture tnf capture "${digit[@]}"
     if ((fit_workers == 1)); then
-      # One process (with fit.batch_objects=27 in EXTRA: all objects in one training loop); PROFILE=1 runs it under
-      # cProfile, the top functions by cumulative time to $out/fit_profile.txt.
-      if [[ ${PROFILE:-0} == 1 ]]; then
+      # One process (with fit.batch_objects=27 in EXTRA: all objects in one training loop); FIT_PROFILE=1 runs it
+      # under cProfile, the top functions by cumulative time to $out/fit_profile.txt.
+      if [[ ${FIT_PROFILE:-0} == 1 ]]; then
         timed fit python -m cProfile -o "$out/fit.prof" -m tnf.cli fit-scene "${digit[@]}"
         python -c "import pstats; pstats.Stats('$out/fit.prof').sort_stats('cumulative').print_stats(60)" >"$out/fit_profile.txt"
         rm -f "$out/fit.prof"
