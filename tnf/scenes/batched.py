@@ -633,7 +633,7 @@ def fit_objects(
         )
         scenes[k].cpu()  # the fitted objects' device memory is not needed any more
     log.info(
-        "batched fit of %d objects: %.1f s reading and carving, %.1f s training (%.1f s of it writing checkpoints), "
+        "batched fit of %d objects: %.1f s reading and carving, %.1f s training (%.1f s of it copying checkpoints), "
         "%.1f s evaluating and writing",
         K,
         setup_seconds,
