@@ -199,3 +199,26 @@ def test_trainable_warp_encoding_matches_the_pytorch_encoding_and_its_table_grad
     assert enc.table.grad[rows:].abs().sum() == 0
     with pytest.raises(ValueError, match="no gradient with respect to the positions"):
         hash_kernel.hash_encode_trainable(x.requires_grad_(), enc.table, enc.res, enc.n_dense, enc.table_size)
+
+
+def test_a_scene_renders_without_warp_through_the_pytorch_encoding(scene, monkeypatch):
+    """Where Warp cannot be imported, rendering (render_kernel None) takes the PyTorch path, as where Warp has
+    no device: the same images as that path asked for by name."""
+    import sys
+
+    import tnf.scenes
+
+    o = torch.tensor([[0.0, 0.0, 0.3]]).repeat(50, 1)
+    d = torch.nn.functional.normalize(torch.randn(50, 3) * 0.15 + torch.tensor([0, 0, -1.0]), dim=-1)
+    monkeypatch.setattr(scene, "render_kernel", False)
+    with torch.no_grad():
+        plain = scene.render_rays(o, d)
+    monkeypatch.setattr(scene, "render_kernel", None)
+    monkeypatch.setitem(sys.modules, "warp", None)  # import warp raises ImportError
+    monkeypatch.delitem(sys.modules, "tnf.scenes.hash_kernel", raising=False)
+    monkeypatch.delattr(tnf.scenes, "hash_kernel", raising=False)
+    assert not scene._use_kernel(torch.device("cpu"))
+    with torch.no_grad():
+        without = scene.render_rays(o, d)
+    for k in ("rgb", "depth", "opacity"):
+        torch.testing.assert_close(without[k], plain[k], msg=k)

@@ -300,9 +300,12 @@ class HashGridScene(OccupancyMarch, FieldScene):
         wanted = self.render_kernel if wanted is None else wanted
         if wanted is False:
             return False
-        from tnf.scenes import hash_kernel  # lazy: imports warp
-
-        ok = hash_kernel.available(device)
+        try:
+            from tnf.scenes import hash_kernel  # lazy: imports warp
+        except ImportError:  # Warp is not installed, or cannot load here: the PyTorch encoding renders
+            ok = False
+        else:
+            ok = hash_kernel.available(device)
         if wanted and not ok:
             raise RuntimeError(f"a Warp kernel was asked for but Warp cannot run on {device}")
         return ok
