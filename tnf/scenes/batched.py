@@ -33,6 +33,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -604,15 +605,18 @@ def fit_objects(
         raise TnfError(f"fit.batch_objects > 1 fits hashgrid scenes only, not {sorted(kinds)}; set fit.batch_objects=1")
     s = settings.resolved("hashgrid")
     t_setup = time.perf_counter()
-    trains = [read_views(Path(c) / "transforms.json") for c in capture_dirs]
-    scenes: list[HashGridScene] = []
-    for spec, train in zip(scene_specs, trains, strict=True):
-        torch.manual_seed(seed)
-        scene = build_scene(spec, train)
-        assert isinstance(scene, HashGridScene)
+    # Reading the views and carving are per object and need no random numbers: threads (image decoding, scipy
+    # and torch release the GIL); building draws each scene's initial weights from the seed, one at a time.
+    with ThreadPoolExecutor(max_workers=max(1, min(K, os.cpu_count() or 1))) as pool:
+        trains = list(pool.map(lambda c: read_views(Path(c) / "transforms.json"), capture_dirs))
+        scenes: list[HashGridScene] = []
+        for spec, train in zip(scene_specs, trains, strict=True):
+            torch.manual_seed(seed)
+            scene = build_scene(spec, train)
+            assert isinstance(scene, HashGridScene)
+            scenes.append(scene)
         if s.carve:
-            scene.carve(*train.cameras(), train.rgba()[..., 3])
-        scenes.append(scene)
+            list(pool.map(lambda k: scenes[k].carve(*trains[k].cameras(), trains[k].rgba()[..., 3]), range(K)))
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     setup_seconds = time.perf_counter() - t_setup
