@@ -325,7 +325,8 @@ def fit_batched(
 ) -> list[dict[str, Any]]:
     """Train K hash-grid ``scenes`` on their ``views`` together, in place; returns per object what
     ``fit_scene`` returns (``steps``, ``train_seconds``: the group's wall time, ``final_loss``, ``log``) and
-    ``checkpoint_seconds``, the part of ``train_seconds`` spent writing resume checkpoints in this call.
+    ``checkpoint_seconds``, the part of ``train_seconds`` that the loop waited for resume checkpoints in this
+    call (their copy to the host; a background thread writes them).
 
     Each step draws ``batch_rays`` rays of every object and takes one Adam step over all of them; the
     objects' learning-rate schedule, loss (colour, distortion), random backgrounds and occupancy refreshes
