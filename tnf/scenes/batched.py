@@ -607,8 +607,10 @@ def fit_objects(
     s = settings.resolved("hashgrid")
     t_setup = time.perf_counter()
     # Reading the views and carving are per object and need no random numbers: threads (image decoding, scipy
-    # and torch release the GIL); building draws each scene's initial weights from the seed, one at a time.
-    with ThreadPoolExecutor(max_workers=max(1, min(K, os.cpu_count() or 1))) as pool:
+    # and torch release the GIL), as many as the cores hold beside torch's own threads; building draws each
+    # scene's initial weights from the seed, one at a time.
+    workers = max(1, min(K, (os.cpu_count() or 1) // max(1, torch.get_num_threads())))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         trains = list(pool.map(lambda c: read_views(Path(c) / "transforms.json"), capture_dirs))
         scenes: list[HashGridScene] = []
         for spec, train in zip(scene_specs, trains, strict=True):
