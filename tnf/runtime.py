@@ -85,6 +85,39 @@ def environment(device: str) -> dict[str, Any]:
     }
 
 
+#: ``/proc/cpuinfo`` flags of CPUs that run bf16 matrix products natively (x86 AVX-512 BF16 or AMX; Arm's bf16).
+BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16", "bf16"})
+
+
+def resolve_precision(precision: str, accelerator: str = "auto") -> str:
+    """Lightning's ``precision`` for a trainer: ``auto`` -> ``bf16-mixed`` where the device runs bf16 natively
+    (a CUDA GPU that supports it; a CPU with a flag of ``BF16_CPU_FLAGS``), else ``32-true``. Autocast works
+    everywhere, but on a CPU without those instructions bf16 trains slower than float32. Any other value passes
+    through. ``accelerator``: the trainer's (``cpu``, ``gpu``, ``cuda`` or ``auto``: a GPU where one is visible).
+    """
+    import torch
+
+    if precision != "auto":
+        return precision
+    if accelerator != "cpu" and torch.cuda.is_available():
+        return "bf16-mixed" if torch.cuda.is_bf16_supported() else "32-true"
+    return "bf16-mixed" if cpu_flags() & BF16_CPU_FLAGS else "32-true"
+
+
+def cpu_flags() -> frozenset[str]:
+    """The CPU's feature flags from ``/proc/cpuinfo`` (x86 ``flags``, Arm ``Features``); empty elsewhere."""
+    from pathlib import Path
+
+    cpuinfo = Path("/proc/cpuinfo")
+    if not cpuinfo.is_file():
+        return frozenset()
+    for line in cpuinfo.read_text(errors="replace").splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() in ("flags", "Features"):
+            return frozenset(value.split())
+    return frozenset()
+
+
 def _cpu_name() -> str | None:
     import platform
     from pathlib import Path

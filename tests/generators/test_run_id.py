@@ -79,3 +79,31 @@ def test_a_run_family_names_its_one_finished_run(data_root):
     (models / "tn_cgan-digit-hashgrid-seed0-4567cdef" / "manifest.json").write_text("{}")
     with pytest.raises(TnfError, match="several finished runs.*0123abcd, .*4567cdef"):
         find_run(models, "tn_cgan-digit-hashgrid-seed0")
+
+
+@pytest.mark.parametrize(("flags", "expected"), [({"avx512_bf16", "avx2"}, "bf16-mixed"), ({"avx2"}, "32-true")])
+def test_precision_auto_is_bf16_only_on_cpus_that_run_it_natively_and_the_run_id_says_which(
+    data_root, monkeypatch, flags, expected
+):
+    from tnf import runtime
+    from tnf.stages import train
+
+    monkeypatch.setattr(runtime, "cpu_flags", lambda: frozenset(flags))
+    cfg = compose("train", [*TINY, "trainer.precision=auto"])
+    assert train.trainer_args(cfg)["precision"] == expected
+    # The run is identified by the precision it trains in, not by "auto".
+    assert train.model_run(cfg) == train.model_run(compose("train", [*TINY, f"trainer.precision={expected}"]))
+    # Other values pass through.
+    assert runtime.resolve_precision("32-true", "cpu") == "32-true"
+    assert runtime.resolve_precision("bf16-mixed", "cpu") == "bf16-mixed"
+
+
+def test_cpu_flags_are_read_from_the_machine():
+    from pathlib import Path
+
+    from tnf.runtime import cpu_flags
+
+    if not Path("/proc/cpuinfo").is_file():
+        pytest.skip("no /proc/cpuinfo")
+    flags = cpu_flags()
+    assert flags and all(" " not in f for f in flags)

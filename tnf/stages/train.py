@@ -16,7 +16,7 @@ from tnf.data.settings import DataSettings
 from tnf.errors import TnfError
 from tnf.generators.settings import FinetuneSettings, TrainSettings
 from tnf.registry import config_to_dict, from_dict
-from tnf.runtime import seed_everything
+from tnf.runtime import resolve_precision, seed_everything
 
 
 class TrainPlan(NamedTuple):
@@ -106,7 +106,7 @@ def run_config(
         "data": identity(data_settings(cfg)),
         "datasets": dataset_hashes(cfg, datasets),
         section: identity(settings),
-        "precision": str(cfg.trainer.precision),
+        "precision": resolve_precision(str(cfg.trainer.precision), str(cfg.trainer.get("accelerator", "auto"))),
         "seed": int(cfg.seed),
     }
 
@@ -189,7 +189,10 @@ def trainer_args(cfg: Any) -> dict[str, Any]:
 
     data = OmegaConf.to_container(cfg.trainer, resolve=True)
     assert isinstance(data, dict)
-    return {str(k): v for k, v in data.items()}
+    args = {str(k): v for k, v in data.items()}
+    if "precision" in args:
+        args["precision"] = resolve_precision(str(args["precision"]), str(args.get("accelerator", "auto")))
+    return args
 
 
 def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None:
