@@ -2,9 +2,9 @@
 # The paper-scale runs of results/paper/ on one GPU, one phase per call so that each fits a 10-minute job.
 # Usage: bash experiments/paper_runs.sh PHASE   (PHASE: bench | digit-data | digit-models | transfer | report)
 #   digit-data    digit-scenes with touch beside it, then pair (OVERLAP=0: digit-scenes, digit-pairs)  (sim_digit)
-#   digit-scenes  capture, fit-scene (a sweep of FIT_WORKERS jobs over object shards through Hydra's joblib launcher,
-#                 spread over the visible GPUs by tnf; FIT_WORKERS=1: one process, under cProfile with
-#                 FIT_PROFILE=1); every scene's figures to scenes.txt/.csv
+#   digit-scenes  capture, fit-scene (one process, its 27 scenes in one batched fit, under cProfile with
+#                 FIT_PROFILE=1; FIT_WORKERS=N>1: a sweep of N jobs over object shards through Hydra's joblib
+#                 launcher, spread over the visible GPUs by tnf); every scene's figures to scenes.txt/.csv
 #   digit-pairs   touch, pair (with PROFILE=1, here and in digit-data, pair runs under cProfile: the top functions
 #                 go to $OUT/pair_profile.txt)
 #   digit-models  train + generate + evaluate for each of GENERATORS (default tn_cgan lee cyclegan) and SEEDS, one
@@ -23,7 +23,7 @@ export TNF_DATA=${TNF_DATA:-/tmp/tnf-paper} PYTHONUNBUFFERED=1
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 out=${OUT:-$TNF_DATA/out}
 seeds=${SEEDS:-0}
-fit_workers=${FIT_WORKERS:-6}
+fit_workers=${FIT_WORKERS:-1}
 # On a machine of several GPUs, GPUS=N deals the parallel processes of digit-models and transfer (one per generator
 # and seed) round-robin over the first N (CUDA_VISIBLE_DEVICES); capture, touch and pair run on the GPU that
 # CUDA_VISIBLE_DEVICES names; the fit sweep's jobs spread over every visible GPU by themselves (docs/cluster.md).
@@ -82,7 +82,7 @@ case "$1" in
     t0=$SECONDS
     timed capture tnf capture "${digit[@]}"
     if ((fit_workers == 1)); then
-      # One process (with fit.batch_objects=27 in EXTRA: all objects in one training loop); FIT_PROFILE=1 runs it
+      # One process (sim_digit's fit.batch_objects=27: all objects in one training loop); FIT_PROFILE=1 runs it
       # under cProfile, the top functions by cumulative time to $out/fit_profile.txt.
       if [[ ${FIT_PROFILE:-0} == 1 ]]; then
         timed fit python -m cProfile -o "$out/fit.prof" -m tnf.cli fit-scene "${digit[@]}"
@@ -92,7 +92,7 @@ case "$1" in
         timed fit tnf fit-scene "${digit[@]}"
       fi
     else
-      # Each fit is small for an H100: several jobs keep it busy. One sweep over object shards, as a user would run it.
+      # One sweep over object shards, as a user would run it on several GPUs (each job batches its own shard).
       timed fit tnf fit-scene -m hydra/launcher=joblib hydra.launcher.n_jobs=$fit_workers shards=$fit_workers \
         "shard=range($fit_workers)" "${digit[@]}"
     fi
