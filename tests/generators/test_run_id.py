@@ -82,17 +82,18 @@ def test_a_run_family_names_its_one_finished_run(data_root):
 
 
 @pytest.mark.parametrize(("flags", "expected"), [({"avx512_bf16", "avx2"}, "bf16-mixed"), ({"avx2"}, "32-true")])
-def test_precision_auto_is_bf16_only_on_cpus_that_run_it_natively_and_the_run_id_says_which(
-    data_root, monkeypatch, flags, expected
-):
+def test_precision_auto_trains_in_bf16_only_on_cpus_that_run_it_natively(data_root, monkeypatch, flags, expected):
     from tnf import runtime
     from tnf.stages import train
 
     monkeypatch.setattr(runtime, "cpu_flags", lambda: frozenset(flags))
-    cfg = compose("train", [*TINY, "trainer.precision=auto"])
-    assert train.trainer_args(cfg)["precision"] == expected
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=6)
+    short = ["train.epochs=1", "train.decay_epochs=0"]
+    out = train.run(compose("train", [*TINY, *short, "trainer.precision=auto"]))
+    manifest = json.loads((data_root / "models" / out["run_name"] / "manifest.json").read_text())
+    assert manifest["precision"] == expected  # what the trainer ran in
     # The run is identified by the precision it trains in, not by "auto".
-    assert train.model_run(cfg) == train.model_run(compose("train", [*TINY, f"trainer.precision={expected}"]))
+    assert out["run_name"] == train.model_run(compose("train", [*TINY, *short, f"trainer.precision={expected}"]))
     # Other values pass through.
     assert runtime.resolve_precision("32-true", "cpu") == "32-true"
     assert runtime.resolve_precision("bf16-mixed", "cpu") == "bf16-mixed"

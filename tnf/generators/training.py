@@ -31,7 +31,7 @@ from lightning.pytorch.loggers.logger import rank_zero_experiment
 from tnf.artifacts import MANIFEST, config_hash, manifest_record, read_json, write_bytes, write_json
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.callbacks import PENDING, LatestCheckpoint
-from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once
+from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once, resolve_precision
 
 RUN_FILE = "run.json"
 
@@ -170,7 +170,8 @@ def fit(
     also goes into the run's ``manifest.json`` (best and last validation metrics, epochs, checkpoints).
 
     ``config`` is what the run is identified by (the manifest's config and hash); ``trainer_cfg`` holds
-    Lightning Trainer arguments (accelerator, devices, precision, strategy, ...); ``callbacks`` the run's
+    Lightning Trainer arguments (accelerator, devices, precision, strategy, ...; precision ``auto``:
+    ``tnf.runtime.resolve_precision``); ``callbacks`` the run's
     configurable callbacks (``tnf.generators.callbacks.build_callbacks``, default: those of the ``callbacks``
     group's default option), which join the checkpoints and the progress bar. ``last.ckpt`` is written at
     the end of an epoch once ``checkpoint_every_s`` seconds have passed since it was last written (0: after
@@ -193,6 +194,8 @@ def fit(
     run_dir = Path(run_dir)
     ckpt_path = prepare_run_dir(run_dir, config, resume)
     targs = dict(trainer_cfg)
+    if "precision" in targs:  # auto: bf16-mixed where the device runs it natively
+        targs["precision"] = resolve_precision(str(targs["precision"]), str(targs.get("accelerator", "auto")))
     targs.setdefault("num_sanity_val_steps", 0)
     targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"), fixed_graph=system.generator.fixed_graph())
     on_gpu = str(targs.get("accelerator", "auto")) != "cpu"
@@ -238,6 +241,7 @@ def _summary(trainer: Any, datamodule: Any, run_dir: Path, info: Mapping[str, An
         "best_val_l1": best,
         "last": metrics,
         "world_size": trainer.world_size,
+        "precision": str(trainer.precision),
         "checkpoints": {"last": "last.ckpt", "best": "best.ckpt"},
     }
 

@@ -189,10 +189,7 @@ def trainer_args(cfg: Any) -> dict[str, Any]:
 
     data = OmegaConf.to_container(cfg.trainer, resolve=True)
     assert isinstance(data, dict)
-    args = {str(k): v for k, v in data.items()}
-    if "precision" in args:
-        args["precision"] = resolve_precision(str(args["precision"]), str(args.get("accelerator", "auto")))
-    return args
+    return {str(k): v for k, v in data.items()}
 
 
 def _print_summary(console: Any, run_name: str, summary: dict[str, Any]) -> None:
