@@ -218,8 +218,4 @@ def test_stage_fits_objects_in_groups(data_root):
     assert [r["status"] for r in fit_scene_stage.run(alone)] == ["fitted"]
 
 
-def test_stage_refuses_batching_other_scene_kinds(data_root):
-    _capture(data_root, "a")
-    cfg = compose("fit-scene", [*OVERRIDES, "object=a", "scene=nerf", "fit.batch_objects=2"])
-    with pytest.raises(TnfError, match="batch_objects"):
-        fit_scene_stage.run(cfg)
+# Other scene kinds with fit.batch_objects > 1: tests/scenes/test_stage.py (they fit one at a time).

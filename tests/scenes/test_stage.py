@@ -86,7 +86,15 @@ def test_train_kernel_setting_trains_by_the_warp_kernels(data_root, monkeypatch,
     assert "train_kernel" not in manifest["config"]["fit"]
 
 
-def test_train_kernel_needs_a_hash_grid(data_root):
+def test_a_nerf_fits_without_the_hash_grids_speed_ups_and_with_its_usual_key(data_root, caplog):
+    """The quick start and sim_digit set fit.train_kernel and fit.batch_objects; scene=nerf still fits."""
     _capture(data_root, "sphere")
-    with pytest.raises(TnfError, match="fit.train_kernel trains hashgrid scenes' encoding, not nerf's"):
-        fit_scene.run(compose("fit-scene", [*OVERRIDES, "object=sphere", "scene=nerf", "fit.train_kernel=true"]))
+    nerf = [*OVERRIDES, "object=sphere", "scene=nerf", "fit.steps=2"]
+    with caplog.at_level("WARNING", logger="tnf.stages.fit_scene"):
+        rows = fit_scene.run(compose("fit-scene", [*nerf, "fit.train_kernel=true", "fit.batch_objects=4"]))
+    assert [r["status"] for r in rows] == ["fitted"]
+    assert "speed up hashgrid scenes only: nerf scenes fit one at a time" in caplog.text
+    manifest = json.loads((data_root / "scenes" / "nerf" / "builtin" / "sphere" / "manifest.json").read_text())
+    assert "train_kernel" not in manifest["config"]["fit"] and "batch_objects" not in manifest["config"]["fit"]
+    # Without the settings: the same key, so the fit is found done.
+    assert [r["status"] for r in fit_scene.run(compose("fit-scene", nerf))] == ["skipped (done)"]

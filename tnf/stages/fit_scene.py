@@ -15,6 +15,7 @@ fitted with the same settings and capture are skipped; an interrupted fit resume
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from typing import Any
@@ -42,6 +43,22 @@ def selected_objects(cfg: Any, store: Any, source: str) -> list[str]:
     return names
 
 
+def _for_scene(settings: Any, kind: str) -> Any:
+    """``settings`` (``FitSettings``) for scenes of ``kind``: the hash grid's speed-ups (``train_kernel``,
+    ``batch_objects``, which experiments such as the quick start set) are off for other kinds, with a warning,
+    so that ``scene=nerf`` fits one object at a time with the same key as without them."""
+    if kind == "hashgrid" or not (settings.train_kernel or settings.batch_objects > 1):
+        return settings
+    log.warning(
+        "fit.train_kernel=%s and fit.batch_objects=%d speed up hashgrid scenes only: %s scenes fit one at a time "
+        "without them",
+        str(settings.train_kernel).lower(),
+        settings.batch_objects,
+        kind,
+    )
+    return dataclasses.replace(settings, train_kernel=False, batch_objects=1)
+
+
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Fit every selected object; returns one summary row per object."""
     from tnf.scenes.fit import fit_object
@@ -49,6 +66,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
 
     settings = from_dict(FitSettings, cfg.fit, where="fit")
     kind, params = split_spec(cfg.scene, "scene")
+    settings = _for_scene(settings, kind)
     SCENES.config(kind, params)  # fail early on a bad scene config
     source, _ = split_spec(cfg.objects, "objects")
     part = run_shard(cfg)
@@ -86,12 +104,6 @@ def run(cfg: Any) -> list[dict[str, Any]]:
         )
     steps = settings.resolved(kind).steps
     together = settings.batch_objects
-    if settings.train_kernel and kind != "hashgrid":
-        raise TnfError(f"fit.train_kernel trains hashgrid scenes' encoding, not {kind}'s; set fit.train_kernel=false")
-    if together > 1 and kind != "hashgrid":
-        raise TnfError(
-            f"fit.batch_objects={together} fits hashgrid scenes together, not {kind}; set fit.batch_objects=1"
-        )
     with progress(cfg.progress) as p:
         if together == 1:
             for job in todo:
