@@ -496,3 +496,35 @@ def test_every_data_setting_reaches_the_training_datamodule(convert, tmp_path):
     dm.setup("fit")
     batch = next(iter(dm.train_dataloader()))
     assert batch["rgb"].dtype == (torch.uint8 if convert else torch.float32)
+
+
+def test_shift_moves_the_contact_and_keeps_the_background():
+    """The shift moves RGB-D and the press's change from the background by whole pixels at each image's size,
+    repeats the edges, and leaves the background where it is."""
+    from tnf.data.augment import augment_batch, shift_batch
+
+    g = torch.Generator().manual_seed(0)
+    bg = torch.rand(1, 3, 12, 16, generator=g).expand(2, -1, -1, -1)
+    tactile = bg.clone()
+    tactile[:, :, 5:7, 7:9] += 0.5  # a contact at the centre
+    depth = torch.ones(2, 1, 24, 32)
+    depth[:, :, 10:14, 14:18] = 0.2  # the indenter, at twice the tactile's size
+    batch = {"rgb": torch.rand(2, 3, 24, 32, generator=g), "depth": depth, "background": bg, "tactile": tactile}
+    frac = torch.tensor([[0.5, 0.0], [-0.75, 1 / 3]])  # 4 px right; 6 px left and 2 down (at 16 x 12)
+    out = shift_batch(batch, frac)
+    assert "background" not in out
+    torch.testing.assert_close(out["tactile"][0] - bg[0], (tactile[0] - bg[0]).roll(4, -1))
+    assert torch.equal(out["depth"][0], depth[0].roll(8, -1))
+    moved = (out["tactile"][1] - bg[1]).abs().sum(0) > 0.25
+    assert moved.nonzero().tolist() == [[r, c] for r in (7, 8) for c in (1, 2)]
+    pressed = (out["depth"][1, 0] < 1).nonzero()  # 12 px left and 4 down at 32 x 24
+    assert pressed[:, 0].unique().tolist() == [14, 15, 16, 17] and pressed[:, 1].unique().tolist() == [2, 3, 4, 5]
+    # The columns that moved in from the border repeat the edge column.
+    assert torch.equal(out["rgb"][0, :, :, :9], batch["rgb"][0, :, :, :1].expand(-1, -1, 9))
+    # Through augment_batch: about half the pairs move, the background is never written.
+    many = {k: v.repeat(8, 1, 1, 1) for k, v in batch.items()}
+    bg_before = many["background"].clone()
+    augment_batch(many, ["shift"], generator=torch.Generator().manual_seed(1))
+    same = [torch.equal(many["tactile"][i], tactile[i % 2]) for i in range(16)]
+    assert 0 < sum(same) < 16
+    assert torch.equal(many["background"], bg_before)

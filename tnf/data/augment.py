@@ -1,5 +1,5 @@
-"""Augmenting training pairs: the sensor's mirror symmetry (whole pairs flipped left-right) and jitter of the RGB
-image's brightness and contrast."""
+"""Augmenting training pairs: the sensor's mirror symmetry (whole pairs flipped left-right), a shift of the contact
+across the gel, and jitter of the RGB image's brightness and contrast."""
 
 from __future__ import annotations
 
@@ -115,6 +115,44 @@ def mirror_batch(batch: Mapping[str, torch.Tensor], mirror: Sequence[int]) -> Ba
     return out
 
 
+SHIFTED_IMAGES = ("rgb", "depth", "points")
+"""Batch keys that the shift moves as they are; the sensor's press images (``tactile``, ``prior``) move as their
+change from ``background``, which stays: the gel and its lights do not move with the contact."""
+
+
+def shift_batch(batch: Mapping[str, torch.Tensor], frac: torch.Tensor) -> Batch:
+    """Every image of ``batch`` moved sideways by ``frac`` ([B, 2], x then y, each a fraction of the image's
+    half-width and half-height, positive right and down), whole pixels at each image's own size. What moves in
+    from the border repeats the edge (the surface, or the empty space, beyond the crop goes on as at its edge).
+    ``tactile`` and ``prior`` move as their change from ``background`` (which must be in the batch). New
+    tensors; other keys are left out."""
+    out = {}
+    bg = batch.get("background")
+    for k in (*SHIFTED_IMAGES, *SENSOR_IMAGES):
+        if k not in batch or k == "background":
+            continue
+        x = batch[k]
+        if k in SENSOR_IMAGES:
+            if bg is None:
+                raise TnfError(f"the shift augmentation moves {k!r} as its change from 'background', not in the batch")
+            out[k] = bg + _shift(x - bg, frac)
+        else:
+            out[k] = _shift(x, frac)
+    return out
+
+
+def _shift(x: torch.Tensor, frac: torch.Tensor) -> torch.Tensor:
+    """``x`` [B, C, H, W] moved by ``frac`` [B, 2] of its half-size, rounded to whole pixels, edges repeated."""
+    b, _, h, w = x.shape
+    f = frac.to(x.device)
+    dx = torch.round(f[:, 0] * (w / 2)).long()
+    dy = torch.round(f[:, 1] * (h / 2)).long()
+    xs = (torch.arange(w, device=x.device)[None, :] - dx[:, None]).clamp_(0, w - 1)  # [B, W]
+    ys = (torch.arange(h, device=x.device)[None, :] - dy[:, None]).clamp_(0, h - 1)  # [B, H]
+    rows = x.gather(2, ys[:, None, :, None].expand(b, x.shape[1], h, w))
+    return rows.gather(3, xs[:, None, None, :].expand(b, x.shape[1], h, w))
+
+
 def unmirror_channels(mirror: Sequence[int]) -> list[int]:
     """The channel order that undoes ``mirror`` (``x[order][undo] == x``)."""
     undo = [0] * len(mirror)
@@ -142,6 +180,14 @@ def augment_batch(
         whole = mirror_batch(batch, mirror)
         for k in whole:
             batch[k] = torch.where(flip, whole[k], batch[k])
+    if "shift" in augment:
+        # Half the pairs stay where the simulator pressed them; the others move anywhere a centred contact can
+        # go on the gel (up to its half-width and half-height each way).
+        move = (torch.rand(b, generator=generator) < 0.5).to(batch["rgb"].device).view(b, 1, 1, 1)
+        frac = 2 * torch.rand(b, 2, generator=generator) - 1
+        moved = shift_batch(batch, frac)
+        for k in moved:
+            batch[k] = torch.where(move, moved[k], batch[k])
     if "jitter" in augment:
         gain = 1 + 0.2 * (torch.rand(b, 1, 1, 1, generator=generator) - 0.5)
         shift = 0.2 * (torch.rand(b, 1, 1, 1, generator=generator) - 0.5)

@@ -209,8 +209,8 @@ class PairDataset(Dataset):
         object_names: the object vocabulary ``object_id`` indexes; default this dataset's own object list.
             Datasets that are mixed share one vocabulary so an object keeps its id.
         augment: augmentations of each batch, from ``AUGMENTATIONS``: ``mirror`` (the sensor's mirror
-            symmetry, which the dataset's manifest records; left out, with a warning, for a sensor without one)
-            and ``jitter`` (RGB brightness and contrast).
+            symmetry, which the dataset's manifest records; left out, with a warning, for a sensor without one),
+            ``shift`` (the contact moved across the gel) and ``jitter`` (RGB brightness and contrast).
         compact: serve batches as stored (``rgb``, ``background``, ``tactile`` uint8 [B, 128, 128, 3],
             ``depth`` float16 [B, 128, 128]; ``points`` as in float batches), 4x fewer bytes to load, pin and
             copy; ``to_float_batch``

@@ -13,9 +13,11 @@ from typing import Literal
 from tnf.data.splits import SPLITS
 from tnf.registry import FROM_YAML, SettingError, at_least, yaml_defaults, yaml_field
 
-AUGMENTATIONS = ("mirror", "jitter")
+AUGMENTATIONS = ("mirror", "shift", "jitter")
 """What ``data.augment`` may list: ``mirror``, the sensor's own mirror symmetry (``Sensor.mirror_channels``:
 pairs flipped left-right with the tactile and background channels reordered, as real as the simulated ones);
+``shift``, half the pairs moved sideways by up to the image's half-size, the press's change from the background
+with them (a contact anywhere on the gel, where the simulator pressed at its centre);
 ``jitter``, +-10 % brightness and contrast of the RGB image (``tnf.data.augment.augment_batch``)."""
 
 
