@@ -216,6 +216,10 @@ def test_example_caption_names_the_split_it_came_from(tmp_path):
     assert "RGB | depth | generated | target | thresholded difference" in md and "| real |" not in md
     write_report(results[1:], tmp_path / "rep1", name="tiny")
     assert "**T-N, novel object touches (seed 1): RGB |" in (tmp_path / "rep1" / "report.md").read_text()
+    # Runs gathered from several machines: seed 0's picture did not come along, seed 1's is shown.
+    (tmp_path / "run0" / "examples.png").unlink()
+    write_report(results, tmp_path / "rep2", name="tiny")
+    assert "**T-N, novel object touches (seed 1): RGB |" in (tmp_path / "rep2" / "report.md").read_text()
 
 
 def _touch_data(root, generated_run="fake", good_generator=True):

@@ -369,16 +369,18 @@ def _table_figures(folder: Path, table: str, data: TableData) -> list[tuple[str,
         bar_plot(series, f"SSIM per object, {TEST_SET_NAMES.get(ts, ts).lower()}", (y_lo, 1.0)).save(folder / png)
         figs.append((f"SSIM per object ({TEST_SET_NAMES.get(ts, ts).lower()})", png))
     for m in ordered_methods(table, data):
+        # The lowest seed whose picture is there (runs gathered from several machines may lack some).
         runs = sorted((r for r in data.runs if r["method"] == m and r.get("examples")), key=lambda r: r["seed"])
-        if runs and "_path" in runs[0]:
-            ex = Path(runs[0]["_path"]).parent / runs[0]["examples"]
-            if ex.is_file():
-                split = str(runs[0]["examples_split"])
-                caption = (
-                    f"{m}, {TEST_SET_NAMES.get(split, split).lower()} touches (seed {runs[0]['seed']}): RGB | "
-                    "depth | generated | target | thresholded difference"
-                )
-                figs.append((caption, _relpath(ex, folder)))
+        shown = [(r, Path(r["_path"]).parent / r["examples"]) for r in runs if "_path" in r]
+        shown = [(r, ex) for r, ex in shown if ex.is_file()]
+        if shown:
+            run, ex = shown[0]
+            split = str(run["examples_split"])
+            caption = (
+                f"{m}, {TEST_SET_NAMES.get(split, split).lower()} touches (seed {run['seed']}): RGB | "
+                "depth | generated | target | thresholded difference"
+            )
+            figs.append((caption, _relpath(ex, folder)))
     return figs
 
 
