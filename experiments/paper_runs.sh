@@ -113,10 +113,17 @@ case "$1" in
     # CycleGAN's two ResNet generators train at ~200 pairs/s on an H100 (tn_cgan: ~3,500; results/generators):
     # sim_digit's 45 epochs would take 45 minutes, so it gets CYCLEGAN_EPOCHS (default 3, as every committed
     # CycleGAN row; docs/decisions/paper_gap.md says so).
+    # BASELINE_PATIENCE=P trains Lee and CycleGAN to a plateau instead: until P validations in a row raise
+    # validation SSIM by no more than 0.0001, at a constant rate, at most BASELINE_MAX_EPOCHS (default 200). A call
+    # cut short by its time limit resumes with the same command; the report draws every run's validation curve.
     ce=${CYCLEGAN_EPOCHS:-3}
     for s in $seeds; do for g in ${GENERATORS:-tn_cgan lee cyclegan}; do
       j="generator=$g seed=$s"
-      [[ $g == cyclegan ]] && j+=" train.epochs=$ce train.decay_epochs=$((ce / 2))"
+      if [[ -n ${BASELINE_PATIENCE:-} && $g != tn_cgan ]]; then
+        j+=" train.patience=$BASELINE_PATIENCE train.epochs=${BASELINE_MAX_EPOCHS:-200} train.decay_epochs=0"
+      elif [[ $g == cyclegan ]]; then
+        j+=" train.epochs=$ce train.decay_epochs=$((ce / 2))"
+      fi
       jobs+=("$j")
     done; done
     run_one() { tnf pipeline "${digit[@]}" "pipeline.stages=[train,generate,evaluate]" $1; }

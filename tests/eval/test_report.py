@@ -222,6 +222,29 @@ def test_example_caption_names_the_split_it_came_from(tmp_path):
     assert "**T-N, novel object touches (seed 1): RGB |" in (tmp_path / "rep2" / "report.md").read_text()
 
 
+def test_report_draws_the_validation_curves_and_says_how_long_each_method_trained(tmp_path):
+    results = []
+    for method, seed, plateau in (("T-N", 0, None), ("T-N", 1, None), ("Lee", 0, True), ("Lee", 1, False)):
+        r = _result("main", method, seed, 0.97 if method == "T-N" else 0.7, 20.0, 95.0)
+        r["val_curve"] = [[e, 0.6 + 0.01 * e] for e in range(1, 6 if plateau is None else 9)]
+        if plateau is not None:
+            r["plateau"] = {"patience": 3, "min_delta": 0.001, "stopped": plateau, "epochs": 8}
+        results.append(r)
+    write_report(results, tmp_path / "rep", name="tiny")
+    md = (tmp_path / "rep" / "report.md").read_text()
+    png = tmp_path / "rep" / "validation_ssim_main.png"
+    assert png.is_file() and "(validation_ssim_main.png)" in md
+    assert Image.open(png).size[0] > 300
+    assert "T-N (seeds 0 / 1): a fixed number of epochs, 5 / 5 epochs validated" in md
+    assert (
+        "Lee (seeds 0 / 1): until validation SSIM rose by no more than 0.001 for 3 validations in a row "
+        "(stopped there: yes / no), 8 / 8 epochs validated"
+    ) in md
+    # Runs without curves (evaluated before they were recorded) draw none.
+    write_report([{k: v for k, v in r.items() if k != "val_curve"} for r in results], tmp_path / "old", name="tiny")
+    assert not (tmp_path / "old" / "validation_ssim_main.png").exists()
+
+
 def _touch_data(root, generated_run="fake", good_generator=True):
     for label, obj in enumerate(["ball", "box"]):
         write_touch_folder(root / "touch/digit/builtin" / obj, obj, label, {"train": 6, "novel_view": 4}, seed=0)

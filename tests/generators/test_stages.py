@@ -221,3 +221,38 @@ def test_generator_config_files_match_the_config_classes(name):
     fields = dataclasses.fields(GENERATORS.get(name).Config)
     defaults = {f.name: f.default if f.default is not dataclasses.MISSING else f.default_factory() for f in fields}
     assert composed == defaults
+
+
+def test_train_stops_at_a_plateau(data_root):
+    """train.patience stops a run once validation SSIM stops rising; the run id holds it, the manifest says where
+    it stopped, and last.ckpt is that epoch's and holds the plateau's count (what a resumed run counts on)."""
+    from tnf.generators.training import _progress
+    from tnf.stages import train
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    base = [*TINY, "train.epochs=6", "train.decay_epochs=0", "train.checkpoint_every_s=0"]
+    # No rise counts as one (min_delta 1): the first validation sets the best, the next two do not beat it.
+    plateau = [*base, "train.patience=2", "train.min_delta=1.0"]
+    assert model_of("train", *plateau) != model_of("train", *base)
+    assert model_of("train", *base, "train.min_delta=0.5") == model_of("train", *base)  # no patience: no part
+    out = train.run(compose("train", plateau))
+    run_dir = data_root / "models" / out["run_name"]
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["epochs"] == 3 and _progress(run_dir / "last.ckpt", "val_l1")[0] == 3
+    assert manifest["plateau"] == {"patience": 2, "min_delta": 1.0, "stopped": True}
+    ckpt = torch.load(run_dir / "last.ckpt", map_location="cpu", weights_only=False)
+    states = [s for k, s in ckpt["callbacks"].items() if k.startswith("EarlyStopping")]
+    assert len(states) == 1 and states[0]["wait_count"] == 2
+    # What the evaluation report shows of it: the validation curve and the plateau.
+    from tnf.eval.run import training_record
+
+    record = training_record(run_dir, manifest)
+    assert [e for e, _ in record["val_curve"]] == [1, 2, 3] and all(0 < s < 1 for _, s in record["val_curve"])
+    assert record["val_curve"][-1][1] == pytest.approx(manifest["last"]["val_ssim"], abs=1e-6)
+    assert record["plateau"] == {"patience": 2, "min_delta": 1.0, "stopped": True, "epochs": 3}
+    # A patient run that never stalls trains every epoch and says so.
+    out = train.run(compose("train", [*base, "train.patience=50"]))
+    manifest = json.loads((data_root / "models" / out["run_name"] / "manifest.json").read_text())
+    assert manifest["epochs"] == 6 and manifest["plateau"]["stopped"] is False
+    with pytest.raises(TnfError, match="patience"):
+        train.run(compose("train", [*base, "train.patience=0"]))

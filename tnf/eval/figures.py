@@ -137,3 +137,57 @@ def bar_plot(
         d.rectangle([left, y, left + 12, y + 10], fill=colours[name])
         d.text((left + 18, y - 1), name, fill="black", font=font)
     return img
+
+
+def line_plot(
+    lines: Mapping[str, Sequence[tuple[float, float]]],
+    colour_of: Mapping[str, str],
+    title: str,
+    y_label: str = "SSIM",
+    x_label: str = "epoch",
+) -> Image.Image:
+    """Lines of (x, y) points, one per key of ``lines`` (e.g. a run); ``colour_of`` maps each key to its group
+    (e.g. the method), which sets its colour and the legend. Axes span the points' range."""
+    pts = [p for ps in lines.values() for p in ps]
+    if not pts:
+        raise ValueError("line_plot needs at least one point")
+    groups = list(dict.fromkeys(colour_of[k] for k in lines))
+    colours = {g: PALETTE[i % len(PALETTE)] for i, g in enumerate(groups)}
+    left, right, top, bottom, plot_w, plot_h = 56, 20, 30, 36, 480, 260
+    legend_h = 16 * len(groups) + 8
+    img = Image.new("RGB", (left + plot_w + right, top + plot_h + bottom + legend_h), "white")
+    d = ImageDraw.Draw(img)
+    font = _font()
+    x_lo, x_hi = min(p[0] for p in pts), max(p[0] for p in pts)
+    y_lo, y_hi = min(p[1] for p in pts), max(p[1] for p in pts)
+    x_hi, y_hi = (x_hi if x_hi > x_lo else x_lo + 1), (y_hi if y_hi > y_lo else y_lo + 1e-3)
+    pad = (y_hi - y_lo) * 0.05
+    y_lo, y_hi = y_lo - pad, y_hi + pad
+
+    def xy(x: float, y: float) -> tuple[float, float]:
+        return left + plot_w * (x - x_lo) / (x_hi - x_lo), top + plot_h * (1 - (y - y_lo) / (y_hi - y_lo))
+
+    d.text((left, 8), title, fill="black", font=font)
+    for k in range(6):
+        v = y_lo + (y_hi - y_lo) * k / 5
+        y = xy(x_lo, v)[1]
+        d.line([(left, y), (left + plot_w, y)], fill=(225, 225, 225))
+        d.text((4, y - 6), f"{v:.3f}", fill="black", font=font)
+    for k in range(6):
+        v = x_lo + (x_hi - x_lo) * k / 5
+        d.text((xy(v, y_lo)[0] - 6, top + plot_h + 4), f"{v:.0f}", fill="black", font=font)
+    d.line([(left, top), (left, top + plot_h), (left + plot_w, top + plot_h)], fill="black")
+    d.text((4, top - 22), y_label, fill="black", font=font)
+    d.text((left + plot_w - 40, top + plot_h + 18), x_label, fill="black", font=font)
+    for key, ps in lines.items():
+        c = colours[colour_of[key]]
+        coords = [xy(x, y) for x, y in sorted(ps)]
+        if len(coords) > 1:
+            d.line(coords, fill=c, width=2)
+        for x, y in coords:
+            d.ellipse([x - 2, y - 2, x + 2, y + 2], fill=c)
+    for gi, g in enumerate(groups):
+        y = top + plot_h + bottom + 4 + 16 * gi
+        d.rectangle([left, y, left + 12, y + 10], fill=colours[g])
+        d.text((left + 18, y - 1), g, fill="black", font=font)
+    return img

@@ -28,7 +28,7 @@ from tnf.eval.claims import (
     checks,
     verdict,
 )
-from tnf.eval.figures import bar_plot
+from tnf.eval.figures import bar_plot, line_plot
 from tnf.eval.force_report import force_section
 from tnf.eval.paper import PAPER
 from tnf.eval.scoring import BG
@@ -381,7 +381,38 @@ def _table_figures(folder: Path, table: str, data: TableData) -> list[tuple[str,
                 "depth | generated | target | thresholded difference"
             )
             figs.append((caption, _relpath(ex, folder)))
-    return figs
+    curves = _validation_curves(folder, table, data)
+    return figs + ([curves] if curves else [])
+
+
+def _validation_curves(folder: Path, table: str, data: TableData) -> tuple[str, str] | None:
+    """The validation SSIM of every run with a ``val_curve``, epoch by epoch, drawn into ``folder``; returns the
+    (caption, file), the caption saying how long each method trained (``train.patience``'s plateau or its fixed
+    epochs), or None when no run has a curve."""
+    runs = sorted((r for r in data.runs if r.get("val_curve")), key=lambda r: (str(r["method"]), r["seed"]))
+    if not runs:
+        return None
+    lines = {f"{r['method']} seed {r['seed']}": [(float(e), float(s)) for e, s in r["val_curve"]] for r in runs}
+    colour_of = {f"{r['method']} seed {r['seed']}": str(r["method"]) for r in runs}
+    png = f"validation_ssim_{table}.png"
+    line_plot(lines, colour_of, "Validation SSIM per epoch (each run's validation split)").save(folder / png)
+    notes = []
+    for m in dict.fromkeys(str(r["method"]) for r in runs):
+        own = [r for r in runs if r["method"] == m]
+        seeds = " / ".join(str(r["seed"]) for r in own)
+        epochs = " / ".join(str(len(r["val_curve"])) for r in own)
+        plateau = [r["plateau"] for r in own if isinstance(r.get("plateau"), dict)]
+        if plateau:
+            p = plateau[0]
+            stopped = " / ".join("yes" if (r.get("plateau") or {}).get("stopped") else "no" for r in own)
+            how = (
+                f"until validation SSIM rose by no more than {p['min_delta']:g} for {p['patience']} validations in a "
+                f"row (stopped there: {stopped})"
+            )
+        else:
+            how = "a fixed number of epochs"
+        notes.append(f"{m} (seeds {seeds}): {how}, {epochs} epochs validated")
+    return "Validation SSIM per epoch, one line per run. " + "; ".join(notes), png
 
 
 def _relpath(p: Path, base: Path) -> str:

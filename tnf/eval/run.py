@@ -134,6 +134,9 @@ def evaluate_model(
     }
     with timer.phase("setup"):
         results["environment"] = environment(device)
+        results.update(
+            training_record(store.path("models", str(ecfg.model)), store.manifest("models", str(ecfg.model)))
+        )
     with progress(job.progress) as bar:
         if ecfg.splits:
             seed_everything(job.seed)
@@ -160,6 +163,28 @@ def evaluate_model(
     results["evaluate_s"] = time.perf_counter() - t0
     results["phases_s"] = timer.record()
     return results, examples_png, figures
+
+
+def training_record(run_dir: Path, manifest: dict[str, Any] | None) -> dict[str, Any]:
+    """What the report shows of a model's training: ``val_curve`` ([[epoch, validation SSIM], ...] from its
+    ``metrics.csv``, epochs counted from 1) and ``plateau`` (``train.patience``'s record in its manifest), each
+    only where the run has it."""
+    out: dict[str, Any] = {}
+    metrics = run_dir / "metrics.csv"
+    if metrics.is_file():
+        import csv
+
+        with metrics.open(newline="", encoding="utf-8") as f:
+            curve = {
+                int(row["epoch"]) + 1: float(row["val_ssim"])
+                for row in csv.DictReader(f)
+                if row.get("val_ssim") and row.get("epoch")
+            }
+        if curve:
+            out["val_curve"] = [[e, curve[e]] for e in sorted(curve)]
+    if manifest and isinstance(manifest.get("plateau"), dict):
+        out["plateau"] = {**manifest["plateau"], "epochs": manifest.get("epochs")}
+    return out
 
 
 def image_metrics(

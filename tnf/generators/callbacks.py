@@ -257,7 +257,8 @@ class ImageGrids(Callback):
 
         folder = Path(trainer.default_root_dir) / self.config.folder
         folder.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(grid).save(folder / f"epoch_{trainer.current_epoch:03d}.png")
+        # The fastest zlib level: 4x quicker than PIL's default for a fifth more bytes, every epoch, in the loop.
+        Image.fromarray(grid).save(folder / f"epoch_{trainer.current_epoch:03d}.png", compress_level=1)
         for logger in trainer.loggers:
             _log_image(logger, grid, trainer.global_step)
 

@@ -32,6 +32,11 @@ class TrainSettings:
     ema_decay: float | None = FROM_YAML
     """Decay per step of an exponential moving average of the generator's weights, which validates and
     generates; null: none."""
+    patience: int | None = yaml_field(identity=lambda s: s.patience is not None)
+    """Stop at a plateau: after this many validations in a row whose SSIM did not rise above the best by more than
+    ``min_delta`` (``epochs`` stays the most it trains); null: train all ``epochs``."""
+    min_delta: float = yaml_field(identity=lambda s: s.patience is not None)
+    """The least rise of validation SSIM that counts as an improvement for ``patience``."""
     resume: bool = yaml_field(identity=False)
     """Continue an unfinished run from its ``last.ckpt`` (false: start it again)."""
     force: bool = yaml_field(identity=False)
@@ -57,7 +62,8 @@ class TrainSettings:
 
     def validate(self) -> None:
         at_least(self, 0, "epochs", "decay_epochs", "checkpoint_every_s", "log_every_n_steps")
-        at_least(self, 0, "grid_rows", "finite_check_every")
+        at_least(self, 0, "grid_rows", "finite_check_every", "min_delta")
+        at_least(self, 1, "patience")
 
 
 @dataclass

@@ -164,6 +164,8 @@ def fit(
     log_every_n_steps: int = 50,
     checkpoint_every_s: float = 0.0,
     val_every_n_epochs: int = 1,
+    patience: int | None = None,
+    min_delta: float = 0.0,
     info: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Train ``system`` (a ``GeneratorSystem``) on ``datamodule`` into ``run_dir``; returns the summary that
@@ -176,7 +178,9 @@ def fit(
     group's default option), which join the checkpoints and the progress bar. ``last.ckpt`` is written at
     the end of an epoch once ``checkpoint_every_s`` seconds have passed since it was last written (0: after
     every epoch), and always after the last epoch. Validation (with ``best.ckpt`` and the image grids) runs after
-    every ``val_every_n_epochs``-th epoch.
+    every ``val_every_n_epochs``-th epoch. ``patience``: stop once that many validations in a row have not raised
+    the validation SSIM above its best by more than ``min_delta`` (the summary's ``plateau`` says whether it
+    did); None trains every epoch.
     """
     if checkpoint_every_s < 0:
         raise TnfError(f"checkpoint_every_s must be >= 0 seconds (0: after every epoch), got {checkpoint_every_s}")
@@ -202,6 +206,11 @@ def fit(
     if on_gpu:
         targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
     every: list[Any] = [*checkpoints(run_dir, checkpoint_every_s), ProcessSetup(tf32=on_gpu), *extra]
+    if patience is not None:
+        from lightning.pytorch.callbacks import EarlyStopping
+
+        # Counted in validations; its state is in last.ckpt, so a resumed run counts on.
+        every.append(EarlyStopping(monitor="val_ssim", mode="max", patience=patience, min_delta=min_delta))
     if progress:
         every.append(RichProgressBar(leave=True))
     _quiet_trainer_start()
@@ -222,6 +231,12 @@ def fit(
     if trainer.interrupted:
         raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
     summary = _summary(trainer, datamodule, run_dir, info)
+    if patience is not None:
+        summary["plateau"] = {
+            "patience": patience,
+            "min_delta": min_delta,
+            "stopped": summary["epochs"] < int(system.hparams["epochs"]),
+        }
     if trainer.is_global_zero:
         write_json(run_dir / MANIFEST, manifest_record("models", [run_dir.name], config, summary))
     return summary

@@ -143,6 +143,8 @@ def fit_section(
         log_every_n_steps=section.log_every_n_steps,
         checkpoint_every_s=section.checkpoint_every_s,
         val_every_n_epochs=section.val_every_n_epochs if isinstance(section, FinetuneSettings) else 1,
+        patience=section.patience if isinstance(section, TrainSettings) else None,
+        min_delta=section.min_delta if isinstance(section, TrainSettings) else 0.0,
         info=info,
     )
 
