@@ -12,7 +12,9 @@ geometry (``conf/sensor/gelsight_mini.yaml``); taxim's recordings share its imag
 3. T-N: ``tnf pipeline experiment=sim_gelsight_mini`` up to training (the Mini calibrated at 160x120 with the
    same settings, five objects with a 5 mm bearing ball among the training ones, T-N trained on the calibrated
    simulator's pairs), then the indenter rendered as RGB-D at each held-out press's pose with the mesh scene and
-   fed to that generator. ``--experiment sim_gelsight_mini_gpu --device cuda`` trains it at sim_digit's scale
+   fed to that generator, its depth measured from the pressed gel (a deeper press comes closer; ``tnf finetune``'s
+   default) and, in a second row, from the first contact (the convention of the simulated pairs it trained on).
+   ``--experiment sim_gelsight_mini_gpu --device cuda`` trains it at sim_digit's scale
    instead (28 objects, the Mini at 320x240); ``--no-taxim`` leaves out Taxim where JAX is missing.
 4. T-N fine-tuned on the real frames of the training presses (``transfer=real``'s settings) and the same network
    from scratch on those frames (FS). With ``--tn-plus``, also T-N+ (simulated pairs kept in the mix; about a
@@ -249,12 +251,15 @@ def main() -> None:
     small_sp = at_sensor_size(presses, small, test)
     radius = presses.radius_mm * 1e-3
 
-    def generated(checkpoint: Path) -> tuple[np.ndarray, float]:
+    def generated(checkpoint: Path, reference: str = "gel") -> tuple[np.ndarray, float]:
         t = time.perf_counter()
-        images = generate_presses(checkpoint, small, small_sp, radius, depth_scale, framing=framing)
+        images = generate_presses(
+            checkpoint, small, small_sp, radius, depth_scale, framing=framing, reference=reference
+        )
         return images, (time.perf_counter() - t) / len(test)
 
     rows.append(report.Row("T-N (simulator only)", *generated(ckpt)))
+    rows.append(report.Row("T-N (simulator only), depth from the first contact", *generated(ckpt, "contact")))
 
     # 4. Few-shot on the real frames of the training presses.
     import torch
