@@ -250,6 +250,12 @@ def test_train_stops_at_a_plateau(data_root):
     assert [e for e, _ in record["val_curve"]] == [1, 2, 3] and all(0 < s < 1 for _, s in record["val_curve"])
     assert record["val_curve"][-1][1] == pytest.approx(manifest["last"]["val_ssim"], abs=1e-6)
     assert record["plateau"] == {"patience": 2, "min_delta": 1.0, "stopped": True, "epochs": 3}
+    # A row that does not parse is left out with a warning; the evaluation does not stop for the curve.
+    text = (run_dir / "metrics.csv").read_text()
+    last = str(manifest["last"]["val_ssim"])[:6]
+    assert last in text
+    (run_dir / "metrics.csv").write_text(text.replace(last, "oops", 1))
+    assert [e for e, _ in training_record(run_dir, manifest)["val_curve"]] == [1, 2]
     # A patient run that never stalls trains every epoch and says so.
     out = train.run(compose("train", [*base, "train.patience=50"]))
     manifest = json.loads((data_root / "models" / out["run_name"] / "manifest.json").read_text())

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import io
+import logging
 import re
 import shutil
 import time
@@ -22,6 +23,8 @@ from tnf.eval.aggregate import RESULTS_FILE, SCHEMA, find_results, load_results
 from tnf.eval.settings import EvaluateSettings
 from tnf.eval.timing import Phases
 from tnf.runtime import environment, progress, resolve_device, seed_everything
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -168,18 +171,25 @@ def evaluate_model(
 def training_record(run_dir: Path, manifest: dict[str, Any] | None) -> dict[str, Any]:
     """What the report shows of a model's training: ``val_curve`` ([[epoch, validation SSIM], ...] from its
     ``metrics.csv``, epochs counted from 1) and ``plateau`` (``train.patience``'s record in its manifest), each
-    only where the run has it."""
+    only where the run has it. Rows that do not parse are left out of the curve, with a warning: the curve is
+    an aside, the evaluation goes on."""
     out: dict[str, Any] = {}
     metrics = run_dir / "metrics.csv"
     if metrics.is_file():
         import csv
 
+        curve: dict[int, float] = {}
+        bad = 0
         with metrics.open(newline="", encoding="utf-8") as f:
-            curve = {
-                int(row["epoch"]) + 1: float(row["val_ssim"])
-                for row in csv.DictReader(f)
-                if row.get("val_ssim") and row.get("epoch")
-            }
+            for row in csv.DictReader(f):
+                if not (row.get("val_ssim") and row.get("epoch")):
+                    continue
+                try:
+                    curve[int(row["epoch"]) + 1] = float(row["val_ssim"])
+                except ValueError:
+                    bad += 1
+        if bad:
+            log.warning("%s: %d rows of val_ssim that are not numbers, left out of the validation curve", metrics, bad)
         if curve:
             out["val_curve"] = [[e, curve[e]] for e in sorted(curve)]
     if manifest and isinstance(manifest.get("plateau"), dict):
