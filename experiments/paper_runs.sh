@@ -109,27 +109,29 @@ case "$1" in
     ;;
   digit-models)
     t0=$SECONDS
-    jobs=()
+    jobs=() names=()
     # CycleGAN's two ResNet generators train at ~200 pairs/s on an H100 (tn_cgan: ~3,500; results/generators):
     # sim_digit's 45 epochs would take 45 minutes, so it gets CYCLEGAN_EPOCHS (default 3, as every committed
     # CycleGAN row; docs/decisions/paper_gap.md says so).
     # BASELINE_PATIENCE=P trains Lee and CycleGAN to a plateau instead: until P validations in a row raise
     # validation SSIM by no more than 0.0001, at a constant rate, at most BASELINE_MAX_EPOCHS (default 200). A call
-    # cut short by its time limit resumes with the same command; the report draws every run's validation curve.
+    # cut short by its time limit resumes with the same command. These runs go to their own report
+    # (<experiment>_plateau), beside the fixed-epoch rows; it draws every run's validation curve.
     ce=${CYCLEGAN_EPOCHS:-3}
     for s in $seeds; do for g in ${GENERATORS:-tn_cgan lee cyclegan}; do
-      j="generator=$g seed=$s"
+      j="generator=$g seed=$s" name="model-$g-seed=$s"
       if [[ -n ${BASELINE_PATIENCE:-} && $g != tn_cgan ]]; then
         j+=" train.patience=$BASELINE_PATIENCE train.epochs=${BASELINE_MAX_EPOCHS:-200} train.decay_epochs=0"
+        j+=" evaluate.name=${experiment}_plateau" name+="-plateau"
       elif [[ $g == cyclegan ]]; then
         j+=" train.epochs=$ce train.decay_epochs=$((ce / 2))"
       fi
-      jobs+=("$j")
+      jobs+=("$j") names+=("$name")
     done; done
     run_one() { tnf pipeline "${digit[@]}" "pipeline.stages=[train,generate,evaluate]" $1; }
     pids=() i=0
     for j in "${jobs[@]}"; do
-      w=($j); ( on_gpu $i; timed "model-${w[0]#generator=}-${w[1]}" run_one "$j" ) & pids+=($!); i=$((i + 1))
+      ( on_gpu $i; timed "${names[$i]}" run_one "$j" ) & pids+=($!); i=$((i + 1))
     done
     rc=0; for p in "${pids[@]}"; do wait "$p" || rc=1; done
     echo "digit-models: $((SECONDS - t0)) s" | tee -a "$out/stage_times.txt"
@@ -178,6 +180,10 @@ PY
   report)
     # Jobs that ran in parallel each rebuilt the report; rebuild it once more from every run present.
     tnf evaluate experiment=$experiment "${dev[@]}" 2>&1 | tee "$out/report_$experiment.log"
+    if [[ -d $TNF_DATA/reports/${experiment}_plateau ]]; then
+      tnf evaluate experiment=$experiment evaluate.name=${experiment}_plateau "${dev[@]}" 2>&1 |
+        tee "$out/report_${experiment}_plateau.log"
+    fi
     tnf evaluate experiment=sim_omnitact_transfer "${dev[@]}" 2>&1 | tee "$out/report_transfer.log" || true
     tar czf "$out/reports.tgz" -C "$TNF_DATA/reports" .
     ;;
