@@ -99,15 +99,12 @@ def calibration_name(recording: str, width: int, height: int) -> str:
 
 
 def pipeline_settings(experiment: str, seed: int, overrides: list[str]) -> dict:
-    """What this script takes from the pipeline's config: the sensor's size, the generator's run family (the
-    model `tnf train` names, ``tnf.generators.names``) and the trainer (Lightning's arguments). An unknown
-    experiment or setting exits with the one line `tnf` gives it."""
+    """What this script takes from the pipeline's config: the sensor's size and the trainer (Lightning's
+    arguments). An unknown experiment or setting exits with the one line `tnf` gives it."""
     from omegaconf import OmegaConf
 
     from tnf.cli import check_overrides
     from tnf.errors import TnfError
-    from tnf.generators.names import generator_option, run_family
-    from tnf.stages.train import dataset_names
     from tnf.testing.config import hydra_job
 
     settings = [f"experiment={experiment}", f"seed={seed}", *overrides]
@@ -116,12 +113,9 @@ def pipeline_settings(experiment: str, seed: int, overrides: list[str]) -> dict:
     except TnfError as e:
         sys.exit(f"real_realism.py: {e}")
     with hydra_job("pipeline", settings) as cfg:
-        option = generator_option(str(cfg.generator.name))
-        family = run_family(option, dataset_names(cfg)[0], seed)
         return {
             "width": int(cfg.sensor.width),
             "height": int(cfg.sensor.height),
-            "family": family,
             "trainer": OmegaConf.to_container(cfg.trainer, resolve=True),
         }
 
@@ -141,26 +135,37 @@ def claim_root(root: Path, recording: str) -> None:
     marker.write_text(recording + "\n")
 
 
-def run_pipeline(
+def pipeline_args(
     root: Path, seed: int, recording: str, train: list[int], test: list[int], experiment: str,
     overrides: list[str], size: tuple[int, int],
-) -> float:  # fmt: skip
-    """``tnf pipeline experiment=EXPERIMENT`` up to training into ``root``, its calibration made on the training
-    presses of ``recording``; its wall seconds.
+) -> list[str]:  # fmt: skip
+    """The settings of ``tnf pipeline experiment=EXPERIMENT`` up to training into ``root``, its calibration made
+    on the training presses of ``recording``."""
+    args = [f"experiment={experiment}", f"data_root={root}", f"seed={seed}", "progress=false"]
+    args += [f"pipeline.stages={PIPELINE}"]
+    if recording != "gelsight_mini":  # the Mini's run keeps the experiment's settings, and so its identity
+        args += [f"calibrate.presses=taxim:{recording}", f"calibrate.train={train}", f"calibrate.test={test}"]
+        args += [f"calibrate.name={calibration_name(recording, *size)}"]
+    return [*args, *overrides]
+
+
+def run_pipeline(root: Path, args: list[str]) -> tuple[str, float]:
+    """Run ``tnf pipeline ARGS`` (every stage whose work is there finds it done); the model run it trained (the
+    folder under ``root/models``, named from its settings and its dataset, ``tnf.stages.train.model_run``) and
+    its wall seconds.
 
     Run alone: beside the 320x240 calibration, both slowed each other down on 2 cores (the scene fits took twice
     as long) and the whole script gained nothing."""
-    cmd = [
-        sys.executable, "-m", "tnf.cli", "pipeline", f"experiment={experiment}", f"data_root={root}",
-        f"seed={seed}", "progress=false", f"pipeline.stages={PIPELINE}",
-    ]  # fmt: skip
-    if recording != "gelsight_mini":  # the Mini's run keeps the experiment's settings, and so its identity
-        cmd += [f"calibrate.presses=taxim:{recording}", f"calibrate.train={train}", f"calibrate.test={test}"]
-        cmd += [f"calibrate.name={calibration_name(recording, *size)}"]
-    cmd += overrides
+    from tnf.stages.train import model_run
+    from tnf.testing.config import hydra_job
+
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, env={**os.environ, "TNF_DATA": str(root)})
-    return time.perf_counter() - t0
+    subprocess.run(
+        [sys.executable, "-m", "tnf.cli", "pipeline", *args], check=True, env={**os.environ, "TNF_DATA": str(root)}
+    )
+    seconds = time.perf_counter() - t0
+    with hydra_job("pipeline", args) as cfg:
+        return model_run(cfg), seconds
 
 
 def main() -> None:
@@ -230,18 +235,14 @@ def main() -> None:
         print(f"Taxim: {wall['Taxim']:.0f} s", flush=True)
 
     # 3. T-N trained on the calibrated simulator's pairs.
-    from tnf.generators.names import find_run
-
-    # The pipeline's model: the one finished run of the experiment's generator option, dataset and seed.
+    # The pipeline's model: the run its settings and dataset name (a data root holding another setting's run
+    # trains a new one).
     size = (pipe["width"], pipe["height"])
-    family = pipe["family"]
-    run = find_run(root / "models", family)
-    if run is None:
-        wall["pipeline to T-N"] = run_pipeline(
-            root, args.seed, args.recording, train, test, args.experiment, overrides, size
-        )
-        run = find_run(root / "models", family)
-    assert run is not None, f"the pipeline left no finished run {family}-<hash> under {root / 'models'}"
+    run, wall["pipeline to T-N"] = run_pipeline(
+        root, pipeline_args(root, args.seed, args.recording, train, test, args.experiment, overrides, size)
+    )
+    if not (root / "models" / run / "best.ckpt").is_file():
+        sys.exit(f"real_realism.py: the pipeline left no model at {root / 'models' / run}")
     ckpt = root / "models" / run / "best.ckpt"
     small_cal = root / "calibration" / "gelsight_mini" / calibration_name(args.recording, *size)
     small = SENSORS.build({"name": "gelsight_mini", "width": size[0], "height": size[1], "calibration": str(small_cal)})
@@ -274,11 +275,13 @@ def main() -> None:
     runs = {"T-N fine-tuned": ("T-N", ckpt, 0), "FS (real presses only)": ("FS", None, 0)}
     if args.tn_plus:
         runs["T-N+ (fine-tuned, simulated pairs kept)"] = ("T-N+", ckpt, 16)
+    # Each under the T-N run it starts from or takes its framing from: a data root reused with other settings
+    # fine-tunes again.
     sim_pairs = root / "pairs" / json.loads((root / "models" / run / "manifest.json").read_text())["datasets"][0]
     for label, (short, source, n_sim) in runs.items():
         t0 = time.perf_counter()
         tuned = finetune_on_presses(
-            source, presses, small, train, root / "real_finetune" / short, steps, batch_size=batch,
+            source, presses, small, train, root / "real_finetune" / run / short, steps, batch_size=batch,
             lr=lr, generator=dict(spec), framing=framing, depth_scale=depth_scale,
             sim=sim_pairs if n_sim else None, sim_pairs=n_sim, seed=args.seed,
             val_every_n_epochs=int(ft.val_every_n_epochs), trainer=trainer,

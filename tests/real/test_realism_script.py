@@ -43,15 +43,23 @@ def test_every_recording_splits_by_the_minis_rule():
 )
 def test_the_script_finds_each_experiments_model_and_calibration(experiment, size, family, gpu_precision):
     """The model the script looks for is the one `tnf pipeline` names, at the calibration's size."""
+    from tnf.stages.train import model_run
+    from tnf.testing.config import hydra_job
+
     script = _script()
     got = script.pipeline_settings(experiment, 3, [])
     assert (got["width"], got["height"]) == size
-    assert got["family"] == family
     assert got["trainer"]["accelerator"] == "cpu"
     on_gpu = script.pipeline_settings(experiment, 3, ["trainer=gpu", "sensor.width=80", "sensor.height=60"])
     assert (on_gpu["width"], on_gpu["height"]) == (80, 60)
     assert on_gpu["trainer"]["accelerator"] == "gpu" and on_gpu["trainer"]["precision"] == gpu_precision
-    assert on_gpu["family"] == family
+    # The model is the run the pipeline's own settings name, in the script's data root.
+    args = script.pipeline_args(Path("/data"), 3, "gelsight_mini", [0, 1], [2], experiment, ["trainer=gpu"], size)
+    assert args[:3] == [f"experiment={experiment}", "data_root=/data", "seed=3"] and args[-1] == "trainer=gpu"
+    with hydra_job("pipeline", args) as cfg:
+        assert model_run(cfg).startswith(family + "-")
+    other = script.pipeline_args(Path("/data"), 3, "gelsight", list(range(32)), [32], experiment, [], size)
+    assert "calibrate.presses=taxim:gelsight" in other and f"calibrate.name=gelsight_{size[0]}x{size[1]}" in other
 
 
 def test_the_cpu_experiment_fine_tunes_in_its_own_precision():
