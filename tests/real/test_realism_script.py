@@ -97,3 +97,22 @@ def test_a_wrong_pipeline_setting_is_one_line_before_anything_is_written():
         script.pipeline_settings("nosuch", 0, [])
     with pytest.raises(SystemExit, match="fit.stepz: no such setting"):
         script.pipeline_settings("sim_gelsight_mini_gpu", 0, ["fit.stepz=3"])
+
+
+def test_the_cpu_experiment_presses_as_shallow_as_the_real_presses():
+    """sim_gelsight_mini draws each touch's force from 0.2-3 N (docs/decisions/real_press_depths.md): a plan the
+    GelSight Mini accepts, whose training forces span the range outside the held-out band."""
+    import numpy as np
+
+    from tnf.sim.forces import force_plan
+    from tnf.testing.config import hydra_job
+
+    with hydra_job("pipeline", ["experiment=sim_gelsight_mini"]) as cfg:
+        sensor = SENSORS.build(dict(cfg.sensor))
+        plan = force_plan(cfg.touch.force_range, sensor)
+    assert plan is not None and (plan.min, plan.max, plan.dist) == (0.2, 3.0, "log_uniform")
+    forces = plan.training_forces(np.random.default_rng(0), 2000)
+    assert forces.min() >= 0.2 and forces.max() <= 3.0
+    assert not ((forces > 2.6) & (forces < 2.8)).any()  # the held-out band, above every real press's depth
+    assert (forces < 0.5).mean() > 0.3  # log-uniform: the shallow presses are not rare
+    sensor.check_force(plan.extrapolation[1])  # the novel-view band stays within the sensor's force range
