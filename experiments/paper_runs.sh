@@ -178,9 +178,11 @@ PY
     exit $rc
     ;;
   report)
-    # Jobs that ran in parallel each rebuilt the report; rebuild it once more from every run present.
-    tnf evaluate experiment=$experiment "${dev[@]}" 2>&1 | tee "$out/report_$experiment.log"
-    if [[ -d $TNF_DATA/reports/${experiment}_plateau ]]; then
+    # Jobs that ran in parallel each rebuilt the reports; rebuild each once more from every run present.
+    if [[ -d $TNF_DATA/reports/$experiment/runs ]]; then
+      tnf evaluate experiment=$experiment "${dev[@]}" 2>&1 | tee "$out/report_$experiment.log"
+    fi
+    if [[ -d $TNF_DATA/reports/${experiment}_plateau/runs ]]; then
       tnf evaluate experiment=$experiment evaluate.name=${experiment}_plateau "${dev[@]}" 2>&1 |
         tee "$out/report_${experiment}_plateau.log"
     fi
