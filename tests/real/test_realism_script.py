@@ -62,6 +62,27 @@ def test_the_script_finds_each_experiments_model_and_calibration(experiment, siz
     assert "calibrate.presses=taxim:gelsight" in other and f"calibrate.name=gelsight_{size[0]}x{size[1]}" in other
 
 
+def test_a_data_root_rebuilt_with_other_touches_names_another_model(tmp_path):
+    """The script scores the run the pipeline's settings and the data root's pairs name: pairs rebuilt from other
+    touches (another touch setting on a reused --data-root) name a new model, not the one already there."""
+    import json
+
+    from tnf.stages.train import dataset_names, model_run
+    from tnf.testing.config import hydra_job
+
+    script = _script()
+    args = script.pipeline_args(tmp_path, 0, "gelsight_mini", [0], [1], "sim_gelsight_mini", [], (160, 120))
+    names = []
+    for key in ("0" * 16, "1" * 16):
+        with hydra_job("pipeline", args) as cfg:
+            pairs = tmp_path / "pairs" / dataset_names(cfg)[0]
+            pairs.mkdir(parents=True, exist_ok=True)
+            (pairs / "manifest.json").write_text(json.dumps({"config_hash": key}))
+            names.append(model_run(cfg))
+    assert names[0] != names[1]
+    assert all(n.startswith("tn_cgan_plain-gelsight_mini-hashgrid-seed0-") for n in names)
+
+
 def test_the_cpu_experiment_fine_tunes_in_its_own_precision():
     assert _script().pipeline_settings("sim_gelsight_mini", 0, [])["trainer"]["precision"] == "auto"
 
