@@ -225,3 +225,20 @@ def test_mirror_averaged_generation(data_root, trained_model, capsys):
     assert unmirrored == pytest.approx(val_ssim("evaluate.name=plain"), abs=1e-6)
     said = " ".join(capsys.readouterr().out.split())  # the console wraps long lines
     assert "dataset digit-hashgrid has no mirror symmetry; test images are not mirror-averaged" in said
+
+
+def test_a_model_whose_training_was_cut_short_is_refused_unless_its_dataset_is_named(data_root, trained_model):
+    # An interrupted run has checkpoints but no manifest: its framing would silently come from the pair section.
+    from tnf.artifacts import MANIFEST
+    from tnf.stages import generate
+
+    (data_root / "models" / trained_model / MANIFEST).unlink()
+    gen = [*TINY, "object=ball", "device=cpu", "generate.radius=0.1", f"generate.model={trained_model}"]
+    with pytest.raises(TnfError, match=rf"model {trained_model} has not finished training .*generate.dataset"):
+        generate.run(compose("generate", [*gen, "generate.crop_px=48", "generate.n_poses=2"]))
+    assert not (data_root / "generated" / trained_model).exists()
+    # Naming the dataset it trains on generates from its checkpoint as it is.
+    out = generate.run(
+        compose("generate", [*gen, "generate.crop_px=48", "generate.n_poses=2", "generate.dataset=digit-hashgrid"])
+    )
+    assert out["written"] == {"ball": 2}

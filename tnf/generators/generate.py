@@ -436,7 +436,15 @@ def _preprocessing(job: GenerateJob, store: Any) -> dict[str, Any]:
 
     name = job.settings.dataset
     if name is None:
-        m = store.manifest("models", store.path("models", str(job.settings.model)).name) or {}
+        model = store.path("models", str(job.settings.model)).name
+        m = store.manifest("models", model)
+        if m is None:
+            # No manifest: training was cut short. The pair section's framing may not be the one it trained on.
+            raise TnfError(
+                f"model {model} has not finished training (no {MANIFEST} in {store.path('models', model)}): "
+                "finish it with the same `tnf train` command (it resumes), or name the paired dataset it trains on "
+                "(generate.dataset=...) to generate from its checkpoint as it is"
+            )
         datasets = m.get("datasets") or []
         name = datasets[0] if datasets else None
     pre: dict[str, Any] = {}
