@@ -240,6 +240,13 @@ def test_report_draws_the_validation_curves_and_says_how_long_each_method_traine
         "Lee (seeds 0 / 1): until validation SSIM rose by no more than 0.001 for 3 validations in a row "
         "(stopped there: yes / no), 8 / 8 epochs validated"
     ) in md
+    # A run scored before its training ended is never passed off as a fixed schedule or a plateau.
+    results.append(
+        {**_result("main", "Cycle", 0, 0.7, 20.0, 95.0), "val_curve": [[1, 0.4], [2, 0.5]], "unfinished": True}
+    )
+    write_report(results, tmp_path / "cut", name="tiny")
+    md = (tmp_path / "cut" / "report.md").read_text()
+    assert "Cycle (seeds 0): training cut short before it ended (cut short: yes), 2 epochs validated" in md
     # Runs without curves (evaluated before they were recorded) draw none.
     write_report([{k: v for k, v in r.items() if k != "val_curve"} for r in results], tmp_path / "old", name="tiny")
     assert not (tmp_path / "old" / "validation_ssim_main.png").exists()

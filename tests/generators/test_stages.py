@@ -250,6 +250,9 @@ def test_train_stops_at_a_plateau(data_root):
     assert [e for e, _ in record["val_curve"]] == [1, 2, 3] and all(0 < s < 1 for _, s in record["val_curve"])
     assert record["val_curve"][-1][1] == pytest.approx(manifest["last"]["val_ssim"], abs=1e-6)
     assert record["plateau"] == {"patience": 2, "min_delta": 1.0, "stopped": True, "epochs": 3}
+    assert "unfinished" not in record
+    # A run folder without a manifest (training cut short) says so.
+    assert training_record(run_dir, None)["unfinished"] is True
     # A row that does not parse is left out with a warning; the evaluation does not stop for the curve.
     text = (run_dir / "metrics.csv").read_text()
     last = str(manifest["last"]["val_ssim"])[:6]

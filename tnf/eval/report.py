@@ -402,7 +402,10 @@ def _validation_curves(folder: Path, table: str, data: TableData) -> tuple[str, 
         seeds = " / ".join(str(r["seed"]) for r in own)
         epochs = " / ".join(str(len(r["val_curve"])) for r in own)
         plateau = [r["plateau"] for r in own if isinstance(r.get("plateau"), dict)]
-        if plateau:
+        cut = " / ".join("yes" if r.get("unfinished") else "no" for r in own)
+        if any(r.get("unfinished") for r in own):
+            how = f"training cut short before it ended (cut short: {cut})"
+        elif plateau:
             p = plateau[0]
             stopped = " / ".join("yes" if (r.get("plateau") or {}).get("stopped") else "no" for r in own)
             how = (

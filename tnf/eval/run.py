@@ -140,6 +140,10 @@ def evaluate_model(
         results.update(
             training_record(store.path("models", str(ecfg.model)), store.manifest("models", str(ecfg.model)))
         )
+        if results.get("unfinished"):
+            msg = f"model {ecfg.model} has not finished training: scored from its {ecfg.checkpoint} as it is"
+            log.warning(msg)
+            results["warnings"].append(msg)
     with progress(job.progress) as bar:
         if ecfg.splits:
             seed_everything(job.seed)
@@ -170,9 +174,10 @@ def evaluate_model(
 
 def training_record(run_dir: Path, manifest: dict[str, Any] | None) -> dict[str, Any]:
     """What the report shows of a model's training: ``val_curve`` ([[epoch, validation SSIM], ...] from its
-    ``metrics.csv``, epochs counted from 1) and ``plateau`` (``train.patience``'s record in its manifest), each
-    only where the run has it. Rows that do not parse are left out of the curve, with a warning: the curve is
-    an aside, the evaluation goes on."""
+    ``metrics.csv``, epochs counted from 1), ``plateau`` (``train.patience``'s record in its manifest), each
+    only where the run has it, and ``unfinished: True`` for a run folder without a manifest (its training was cut
+    short; it is scored from its checkpoint as it is). Rows that do not parse are left out of the curve, with a
+    warning: the curve is an aside, the evaluation goes on."""
     out: dict[str, Any] = {}
     metrics = run_dir / "metrics.csv"
     if metrics.is_file():
@@ -194,6 +199,8 @@ def training_record(run_dir: Path, manifest: dict[str, Any] | None) -> dict[str,
             out["val_curve"] = [[e, curve[e]] for e in sorted(curve)]
     if manifest and isinstance(manifest.get("plateau"), dict):
         out["plateau"] = {**manifest["plateau"], "epochs": manifest.get("epochs")}
+    if manifest is None and run_dir.is_dir():
+        out["unfinished"] = True
     return out
 
 
