@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 
 from tests.eval.eval_fixtures import write_touch_folder
-from tnf.eval.figures import example_grid
+from tnf.eval.figures import axis_ticks, example_grid
 from tnf.eval.report import write_report
 from tnf.eval.scoring import score_batches
 from tnf.testing import compose
@@ -250,6 +250,17 @@ def test_report_draws_the_validation_curves_and_says_how_long_each_method_traine
     # Runs without curves (evaluated before they were recorded) draw none.
     write_report([{k: v for k, v in r.items() if k != "val_curve"} for r in results], tmp_path / "old", name="tiny")
     assert not (tmp_path / "old" / "validation_ssim_main.png").exists()
+
+
+def test_axis_ticks_label_each_tick_where_it_lies():
+    # An axis of 7 epochs: whole epochs only, each label its own value (a tick at 2.2 labelled "2" misread a curve).
+    assert axis_ticks(1, 7, whole=True) == [(2.0, "2"), (4.0, "4"), (6.0, "6")]
+    assert axis_ticks(1, 2, whole=True) == [(1.0, "1"), (2.0, "2")]
+    assert [label for _, label in axis_ticks(1, 45, whole=True)] == ["10", "20", "30", "40"]
+    ticks = axis_ticks(0.5, 0.75)
+    assert [label for _, label in ticks] == ["0.50", "0.55", "0.60", "0.65", "0.70", "0.75"]
+    assert all(abs(v - float(label)) < 1e-9 for v, label in ticks)
+    assert axis_ticks(3, 3) == [(3, "3")]
 
 
 def _touch_data(root, generated_run="fake", good_generator=True):

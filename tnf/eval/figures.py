@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -139,6 +140,25 @@ def bar_plot(
     return img
 
 
+def axis_ticks(lo: float, hi: float, most: int = 6, whole: bool = False) -> list[tuple[float, str]]:
+    """At most ``most`` round tick values in [lo, hi] (steps of 1, 2 or 5 times a power of ten), each with its
+    label, each where it lies; ``whole``: whole numbers only (an axis of epochs)."""
+    if hi <= lo:
+        return [(lo, f"{lo:g}")]
+    step = 10.0 ** math.floor(math.log10((hi - lo) / most))
+    step = next(m * step for m in (1, 2, 5, 10) if (hi - lo) / (m * step) <= most - 1)
+    step = max(step, 1.0) if whole else step
+    decimals = max(0, -math.floor(math.log10(step) + 1e-9))
+    first = math.ceil(lo / step - 1e-9)
+    ticks = []
+    for k in range(first, first + most + 1):
+        v = k * step
+        if v > hi + step * 1e-9:
+            break
+        ticks.append((v, f"{v:.{decimals}f}"))
+    return ticks
+
+
 def line_plot(
     lines: Mapping[str, Sequence[tuple[float, float]]],
     colour_of: Mapping[str, str],
@@ -173,9 +193,10 @@ def line_plot(
         y = xy(x_lo, v)[1]
         d.line([(left, y), (left + plot_w, y)], fill=(225, 225, 225))
         d.text((4, y - 6), f"{v:.3f}", fill="black", font=font)
-    for k in range(6):
-        v = x_lo + (x_hi - x_lo) * k / 5
-        d.text((xy(v, y_lo)[0] - 6, top + plot_h + 4), f"{v:.0f}", fill="black", font=font)
+    for v, label in axis_ticks(x_lo, x_hi, whole=all(float(p[0]).is_integer() for p in pts)):
+        x = xy(v, y_lo)[0]
+        d.line([(x, top + plot_h), (x, top + plot_h + 3)], fill="black")
+        d.text((x - 3 * len(label), top + plot_h + 4), label, fill="black", font=font)
     d.line([(left, top), (left, top + plot_h), (left + plot_w, top + plot_h)], fill="black")
     d.text((4, top - 22), y_label, fill="black", font=font)
     d.text((left + plot_w - 40, top + plot_h + 18), x_label, fill="black", font=font)
