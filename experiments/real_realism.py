@@ -241,9 +241,9 @@ def main() -> None:
     run, wall["pipeline to T-N"] = run_pipeline(
         root, pipeline_args(root, args.seed, args.recording, train, test, args.experiment, overrides, size)
     )
-    if not (root / "models" / run / "best.ckpt").is_file():
-        sys.exit(f"real_realism.py: the pipeline left no model at {root / 'models' / run}")
     ckpt = root / "models" / run / "best.ckpt"
+    if not ckpt.is_file():
+        sys.exit(f"real_realism.py: the pipeline left no model at {ckpt.parent}")
     small_cal = root / "calibration" / "gelsight_mini" / calibration_name(args.recording, *size)
     small = SENSORS.build({"name": "gelsight_mini", "width": size[0], "height": size[1], "calibration": str(small_cal)})
     small_info = json.loads((small_cal / "realism.json").read_text())["fit"]

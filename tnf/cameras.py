@@ -199,7 +199,8 @@ def _frame_image(path: Path, rel: str, i: int, w: int, h: int) -> np.ndarray:
     if not img_path.suffix and not img_path.is_file():
         img_path = img_path.with_suffix(".png")  # instant-ngp files may omit the extension
     if not img_path.is_file():
-        raise TnfError(f"{path}: frame {i} image not found: {img_path}")
+        shown = str(img_path) if str(img_path).isprintable() else repr(str(img_path))  # one line, whatever the name
+        raise TnfError(f"{path}: frame {i} image not found: {shown}")
     arr = _read_image(img_path)
     if arr.shape[:2] != (h, w):
         raise TnfError(f"{img_path}: image is {arr.shape[1]}x{arr.shape[0]}, transforms file says {w}x{h}")

@@ -261,6 +261,16 @@ def test_axis_ticks_label_each_tick_where_it_lies():
     assert [label for _, label in ticks] == ["0.50", "0.55", "0.60", "0.65", "0.70", "0.75"]
     assert all(abs(v - float(label)) < 1e-9 for v, label in ticks)
     assert axis_ticks(3, 3) == [(3, "3")]
+    # Any span: between 1 and `most` ticks, inside it, evenly spaced.
+    rng = np.random.default_rng(0)
+    for _ in range(2000):
+        lo = float(rng.uniform(-5, 5)) * 10.0 ** int(rng.integers(-4, 4))
+        hi = lo + float(rng.uniform(1e-3, 10)) * 10.0 ** int(rng.integers(-4, 4))
+        for most in (4, 6, 8):
+            values = [v for v, _ in axis_ticks(lo, hi, most=most)]
+            span = hi - lo
+            assert 1 <= len(values) <= most and lo - 1e-9 * span <= values[0] and values[-1] <= hi + 1e-9 * span
+            assert np.allclose(np.diff(values), values[1] - values[0]) if len(values) > 2 else True
 
 
 def _touch_data(root, generated_run="fake", good_generator=True):

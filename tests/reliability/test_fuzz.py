@@ -123,6 +123,19 @@ def test_load_transforms_with_mutated_fields(ops):
             assert images.shape[1:] == (h, w, 4) and c2w.shape[1:] == (4, 4) and np.isfinite(c2w).all()
 
 
+def test_a_missing_image_whose_name_holds_a_newline_is_still_a_one_line_error():
+    # A case the fuzzing above found: the path was printed as it is, newline and all.
+    from tnf.cameras import load_transforms
+
+    with tempfile.TemporaryDirectory() as d:
+        folder = Path(d)
+        meta = _apply(_good_capture(folder), [("frame.file_path", "\n")])
+        (folder / "transforms.json").write_text(json.dumps(meta))
+        with pytest.raises(TnfError, match=r"frame 0 image not found: '.*\\n\.png'$") as e:
+            load_transforms(folder)
+        assert "\n" not in str(e.value)
+
+
 @FUZZ
 @given(top=json_values)
 def test_load_transforms_with_any_json(top):

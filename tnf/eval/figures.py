@@ -143,10 +143,13 @@ def bar_plot(
 def axis_ticks(lo: float, hi: float, most: int = 6, whole: bool = False) -> list[tuple[float, str]]:
     """At most ``most`` round tick values in [lo, hi] (steps of 1, 2 or 5 times a power of ten), each with its
     label, each where it lies; ``whole``: whole numbers only (an axis of epochs)."""
+    if most < 4:
+        raise ValueError(f"axis_ticks needs most >= 4 (a narrower choice can leave a span without a tick), got {most}")
     if hi <= lo:
         return [(lo, f"{lo:g}")]
-    step = 10.0 ** math.floor(math.log10((hi - lo) / most))
-    step = next(m * step for m in (1, 2, 5, 10) if (hi - lo) / (m * step) <= most - 1)
+    # A power of ten at most the narrowest allowed step; 1, 2, 5 or 10 times it gives at most ``most`` ticks.
+    step = 10.0 ** math.floor(math.log10((hi - lo) / (most - 1)))
+    step = next(m * step for m in (1, 2, 5, 10) if (hi - lo) / (m * step) <= most - 1 + 1e-9)
     step = max(step, 1.0) if whole else step
     decimals = max(0, -math.floor(math.log10(step) + 1e-9))
     first = math.ceil(lo / step - 1e-9)
@@ -188,11 +191,10 @@ def line_plot(
         return left + plot_w * (x - x_lo) / (x_hi - x_lo), top + plot_h * (1 - (y - y_lo) / (y_hi - y_lo))
 
     d.text((left, 8), title, fill="black", font=font)
-    for k in range(6):
-        v = y_lo + (y_hi - y_lo) * k / 5
+    for v, label in axis_ticks(y_lo, y_hi, most=8):
         y = xy(x_lo, v)[1]
         d.line([(left, y), (left + plot_w, y)], fill=(225, 225, 225))
-        d.text((4, y - 6), f"{v:.3f}", fill="black", font=font)
+        d.text((4, y - 6), label, fill="black", font=font)
     for v, label in axis_ticks(x_lo, x_hi, whole=all(float(p[0]).is_integer() for p in pts)):
         x = xy(v, y_lo)[0]
         d.line([(x, top + plot_h), (x, top + plot_h + 3)], fill="black")

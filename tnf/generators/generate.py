@@ -432,14 +432,15 @@ def _at_forces(
 
 def _preprocessing(job: GenerateJob, store: Any) -> dict[str, Any]:
     """Crop and depth settings of the dataset the model was trained on (``generate.dataset`` overrides);
-    falls back to the ``pair`` section when no dataset manifest is found."""
+    falls back to the ``pair`` section when that dataset has no manifest. A model without a manifest (its
+    training cut short, or not made by ``tnf train``) names no dataset: refused unless ``generate.dataset`` is set."""
 
     name = job.settings.dataset
     if name is None:
         model = store.path("models", str(job.settings.model)).name
         m = store.manifest("models", model)
         if m is None:
-            # No manifest: training was cut short. The pair section's framing may not be the one it trained on.
+            # The pair section's framing may not be the one it trained on.
             raise TnfError(
                 f"model {model} has not finished training (no {MANIFEST} in {store.path('models', model)}): "
                 "finish it with the same `tnf train` command (it resumes), or name the paired dataset it trains on "
