@@ -11,7 +11,7 @@ The entry-point name is the registry name. Entry points live in the installed pa
 must be installed (``pip install -e .`` in a checkout), and reinstalled after its entry points change.
 
 Discovery is lazy: the entry points of a kind are imported at the first lookup in that kind's registry,
-never at ``import tnf``. A plugin whose import fails raises its own error.
+never at ``import tnf``. A plugin whose import fails is a one-line error naming its entry point.
 
 A ``Config`` takes its defaults from the component's YAML option (``yaml_defaults``): each default is written
 once, in the file that users read and override, and each field says so with ``= FROM_YAML``. That machinery
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.metadata as md
+import sys
 import threading
 from collections.abc import Mapping
 from typing import Any
@@ -131,7 +132,7 @@ class Registry:
             self._discovered = True
             try:
                 for ep in eps:
-                    self.add(ep.name, ep.load(), origin=_dist_name(ep))
+                    self.add(ep.name, _load(ep, self.kind), origin=_dist_name(ep))
                     self._from_entry_points.add(ep.name)
             except BaseException:
                 self._discovered = False
@@ -191,8 +192,10 @@ def split_spec(spec: Mapping[str, Any] | str, kind: str = "component") -> tuple[
     if isinstance(spec, str):
         return spec, {}
     params = plain(spec)
-    if not isinstance(params, dict) or "name" not in params:
+    if not isinstance(params, dict):
         raise TnfError(f"a {kind} config needs a 'name' key, got {params!r}")
+    if "name" not in params:
+        raise TnfError(f"a {kind} config needs a 'name' key: its registry name (`name: NAME` first in its YAML)")
     name = params.pop("name")
     return name, params
 
@@ -204,6 +207,31 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
 
 def _dist_name(ep: md.EntryPoint) -> str:
     return ep.dist.name if ep.dist is not None else "unknown distribution"
+
+
+def _load(ep: md.EntryPoint, kind: str) -> Any:
+    """The object entry point ``ep`` names; a TnfError naming the entry point and its distribution when its import
+    fails (the import's own TnfError, one line already, passes unchanged)."""
+    try:
+        return ep.load()
+    except TnfError:
+        raise
+    except Exception as e:
+        dist = _dist_name(ep)
+        missing = e.name if isinstance(e, ModuleNotFoundError) else None
+        loaded = sys.modules.get(ep.module)
+        if missing and (ep.module == missing or ep.module.startswith(f"{missing}.")):
+            fix = f"fix the entry point in {dist}'s pyproject.toml and reinstall it"  # no such module
+        elif missing:
+            fix = f"install {missing!r}: {dist} imports it"
+        elif isinstance(e, AttributeError) and loaded is not None and not hasattr(loaded, ep.attr.split(".")[0]):
+            fix = f"fix the entry point in {dist}'s pyproject.toml and reinstall it"  # no such class
+        else:
+            fix = f"an error in {dist}'s code (`tnf --verbose` shows where)"
+        raise TnfError(
+            f"{kind} {ep.name!r} ({ep.group} entry point {ep.value!r} of {dist}) cannot be loaded: "
+            f"{type(e).__name__}: {e}; {fix}"
+        ) from e
 
 
 def _no_metadata(kind: str, group: str) -> str:

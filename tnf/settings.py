@@ -58,6 +58,10 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
     unknown = sorted(set(data) - set(fields))
     if unknown:
+        if "__dataclass_fields__" not in cls.__dict__ and unknown[0] in inspect.get_annotations(cls):
+            # A subclass of a dataclass, not one itself: its fields are its base's
+            name = cls.__qualname__
+            raise TnfError(f"{where}: {name}.{unknown[0]} is no field: decorate {name} with @dataclass")
         raise TnfError(f"{where}: unknown key {unknown[0]!r}; valid keys: {', '.join(sorted(fields))}")
     prefix = f"{where}." if where else ""  # where "": the settings at the top of the config, named alone
     hints = typing.get_type_hints(cls)
@@ -235,14 +239,17 @@ def yaml_defaults(
 
     Errors at import, each one line naming the file and the key: a field without a value in the file, a key of
     the file without a field (``name``, the registry name, aside; ``partial=True`` takes only the file's keys
-    that are fields, for a Config that shares some of a stage's settings), and a field of the class whose
-    default is not ``FROM_YAML`` (a value written in the code too, or none at all).
+    that are fields, for a Config that shares some of a stage's settings), a ``name`` other than the option's
+    (``sensor/NAME``), a field of the class whose default is not ``FROM_YAML`` (a value written in the code too,
+    or none at all), and a class made a dataclass before this decorator ran (it goes under ``@dataclass``).
     """
 
     def apply(cls: type[T]) -> type[T]:
         root = Path(conf if conf is not None else conf_dir())
         path = root / f"{option}.yaml"
         where = f"{path}" + (f" ({node})" if node else "")
+        if "__dataclass_fields__" in cls.__dict__:  # its __init__ keeps FROM_YAML as every default
+            raise TnfError(f"{where}: {cls.__qualname__} is a dataclass already; put @yaml_defaults under @dataclass")
         values = _yaml_values(path, node, where)  # interpolations still as written
         hints = typing.get_type_hints(cls)
         own = inspect.get_annotations(cls)
@@ -266,6 +273,9 @@ def yaml_defaults(
         for k in values:
             if k not in names and not partial and not (k == "name" and node is None):
                 raise TnfError(f"{where}: key {k!r} is no field of {cls.__qualname__}")
+        option_name = Path(option).name
+        if node is None and "name" not in names and values.get("name", option_name) != option_name:
+            raise TnfError(f"{where}: name {values['name']!r} is not the file's; write `name: {option_name}`")
         for k in names:  # the fields' values only: a partial file's other keys may interpolate anything
             v = values[k]
             if isinstance(v, str) and "${" in v:

@@ -20,7 +20,27 @@ class TnfSearchPathPlugin(SearchPathPlugin):
             return
         for ep in sorted(md.entry_points(group="tnf.conf"), key=lambda e: e.name):
             provider = ep.dist.name if ep.dist is not None else ep.name
-            search_path.append(provider=provider, path=f"pkg://{ep.value.split(':')[0]}")
+            search_path.append(provider=provider, path=f"pkg://{_package(ep, provider)}")
+
+
+def _package(ep: md.EntryPoint, provider: str) -> str:
+    """The package that a ``tnf.conf`` entry point names; a TnfError when it is not installed (Hydra would skip it,
+    and its options would be unknown)."""
+    import importlib.util
+
+    from tnf.errors import TnfError
+
+    package = ep.value.split(":")[0].strip()
+    try:
+        found = importlib.util.find_spec(package) is not None
+    except ImportError:  # a parent package is missing
+        found = False
+    if not found:
+        raise TnfError(
+            f"tnf.conf entry point {ep.name!r} of {provider} names {package!r}, which is not installed; "
+            f"fix the entry point in {provider}'s pyproject.toml and reinstall it"
+        )
+    return package
 
 
 def _is_tnf(path: str | None) -> bool:

@@ -7,7 +7,14 @@ from pathlib import Path
 TINY = Path(__file__).resolve().parents[1] / "fixtures" / "tiny_plugin"
 
 
-def install_tiny_plugin(site: Path, broken: bool = False) -> Path:
+def install_tiny_plugin(
+    site: Path,
+    broken: bool = False,
+    sensor: str = "tnf_tiny_plugin.sensor:TinySensor",
+    conf: str = "tnf_tiny_plugin.conf",
+) -> Path:
+    """Install into ``site``; ``sensor`` and ``conf`` are its entry points' targets, ``broken`` makes its sensor
+    module import a package that is not installed."""
     # A fresh install each time: forget modules a previous test imported from another copy.
     for mod in [m for m in sys.modules if m.split(".")[0] == "tnf_tiny_plugin"]:
         del sys.modules[mod]
@@ -18,8 +25,6 @@ def install_tiny_plugin(site: Path, broken: bool = False) -> Path:
     info = site / "tnf_tiny_plugin-0.0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: tnf-tiny-plugin\nVersion: 0.0.1\n")
-    (info / "entry_points.txt").write_text(
-        "[tnf.sensors]\ntiny = tnf_tiny_plugin.sensor:TinySensor\n\n[tnf.conf]\ntiny = tnf_tiny_plugin.conf\n"
-    )
+    (info / "entry_points.txt").write_text(f"[tnf.sensors]\ntiny = {sensor}\n\n[tnf.conf]\ntiny = {conf}\n")
     (info / "RECORD").write_text("")
     return site

@@ -83,12 +83,33 @@ def test_real_installed_plugin(tmp_path, monkeypatch):
     assert reg.build({"name": "tiny", "width": 16}).cfg.width == 16
 
 
-def test_plugin_import_error_propagates(tmp_path, monkeypatch):
+def test_plugin_import_error_names_the_missing_dependency(tmp_path, monkeypatch):
     site = install_tiny_plugin(tmp_path / "site", broken=True)
     monkeypatch.syspath_prepend(str(site))
     reg = Registry("sensor", "tnf.sensors")
-    with pytest.raises(ModuleNotFoundError, match="tnf_missing_dependency_xyz"):
+    with pytest.raises(TnfError, match=r"No module named 'tnf_missing_dependency_xyz'; install 'tnf_missing_depe"):
         reg.names()
+
+
+@pytest.mark.parametrize(
+    "target, error",
+    [
+        (
+            "tnf_tiny_plugin.sensor:TinySensr",
+            "AttributeError: module 'tnf_tiny_plugin.sensor' has no attribute 'TinySensr'",
+        ),
+        ("tnf_tiny_plugn.sensor:TinySensor", "ModuleNotFoundError: No module named 'tnf_tiny_plugn'"),
+    ],
+)
+def test_a_misspelt_entry_point_is_one_line_naming_it(tmp_path, monkeypatch, target, error):
+    monkeypatch.syspath_prepend(str(install_tiny_plugin(tmp_path / "site", sensor=target)))
+    reg = Registry("sensor", "tnf.sensors")
+    with pytest.raises(TnfError) as e:
+        reg.entry("digit")  # a plugin that cannot load stops every lookup, saying which and why
+    assert str(e.value) == (
+        f"sensor 'tiny' (tnf.sensors entry point {target!r} of tnf-tiny-plugin) cannot be loaded: {error}; "
+        "fix the entry point in tnf-tiny-plugin's pyproject.toml and reinstall it"
+    )
 
 
 def test_plugin_yaml_joins_config_groups(tmp_path, monkeypatch):
@@ -98,6 +119,20 @@ def test_plugin_yaml_joins_config_groups(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(site))
     cfg = compose("touch", ["sensor=tiny"])
     assert cfg.sensor.name == "tiny" and cfg.sensor.width == 8
+
+
+@pytest.mark.parametrize("package", ["tnf_tiny_plugin.cnf", "tnf_tiny_plugn.conf"])
+def test_a_misspelt_conf_entry_point_is_one_line_naming_it(tmp_path, monkeypatch, package):
+    """Hydra skips a search path that is no package; its options would then be unknown, the plugin's YAML unread."""
+    from tnf.testing import compose
+
+    monkeypatch.syspath_prepend(str(install_tiny_plugin(tmp_path / "site", conf=package)))
+    with pytest.raises(TnfError) as e:
+        compose("touch", ["sensor=tiny"])
+    assert str(e.value) == (
+        f"tnf.conf entry point 'tiny' of tnf-tiny-plugin names {package!r}, which is not installed; "
+        "fix the entry point in tnf-tiny-plugin's pyproject.toml and reinstall it"
+    )
 
 
 def test_plugin_yaml_absent_without_plugin():

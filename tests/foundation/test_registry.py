@@ -100,6 +100,13 @@ def test_nested_dataclass_config():
         from_dict(Cfg, {"lights": [{"colour": 2}]}, where="cfg")
 
 
+def test_a_config_without_name_says_where_it_goes():
+    reg = make_registry()
+    with pytest.raises(TnfError) as e:
+        reg.build({"size": 5, "tags": ["a"] * 100})
+    assert str(e.value) == "a widget config needs a 'name' key: its registry name (`name: NAME` first in its YAML)"
+
+
 def test_component_without_config_is_an_error():
     reg = Registry("widget", "tnf.test_widgets")
     reg.add("bare", object, origin="tnf")

@@ -125,6 +125,43 @@ def test_a_file_that_does_not_fit_is_one_line_naming_file_and_key(tmp_path, text
     assert "\n" not in str(err.value) and str(tmp_path / "a.yaml") in str(err.value)
 
 
+def test_a_name_other_than_the_options_is_one_line(tmp_path):
+    """``name`` selects the component that ``sensor=small`` builds: it must be the option's own."""
+    conf = write(tmp_path, "sensor/small", "name: smal\nwidth: 8\n")
+    config = type("Config", (), {"__annotations__": {"width": int}, "width": FROM_YAML})
+    with pytest.raises(TnfError, match=r"small\.yaml: name 'smal' is not the file's; write `name: small`$"):
+        yaml_defaults("sensor/small", conf=conf)(config)
+
+
+def test_above_dataclass_is_one_line_saying_where_it_goes(tmp_path):
+    """Over a finished dataclass the YAML's values would miss ``__init__``: ``Config()`` would hold FROM_YAML."""
+    conf = write(tmp_path, "sensor/small", "name: small\nwidth: 8\n")
+    with pytest.raises(
+        TnfError, match=r"small\.yaml: \S*Small is a dataclass already; put @yaml_defaults under @dataclass$"
+    ):
+
+        @yaml_defaults("sensor/small", conf=conf)
+        @dataclass
+        class Small:
+            width: int = FROM_YAML
+
+
+def test_a_subclass_that_is_no_dataclass_is_named(tmp_path):
+    """A Config subclass without ``@dataclass`` has its base's fields only: its own are named, not unknown keys."""
+    conf = write(tmp_path, "sensor/small", "name: small\nwidth: 8\nmarkers: true\n")
+
+    @dataclass
+    class Base:
+        width: int = FROM_YAML
+
+    @yaml_defaults("sensor/small", conf=conf)
+    class Small(Base):
+        markers: bool = FROM_YAML
+
+    with pytest.raises(TnfError, match=r"^sensor: \S*Small\.markers is no field: decorate \S*Small with @dataclass$"):
+        from_dict(Small, {"markers": False}, where="sensor")
+
+
 def test_a_missing_file_is_named(tmp_path):
     class Config:
         size: int = FROM_YAML
