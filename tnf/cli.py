@@ -13,6 +13,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from tnf import __version__
 from tnf.artifacts import clean, data_root
@@ -238,8 +239,8 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=conf_dir(), version_base=None):
-            for combination in _combinations(plain) if len(plain) < len(overrides) else [plain]:
-                combination = stage_overrides(stage, combination)
+            for plain_combo in _combinations(plain) if len(plain) < len(overrides) else [plain]:
+                combination = stage_overrides(stage, plain_combo)
                 try:
                     cfg = compose(config_name=name, overrides=combination)
                 except MissingConfigException as e:
@@ -247,14 +248,20 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
                 except (HydraException, OmegaConfBaseException) as e:
                     cause = e.__cause__
                     if isinstance(cause, OmegaConfBaseException) and "Could not override" in str(e):
-                        plain_cfg = compose(config_name=name, overrides=stage_overrides(stage, []))
-                        raise TnfError(_unknown_key(str(e), plain_cfg)) from None
+                        chosen = _choices_only(compose, name, stage, plain_combo)
+                        raise TnfError(_unknown_key(str(e), chosen, stage)) from None
                     lines = [ln for ln in str(e).splitlines() if ln.strip() and "search path" not in ln.lower()]
+                    if "LexerNoViableAlt" in lines[0]:  # a value Hydra's grammar cannot read
+                        lines = [f"{lines[0].split(':', 1)[-1].strip()}: {UNREADABLE}"]
                     raise TnfError(" ".join(lines[:2])) from None
                 check_settings(cfg)  # before Hydra makes its run folder
                 check_sizes(cfg, stage)
     finally:
         GlobalHydra.instance().clear()
+
+
+#: What to do with an override that Hydra's grammar cannot read (spaces, non-ASCII letters).
+UNREADABLE = "cannot be read; quote a value with spaces or non-ASCII letters: \"object_names=['my mug']\""
 
 
 def _combinations(overrides: list[str]) -> list[list[str]]:
@@ -298,7 +305,17 @@ def _missing_option(e: Exception, overrides: Sequence[str]) -> str:
     return f"{given}: no such {group}; options: {', '.join(options) if options else '(none)'}"
 
 
-def _unknown_key(message: str, cfg: object) -> str:
+def _choices_only(compose: Callable[..., Any], name: str, stage: str, overrides: Sequence[str]) -> Any:
+    """The stage's config with the group choices of ``overrides`` alone (``sensor=omnitact``, ``experiment=...``),
+    not the keys they set: the settings an unknown key is compared with."""
+    choices = [o for o in overrides if "=" in o and "." not in o.split("=", 1)[0]]
+    try:
+        return compose(config_name=name, overrides=stage_overrides(stage, choices))
+    except Exception:  # a choice that fails alone: the stage's defaults
+        return compose(config_name=name, overrides=stage_overrides(stage, []))
+
+
+def _unknown_key(message: str, cfg: object, stage: str) -> str:
     """``trian.epochs: no such setting; did you mean train.epochs?`` from Hydra's failed override."""
     import difflib
     import re
@@ -316,8 +333,13 @@ def _unknown_key(message: str, cfg: object) -> str:
         keys.append(prefix.rstrip("."))
 
     walk(OmegaConf.to_container(cfg, resolve=False), "")  # type: ignore[arg-type]
-    close = difflib.get_close_matches(key, [k for k in keys if k], n=1, cutoff=0.6)
-    hint = f"did you mean {close[0]}?" if close else "see `tnf STAGE --cfg job` for the settings"
+    parent, _, leaf = key.rpartition(".")
+    siblings = [k.rpartition(".")[2] for k in keys if k and k != parent and k.rpartition(".")[0] == parent]
+    close = [f"{parent}.{k}" if parent else k for k in difflib.get_close_matches(leaf, siblings, n=1, cutoff=0.6)]
+    close = close or difflib.get_close_matches(key, [k for k in keys if k], n=1, cutoff=0.75)  # another section
+    hint = f"did you mean {close[0]}?" if close else f"see `tnf {stage} --cfg job` for the settings"
+    if "." in key:  # a section's keys are its settings' fields: a new key is refused too
+        return f"{key}: no such setting; {hint}"
     return f"{key}: no such setting; {hint} (+{key}=... adds a new key)"
 
 

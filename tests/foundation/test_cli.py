@@ -99,13 +99,22 @@ def test_multirun_runs_each_job(echo_stage, data_root):
             "train.epochs=1,2",
             "error: Ambiguous value for argument 'train.epochs=1,2' 1. To use it as a list, use key=[v",
         ),
+        # The keys of the generator chosen, not of the default one
+        (
+            "generator=cyclegan generator.lambda_cycl=3",
+            "error: generator.lambda_cycl: no such setting; did you mean generator.lambda_cycle?",
+        ),
+        # No near key: no guess from another key's section prefix, and no "+key" advice that the section refuses
+        ("sensor.marker_flw=1", "error: sensor.marker_flw: no such setting; see `tnf train --cfg job` for the"),
+        ("object_names=[größe]", "error: object_names=[größe]: cannot be read; quote a value with spaces or non-ASCII"),
     ],
 )
 def test_hydra_config_errors_are_one_line(override, expected, capsys, tmp_path, monkeypatch):
     monkeypatch.setenv("TNF_DATA", str(tmp_path))
-    assert main(["train", override]) == 1
+    assert main(["train", *override.split(" ")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(expected), err
+    assert "+sensor" not in err[0]
     assert not (tmp_path / "logs").exists()  # refused before Hydra made its run folder
 
 
