@@ -267,14 +267,14 @@ class ArtifactStore:
             raise TnfError(msg + (f"; {hint}" if hint else ""))
         return p
 
-    def items(self, stage: str, depth: int = 1) -> list[tuple[str, ...]]:
-        """Finished items of a stage, as tuples of path parts ``depth`` levels below the stage folder."""
-        base = self.path(stage)
+    def items(self, stage: str, *prefix: str) -> list[str]:
+        """Names of the finished items under ``<stage>/<prefix...>``, sorted: their paths below it, ``/``-joined,
+        at any depth (``ball``, or ``mugs/red`` for a nested object name)."""
+        base = self.path(stage, *prefix)
         if not base.is_dir():
             return []
-        pattern = "/".join(["*"] * depth) + "/" + MANIFEST
-        out = [m.parent.relative_to(base).parts for m in base.glob(pattern)]
-        return sorted(p for p in out if not any(part.startswith(".") for part in p))
+        out = [m.parent.relative_to(base).parts for m in base.rglob(MANIFEST)]
+        return sorted("/".join(p) for p in out if p and not any(part.startswith(".") for part in p))
 
     @contextlib.contextmanager
     def writing(

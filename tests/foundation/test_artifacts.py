@@ -35,7 +35,7 @@ def test_item_written_atomically_and_skipped_when_config_matches(tmp_path):
     assert m["n"] == 3 and m["config"] == cfg and m["config_hash"] == config_hash(cfg)
     assert store.is_done("capture", "builtin", "ball", config=cfg)
     assert not store.is_done("capture", "builtin", "ball", config={"views": 12})
-    assert store.items("capture", depth=2) == [("builtin", "ball")]
+    assert store.items("capture") == ["builtin/ball"]
 
 
 def test_failed_write_leaves_old_item_and_no_partial(tmp_path):

@@ -142,7 +142,7 @@ def test_temporary_folders_and_files_of_killed_writers_are_removed_of_live_ones_
         assert [k for k, f in folders.items() if f.exists()] == ["live", "elsewhere", "other item"]
         assert store.clean_partials("generated", "run") == 1  # the other item's
         assert [k for k, f in folders.items() if f.exists()] == ["live", "elsewhere"]
-        assert store.items("generated", depth=3) == [("run", "builtin", "ball")]
+        assert store.items("generated") == ["run/builtin/ball"]
         # The same for the temporary files of atomic writes (reports, JSON files).
         files = {
             k: tmp_path / f".results.json.{pid}@{_host()}.xyz.tmp"

@@ -7,17 +7,13 @@ are skipped.
 
 from __future__ import annotations
 
-import logging
 import time
 from typing import Any
 
 from tnf.capture import camera_distance, camera_poses
 from tnf.capture.render import MeshRenderer, capture_object
-from tnf.errors import TnfError
 from tnf.objects.captured import import_views
 from tnf.runtime import progress
-
-log = logging.getLogger(__name__)
 
 
 def capture_objects(
@@ -35,7 +31,6 @@ def capture_objects(
     from concurrent.futures import ThreadPoolExecutor
 
     rows: list[dict[str, Any]] = []
-    invalid: list[str] = []  # why each skipped mesh was rejected
     # One renderer for all objects (context and compiled shaders are reused); image files are written by
     # two threads while the next views render.
     renderer: list[Any] = []
@@ -43,14 +38,10 @@ def capture_objects(
     with progress(show_progress) as p, pool:
         task = p.add_task(f"capture {source.name}", total=len(names))
         for name in names:
-            rows.append(_capture_one(store, source, name, ccfg, config, seed, pool, renderer, invalid))
+            rows.append(_capture_one(store, source, name, ccfg, config, seed, pool, renderer))
             p.advance(task)
     for r in renderer:
         r.close()
-    if invalid and len(invalid) == len(names):
-        # Skipping broken meshes keeps a long run over many objects going; a run that captured nothing is a failure.
-        more = f" (and {len(invalid) - 1} more invalid objects)" if len(invalid) > 1 else ""
-        raise TnfError(f"no object captured: {invalid[0]}{more}")
     return rows
 
 
@@ -63,7 +54,6 @@ def _capture_one(
     seed: int,
     pool: Any,
     renderer: list[Any],
-    invalid: list[str],
 ) -> dict[str, Any]:
     """Capture (or import, or skip) one object; ``renderer`` holds the shared renderer once made."""
     import numpy as np
@@ -74,16 +64,7 @@ def _capture_one(
     if store.is_done("capture", *item, config=config):
         return {"object": name, "status": "skipped (done)", "views": None, "seconds": 0.0}
     t0 = time.perf_counter()
-    try:
-        mesh = source.load(name)
-    except TnfError as e:
-        if not source.skip_invalid:
-            raise
-        log.warning("skipping invalid object %s: %s", name, e)
-        invalid.append(str(e))
-        mesh = None
-    if mesh is None:
-        return {"object": name, "status": "skipped (invalid mesh)", "views": 0, "seconds": 0.0}
+    mesh = source.load(name)  # the stage's names are usable (ObjectSource.usable): invalid meshes are left out
     radius = float(np.linalg.norm(mesh.vertices, axis=1).max())
     train, test = camera_poses(radius, ccfg, seed=seed)
     if not renderer:

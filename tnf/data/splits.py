@@ -42,11 +42,21 @@ def choose_novel_objects(
             raise TnfError(f"pair.novel_objects: {missing[0]!r} is not among the objects ({', '.join(names)})")
         if len(set(novel_objects)) != len(novel_objects):
             raise TnfError(f"pair.novel_objects lists an object twice: {list(novel_objects)}")
+        if len(novel_objects) == len(names):
+            raise TnfError(
+                f"pair.novel_objects holds out every selected object ({', '.join(names)}): none is left to train "
+                "on; select more objects or hold out fewer"
+            )
         return sorted(novel_objects)
     if num_novel < 0:
         raise TnfError(f"pair.num_novel_objects must be >= 0, got {num_novel}")
     if num_novel > len(names):
         raise TnfError(f"pair.num_novel_objects={num_novel} but only {len(names)} objects are selected")
+    if num_novel == len(names):
+        raise TnfError(
+            f"pair.num_novel_objects={num_novel} holds out every selected object ({', '.join(names)}): none is "
+            "left to train on; select more objects or set pair.num_novel_objects lower"
+        )
     rng = np.random.default_rng(seed)
     picked: np.ndarray | list[int] = rng.choice(len(names), size=num_novel, replace=False) if num_novel else []
     return sorted(names[i] for i in picked)

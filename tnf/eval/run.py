@@ -355,7 +355,7 @@ def classification(
     if ccfg.objects:
         objects = list(ccfg.objects)
     else:
-        objects = [p[2] for p in store.items("touch", depth=3) if p[0] == sensor and p[1] == source]
+        objects = store.items("touch", sensor, source)
     if job.object_names and not ccfg.objects:
         objects = [o for o in objects if o in set(job.object_names)]
     if len(objects) < 2:

@@ -37,6 +37,9 @@ MIN_EXTENT = 1e-4
 REFUSE_SIZE = (1e-3, 10.0)
 WARN_SIZE = (5e-3, 1.5)
 
+# Why each object checked by ObjectSource.usable failed (None: valid), by source, file, settings and file time.
+_ERRORS: dict[tuple[Any, ...], str | None] = {}
+
 TOUCH_SPLITS = ("train", "val", "novel_view")
 """The split labels a touch may carry (a captured object's ``touches.json``, the touch stage's manifest)."""
 
@@ -117,6 +120,35 @@ class ObjectSource:
                 raise
             log.warning("skipping invalid object %s: %s", name, e)
             return None
+
+    def usable(self, names: Sequence[str]) -> list[str]:
+        """``names`` less the objects whose mesh fails to load or validate, each logged with why, when
+        ``skip_invalid`` is set (else all of ``names``), so that every stage of a run leaves out the same ones.
+        A TnfError when none is left."""
+        if not self.skip_invalid:
+            return list(names)
+        errors = {n: self._error(n) for n in names if self.views(n) is None}
+        kept = [n for n in names if errors.get(n) is None]
+        if names and not kept:
+            bad = [e for e in errors.values() if e is not None]
+            more = f" (and {len(bad) - 1} more invalid objects)" if len(bad) > 1 else ""
+            raise TnfError(f"no valid object: {bad[0]}{more}")
+        return kept
+
+    def _error(self, name: str) -> str | None:
+        """Why object ``name`` fails to load or validate, or None; logged once, and remembered while its file is
+        unchanged."""
+        where = Path(self.where(name))
+        stat = where.stat() if where.is_file() else None
+        key = (type(self).__qualname__, str(where), repr(getattr(self, "cfg", None)), stat and stat.st_mtime_ns)
+        if key not in _ERRORS:
+            try:
+                self.load(name)
+                _ERRORS[key] = None
+            except TnfError as e:
+                _ERRORS[key] = str(e)
+                log.warning("skipping invalid object %s: %s", name, e)
+        return _ERRORS[key]
 
     def check_name(self, name: str) -> None:
         names = self.names()
@@ -232,7 +264,11 @@ def select(
         wanted = available
     unknown = [n for n in wanted if n not in available]
     if unknown:
-        raise TnfError(f"unknown object {unknown[0]!r} in source {source.name!r}; available: {_short_list(available)}")
+        fix = "object=NAME" if single not in (None, "") else "object_names=[NAME, ...], or object_names=null for all"
+        raise TnfError(
+            f"unknown object {unknown[0]!r} in source {source.name!r}; available: {_short_list(available)}; "
+            f"choose with {fix}"
+        )
     if not wanted:
         raise TnfError(f"no objects selected from source {source.name!r} (object_names is empty)")
     return source, list(dict.fromkeys(wanted))

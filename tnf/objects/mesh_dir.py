@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, cast
@@ -126,7 +127,12 @@ def find_meshes(root: Path) -> dict[str, Path]:
                 ycb_dirs.add(sub)
                 break
     for p in sorted(root.rglob("*")):
-        if p.suffix.lower() not in MESH_SUFFIXES or not p.is_file():
+        if p.suffix.lower() not in MESH_SUFFIXES:
+            continue
+        if p.is_symlink() and not p.exists():
+            log.warning("mesh_dir: skipping %s: a broken symbolic link (to %s)", p, os.readlink(p))
+            continue
+        if not p.is_file():
             continue
         if any(d in p.parents for d in ycb_dirs) or any(part.startswith(".") for part in p.relative_to(root).parts):
             continue
@@ -136,6 +142,15 @@ def find_meshes(root: Path) -> dict[str, Path]:
             continue
         found[name] = p
     return found
+
+
+def _other(root: Path) -> str:
+    """What ``root`` holds instead of meshes, for the error on a folder without any: '; it holds only .fbx (3)'."""
+    files = [p for p in root.rglob("*") if not any(part.startswith(".") for part in p.relative_to(root).parts)]
+    broken = sum(p.is_symlink() and not p.exists() for p in files)
+    counts = Counter(p.suffix.lower() or "(no suffix)" for p in files if p.is_file())
+    held = [f"{suffix} ({n})" for suffix, n in counts.most_common(5)] + ([f"broken links ({broken})"] if broken else [])
+    return f"; it holds only {', '.join(held)}" if held else "; it is empty"
 
 
 class MeshDir(ObjectSource):
@@ -169,7 +184,9 @@ class MeshDir(ObjectSource):
         self._files = find_meshes(self.root)
         self.skip_invalid = cfg.skip_invalid
         if not self._files:
-            raise TnfError(f"objects.path: no mesh files ({', '.join(MESH_SUFFIXES)}) under {self.root}")
+            raise TnfError(
+                f"objects.path: no mesh files ({', '.join(MESH_SUFFIXES)}) under {self.root}{_other(self.root)}"
+            )
 
     def names(self) -> list[str]:
         return sorted(self._files)

@@ -11,9 +11,11 @@ from typing import Any
 from tnf.objects import ObjectSource, select, shard, shard_of
 
 
-def run_objects(cfg: Any) -> tuple[ObjectSource, list[str]]:
-    """The object source and object names of a run's ``objects``, ``object_names`` and ``object`` settings."""
-    return select(cfg.objects, cfg.get("object_names"), cfg.get("object"))
+def run_objects(cfg: Any, usable: bool = True) -> tuple[ObjectSource, list[str]]:
+    """The object source and object names of a run's ``objects``, ``object_names`` and ``object`` settings;
+    ``usable``: less the invalid meshes a source skips (``objects.skip_invalid``), logging why."""
+    source, names = select(cfg.objects, cfg.get("object_names"), cfg.get("object"))
+    return source, source.usable(names) if usable else names
 
 
 def run_shard(cfg: Any) -> tuple[int, int] | None:

@@ -35,7 +35,7 @@ def selected_objects(cfg: Any, store: Any, source: str) -> list[str]:
         return [str(cfg.object)]
     if cfg.object_names:
         return [str(n) for n in cfg.object_names]
-    names = [item[1] for item in store.items("capture", 2) if item[0] == source]
+    names = store.items("capture", source)
     if not names:
         raise TnfError(
             f"no captured objects of source {source!r} in {store.path('capture', source)}; run `tnf capture`"

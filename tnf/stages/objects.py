@@ -13,7 +13,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     from rich.console import Console
     from rich.table import Table
 
-    source, names = run_objects(cfg)
+    source, names = run_objects(cfg, usable=False)  # each invalid one is a row left out, counted below
     rows: list[dict[str, Any]] = []
     with progress(cfg.progress, transient=True) as p:
         task = p.add_task(f"loading {source.name}", total=len(names))
