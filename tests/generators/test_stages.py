@@ -206,6 +206,18 @@ def test_finetune_on_per_object_touches_and_extra_ones_records_its_pairs(data_ro
         assert f"epochs on {pairs} pairs" in capsys.readouterr().out
 
 
+def test_finetune_writes_last_ckpt_after_the_last_epoch_between_validations(data_root):
+    """Three epochs validated every second one: last.ckpt, which the press realism scores, is the third epoch's."""
+    from tnf.generators.training import _progress
+    from tnf.stages import finetune
+
+    write_pairs(data_root / "pairs" / "omnitact-hashgrid", n=6, seed=3)
+    ft = [*TINY, "data.datasets=[omnitact-hashgrid]", "finetune.epochs=3", "finetune.val_every_n_epochs=2"]
+    out = finetune.run(compose("finetune", ft))
+    assert out["epochs"] == 3
+    assert _progress(data_root / "models" / out["run_name"] / "last.ckpt", "val_l1")[0] == 3
+
+
 @pytest.mark.parametrize("name", ["tn_cgan", "lee", "cyclegan"])
 def test_generator_config_files_match_the_config_classes(name):
     """conf/generator/<name>.yaml and the generator's Config hold the same defaults, so that `tnf train` and

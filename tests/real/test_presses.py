@@ -323,3 +323,66 @@ def test_not_a_press_folder(tmp_path):
     _one_line_error(tmp_path, r"presses\.json is not valid JSON")
     (tmp_path / INDEX).write_text("[1, 2]")
     _one_line_error(tmp_path, r"expected a JSON object, got list")
+
+
+def test_sixteen_bit_frame_is_refused(tmp_path):
+    """PIL reads a 16-bit grey PNG as mode I;16, which clips to white when converted to RGB."""
+    root = _folder(tmp_path / "p")
+    Image.fromarray(np.full((H, W), 30000, np.uint16)).save(root / "frames/00001.png")
+    _one_line_error(root, r"00001\.png has I;16 pixels: press frames must be 8-bit RGB")
+
+
+def test_truncated_frame_is_refused_on_loading(tmp_path):
+    root = _folder(tmp_path / "p")
+    Image.fromarray(np.random.default_rng(0).integers(0, 255, (H, W, 3), np.uint8)).save(root / "frames/00001.png")
+    data = (root / "frames/00001.png").read_bytes()
+    (root / "frames/00001.png").write_bytes(data[: len(data) // 2])
+    _one_line_error(root, r"00001\.png is not a readable image: image file is truncated")
+
+
+def test_other_format_is_refused(tmp_path):
+    root = _edit(_folder(tmp_path / "p"), lambda m: m.update(format="tnf.presses/2"))
+    _one_line_error(root, r"format 'tnf\.presses/2' is not 'tnf\.presses/1'")
+
+
+def test_digest_follows_the_frames_not_only_the_index(tmp_path):
+    """Frames written again under the same names (e.g. with their channels swapped) are other presses."""
+    from tnf.real.presses import presses_digest
+
+    root = _folder(tmp_path / "p")
+    before = presses_digest(load_presses(root))
+    frame = np.asarray(Image.open(root / "frames/00001.png"))
+    _png(root / "frames/00001.png", np.ascontiguousarray(frame[..., ::-1]))
+    assert presses_digest(load_presses(root)) != before
+    _png(root / "background.png", np.zeros((H, W, 3), np.uint8))
+    assert presses_digest(load_presses(root)) != before
+
+
+def test_indices_name_their_setting(tmp_path):
+    from tnf.real.presses import check_indices
+
+    p = load_presses(_folder(tmp_path / "p"))
+    check_indices(p, [0, 1, 2], "calibrate.train")
+    with pytest.raises(TnfError, match=r"^calibrate\.test: press 3 does not exist: .* has presses 0-2$"):
+        check_indices(p, [0, 3], "calibrate.test")
+
+
+def test_calibrate_checks_the_split_before_fitting(tmp_path):
+    """A test press past the folder's end stops before the fit, naming the setting, and writes nothing."""
+    from tnf.real.calibrate import FitSettings, calibrate_sensor
+    from tnf.sensors.gelsight_mini import GelSightMini
+
+    p = load_presses(_folder(tmp_path / "p"))
+    sensor = GelSightMini(GelSightMini.Config())
+    with pytest.raises(TnfError, match=r"^calibrate\.test: press 5 does not exist"):
+        calibrate_sensor(p, sensor, {"name": "warp_gel"}, [0, 1], [5], FitSettings(), tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_aspect_ratio_error_names_a_size(tmp_path):
+    from tnf.sensors.gelsight_mini import GelSightMini
+
+    p = load_presses(_folder(tmp_path / "p"))
+    sensor = GelSightMini(dataclasses.replace(GelSightMini.Config(), width=60, height=80))
+    with pytest.raises(TnfError, match=r"aspect ratios differ; .* e\.g\. sensor\.width=60 sensor\.height=45$"):
+        at_sensor_size(p, sensor, [0])

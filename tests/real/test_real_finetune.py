@@ -138,6 +138,8 @@ def test_finetune_stage_on_a_press_folder(checkpoint, root, taxim_presses, capsy
         (["finetune.presses=/no/such/folder"], "no presses.json in /no/such/folder: not a press folder"),
         (["data.per_object=5"], "data.per_object subsamples the touches of each object"),
         (["finetune.press_reference=flat"], "finetune.press_reference must be one of gel, contact"),
+        (["finetune.press_test=[40]"], "finetune.press_test: press 40 does not exist: "),
+        (["finetune.press_depth_scale=10"], "finetune.press_depth_scale=10: press 0: depth 3.6"),
     ],
 )
 def test_finetune_stage_refuses_bad_press_settings_in_one_line(root, taxim_presses, capsys, setting, line):

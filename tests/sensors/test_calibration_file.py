@@ -66,3 +66,23 @@ def test_cli_reports_a_corrupt_calibration_in_one_line(saved, tmp_path):
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1, out.stderr
     assert lines[0].startswith(f"error: sensor calibration {saved / FILE} is not readable (")
+
+
+@pytest.mark.parametrize(
+    "change, pattern",
+    [
+        ({"background": lambda b: b[..., 0]}, r"background must be an \[H, W, 3\] uint8 image, got \[240, 320\] uint8"),
+        ({"background": lambda b: b.astype(np.float64) * 2}, r"background must be an .* got \[240, 320, 3\] float64"),
+        ({"falloff": lambda f: np.inf}, r"falloff must be > 0, blur_sigma and noise_std >= 0, all finite"),
+    ],
+)
+def test_foreign_values_are_one_line(saved, change, pattern):
+    """A background of another shape or type, or a number that is not finite: refused, not silently converted."""
+    with np.load(saved / FILE) as d:
+        arrays = {k: d[k] for k in d.files}
+    for key, edit in change.items():
+        arrays[key] = edit(arrays[key])
+    np.savez(saved / FILE, **arrays)
+    with pytest.raises(TnfError, match=pattern) as e:
+        load_calibration(saved)
+    assert "\n" not in str(e.value)

@@ -288,6 +288,7 @@ def checkpoints(run_dir: Path, every_s: float) -> list[ModelCheckpoint]:
         monitor=None,
         save_top_k=1,
         every_n_epochs=1,
+        save_on_train_epoch_end=True,  # after the epoch's validation, if any; with none, still after the epoch
         enable_version_counter=False,
         every_s=every_s,
     )

@@ -32,7 +32,7 @@ import numpy as np
 
 from tnf.errors import TnfError
 from tnf.real import realism, report
-from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, disk_masks, sphere_gaps
+from tnf.real.presses import PressSet, SensorPresses, at_sensor_size, check_indices, disk_masks, sphere_gaps
 from tnf.registry import FROM_YAML, SIMULATORS, at_least, yaml_defaults
 from tnf.sensors.base import Sensor
 from tnf.sensors.calibration import Calibration, table_cells
@@ -544,6 +544,8 @@ def calibrate_sensor(
         raise TnfError(f"calibrate: press {overlap[0]} is in both train and test")
     if not train or not test:
         raise TnfError("calibrate: train and test each need at least one press")
+    check_indices(presses, train, "calibrate.train")
+    check_indices(presses, test, "calibrate.test")
     out = Path(out)
     cal, info = fit_calibration(presses, sensor, simulator, train, settings, on_step)
     cal.save(out)

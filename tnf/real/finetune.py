@@ -34,7 +34,7 @@ from tnf.real.generated import (
     generate_presses,
     press_rgbd,
 )
-from tnf.real.presses import INDEX, PressSet, at_sensor_size
+from tnf.real.presses import PressSet, at_sensor_size, presses_digest
 from tnf.sensors.base import Sensor
 
 PRESS_OBJECT = "indenter"
@@ -55,11 +55,6 @@ def check_split(train: Sequence[int], val: Sequence[int] = (), test: Sequence[in
     both = sorted(set(val) & set(test))
     if both:
         raise TnfError(f"{prefix}press {both[0]} is both a validation and a test press")
-
-
-def presses_digest(presses: PressSet) -> str:
-    """A short hash of the press folder's index (its annotations and frame names)."""
-    return hashlib.sha256((presses.folder / INDEX).read_bytes()).hexdigest()[:16]
 
 
 def write_press_pairs(

@@ -35,6 +35,7 @@ depths against the indenter's radius wherever they are scaled.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from collections.abc import Sequence
@@ -153,10 +154,14 @@ def _read_rgb(path: Path) -> np.ndarray:
 
 
 def _image_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of an 8-bit image file, after decoding all of it (a truncated file fails here)."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
+            if im.mode.startswith(("I", "F")):  # PIL's 16- and 32-bit modes: converting to RGB clips them
+                raise TnfError(f"{path} has {im.mode} pixels: press frames must be 8-bit RGB, saved 8 bits a channel")
+            im.load()
             return im.size
     except (UnidentifiedImageError, OSError) as e:
         raise TnfError(f"{path} is not a readable image: {e}") from None
@@ -175,13 +180,15 @@ def load_presses(folder: str | Path) -> PressSet:
     folder = Path(folder).expanduser()
     index = folder / INDEX
     if not index.is_file():
-        raise TnfError(f"no {INDEX} in {folder}: not a press folder (see `tnf calibrate --help`)")
+        raise TnfError(f"no {INDEX} in {folder}: not a press folder (docs/calibration.md gives its layout)")
     try:
         meta = json.loads(index.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise TnfError(f"{index} is not valid JSON: {e}") from None
     if not isinstance(meta, dict):
         raise TnfError(f"{index}: expected a JSON object, got {type(meta).__name__}")
+    if meta.get("format", FORMAT) != FORMAT:
+        raise TnfError(f"{index}: format {meta['format']!r} is not {FORMAT!r}, the one tnf reads")
     for key in ("mm_per_pixel", "indenter", "presses"):
         if key not in meta:
             raise TnfError(f"{index}: missing key {key!r}")
@@ -240,6 +247,14 @@ def load_presses(folder: str | Path) -> PressSet:
         presses=tuple(presses),
         background_path=bg_path,
     )
+
+
+def presses_digest(presses: PressSet) -> str:
+    """A short hash of the press folder's content: its index, background and frames."""
+    h = hashlib.sha256((presses.folder / INDEX).read_bytes())
+    for path in (presses.background_path, *(p.image for p in presses.presses)):
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def taxim_recording(sensor: str) -> Path:
@@ -316,20 +331,28 @@ class SensorPresses:
     """Which presses of the folder these are."""
 
 
-def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) -> SensorPresses:
-    """The presses ``indices`` resized to ``sensor``'s image size, after checking that the geometry matches."""
+def check_indices(presses: PressSet, indices: Sequence[int], where: str = "") -> None:
+    """A one-line TnfError ``"<where>: press <k> does not exist ..."`` unless every index names a press of the
+    folder; ``where`` names the setting that holds them."""
     n = len(presses)
     bad = [i for i in indices if not 0 <= i < n]
     if bad:
-        raise TnfError(f"press {bad[0]} does not exist: {presses.folder} has presses 0-{n - 1}")
+        prefix = f"{where}: " if where else ""
+        raise TnfError(f"{prefix}press {bad[0]} does not exist: {presses.folder} has presses 0-{n - 1}")
+
+
+def at_sensor_size(presses: PressSet, sensor: Sensor, indices: Sequence[int]) -> SensorPresses:
+    """The presses ``indices`` resized to ``sensor``'s image size, after checking that the geometry matches."""
+    check_indices(presses, indices)
     given = [presses.presses[i].depth_mm for i in indices]
     depths_mm = check_depths(given, presses.radius_mm, str(presses.folder / INDEX), presses=indices)
     sx, sy = sensor.width / presses.width, sensor.height / presses.height
     if abs(sx / sy - 1) > 0.01:
         raise TnfError(
             f"sensor {sensor.name!r} images are {sensor.width}x{sensor.height}, the presses' {presses.width}x"
-            f"{presses.height}: the aspect ratios differ (calibrate the sensor that recorded them, e.g. "
-            f"sensor=gelsight_mini for Taxim's GelSight Mini)"
+            f"{presses.height}: the aspect ratios differ; give the sensor that recorded them (sensor=gelsight_mini "
+            f"for Taxim's GelSight Mini) a size of the presses' aspect ratio, e.g. sensor.width={sensor.width} "
+            f"sensor.height={round(sensor.width * presses.height / presses.width)}"
         )
     want = presses.mm_per_pixel / sx  # mm per sensor pixel
     have = 1e3 * float(np.mean(sensor.pixel_size()))

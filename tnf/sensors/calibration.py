@@ -162,7 +162,7 @@ def load_calibration(path: str | Path) -> Calibration:
                 blur_sigma=float(d["blur_sigma"]),
                 noise_std=float(d["noise_std"]),
                 falloff=float(d["falloff"]),
-                background=d["background"].astype(np.uint8),
+                background=d["background"],
                 slope_power=float(d["slope_power"]) if "slope_power" in d.files else 1.0,
             )
     except UNREADABLE as e:
@@ -173,8 +173,16 @@ def load_calibration(path: str | Path) -> Calibration:
     t = cal.table
     if t.ndim != 3 or t.shape[0] != t.shape[1] or t.shape[0] < 2 or t.shape[2] != 3 or not np.isfinite(t).all():
         raise TnfError(f"sensor calibration {f}: table must be a finite [N, N, 3] array, got {list(t.shape)}")
-    if not (cal.max_slope > 0 and cal.blur_sigma >= 0 and cal.noise_std >= 0 and cal.falloff > 0):
-        raise TnfError(f"sensor calibration {f}: max_slope and falloff must be > 0, blur_sigma and noise_std >= 0")
+    bg = cal.background
+    if bg.dtype != np.uint8 or bg.ndim != 3 or bg.shape[2] != 3:
+        raise TnfError(
+            f"sensor calibration {f}: background must be an [H, W, 3] uint8 image, got {list(bg.shape)} {bg.dtype}"
+        )
+    finite = np.isfinite([cal.max_slope, cal.blur_sigma, cal.noise_std, cal.falloff]).all()
+    if not (finite and cal.max_slope > 0 and cal.blur_sigma >= 0 and cal.noise_std >= 0 and cal.falloff > 0):
+        raise TnfError(
+            f"sensor calibration {f}: max_slope and falloff must be > 0, blur_sigma and noise_std >= 0, all finite"
+        )
     if not 0 < cal.slope_power <= 1:
         raise TnfError(f"sensor calibration {f}: slope_power must be in (0, 1], got {cal.slope_power}")
     return cal

@@ -12,7 +12,7 @@ from typing import Any
 
 from tnf.artifacts import ArtifactStore, identity
 from tnf.real.calibrate import CalibrateSettings, calibrate_sensor, search_steps
-from tnf.real.presses import INDEX, resolve_presses
+from tnf.real.presses import presses_digest, resolve_presses
 from tnf.real.report import table
 from tnf.registry import SENSORS, from_dict, split_spec
 from tnf.runtime import progress
@@ -20,8 +20,6 @@ from tnf.sim.base import simulator_key
 
 
 def run(cfg: Any) -> dict[str, Any] | None:
-    import hashlib
-
     from rich.console import Console
 
     console = Console(highlight=False)
@@ -34,10 +32,10 @@ def run(cfg: Any) -> dict[str, Any] | None:
     settings = c.fit
     train, test = c.train, c.test
     name = c.name
-    digest = hashlib.sha256((presses.folder / INDEX).read_bytes()).hexdigest()[:16]
+    digest = presses_digest(presses)
     spec_name, spec = split_spec(cfg.simulator, "simulator")
     simulator = {"name": spec_name, **spec}
-    # The press setting (in ``calibrate``) and the index's digest identify the presses, not the folder's path:
+    # The press setting (in ``calibrate``) and the folder's content identify the presses, not the folder's path:
     # a data root copied to another machine or path keeps its calibration.
     config = {
         "presses_digest": digest,

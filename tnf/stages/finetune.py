@@ -132,7 +132,7 @@ def _press_settings(cfg: Any, f: FinetuneSettings) -> dict[str, Any]:
     sensor (one-line errors first)."""
     from tnf.real.finetune import check_split
     from tnf.real.generated import REFERENCES
-    from tnf.real.presses import resolve_presses
+    from tnf.real.presses import check_depths, check_indices, resolve_presses
     from tnf.registry import SENSORS, split_spec
 
     check_split(f.press_train, f.press_val, f.press_test, "finetune")
@@ -144,6 +144,11 @@ def _press_settings(cfg: Any, f: FinetuneSettings) -> dict[str, Any]:
             "is used: set data.per_object=null (finetune.press_train chooses the presses)"
         )
     presses = resolve_presses(str(f.presses), cfg.data_root)
+    for setting in ("press_train", "press_val", "press_test"):
+        check_indices(presses, getattr(f, setting), f"finetune.{setting}")
+    used = [*f.press_train, *f.press_val, *f.press_test]
+    scaled = [presses.presses[i].depth_mm * f.press_depth_scale for i in used]
+    check_depths(scaled, presses.radius_mm, f"finetune.press_depth_scale={f.press_depth_scale:g}", presses=used)
     name, spec = split_spec(cfg.sensor, "sensor")
     sensor = SENSORS.build({"name": name, **spec})
     return {
