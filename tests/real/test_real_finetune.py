@@ -127,6 +127,11 @@ def test_finetune_stage_on_a_press_folder(checkpoint, root, taxim_presses, capsy
     assert keyed == {pairs.folder.name: pairs.manifest["config_hash"]}
     # The same settings again: skipped; from scratch: its own run.
     assert finetune.run(compose("finetune", real))["skipped"]
+    # A run whose scoring never finished (stopped, or failed): the same settings again score it, without training.
+    (run_dir / "realism.json").unlink()
+    again = finetune.run(compose("finetune", real))
+    assert again["skipped"] and again["press_realism"] == pytest.approx(record["mean"][run_dir.name])
+    assert (run_dir / "realism.json").is_file()
     scratch = finetune.run(compose("finetune", [*real[:-1], "finetune.checkpoint=null", "finetune.press_test=[]"]))
     assert scratch["run_name"].startswith(f"tn_cgan+ft-presses-{taxim_presses.folder.name}-gelsight_mini-seed0-")
 

@@ -89,8 +89,15 @@ def run(cfg: Any) -> dict[str, Any]:
     run_name = f.run_name or run_id(finetune_option(spec["name"]), datasets[0], cfg.seed, config)
     run_dir = store.path("models", run_name)
     if not f.force and store.is_done("models", run_name, config=config):
-        console.print(f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true)")
-        return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
+        done = {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
+        if real is not None and real["test"] and not (run_dir / "realism.json").is_file():
+            # Trained, but its scoring never finished (stopped, or failed): score it now
+            console.print(f"[green]{run_name}[/]: fine-tuned with the same settings; scoring its held-out presses")
+            return {**done, "press_realism": _score_presses(cfg, real, run_dir, console)["mean"][run_dir.name]}
+        console.print(
+            f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true trains it again)"
+        )
+        return done
 
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)
