@@ -93,3 +93,10 @@ def test_holding_out_every_object_is_refused():
     with pytest.raises(TnfError, match="novel_objects holds out every selected object"):
         choose_novel_objects(["jar", "mug"], ["mug", "jar"])
     assert choose_novel_objects(["jar", "mug"], None, 1) in (["jar"], ["mug"])
+
+
+def test_an_object_named_as_a_folder_of_others_is_refused(meshes):
+    """``tools.obj`` beside ``tools/capsule.stl``: object ``tools``'s results would hold ``tools/capsule``'s."""
+    trimesh.creation.box((0.05, 0.05, 0.05)).export(meshes / "tools.obj")
+    with pytest.raises(TnfError, match=r"objects 'tools' .* and 'tools/capsule' .* would share a folder"):
+        select(compose("objects", source_args(meshes)).objects, None)

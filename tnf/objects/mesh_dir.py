@@ -141,6 +141,14 @@ def find_meshes(root: Path) -> dict[str, Path]:
             log.warning("mesh_dir: %s and %s both give object %r; using the first", found[name], p, name)
             continue
         found[name] = p
+    for name in found:  # `tools` and `tools/hammer`: one's results would lie inside the other's, and be replaced
+        parts = name.split("/")
+        outer = next((a for a in ("/".join(parts[:i]) for i in range(1, len(parts))) if a in found), None)
+        if outer is not None:
+            raise TnfError(
+                f"objects.path: objects {outer!r} ({found[outer]}) and {name!r} ({found[name]}) would share a folder "
+                f"of results; rename {found[outer].name} or the folder {outer}/"
+            )
     return found
 
 
