@@ -123,8 +123,9 @@ case "$1" in
       if [[ -n ${BASELINE_PATIENCE:-} && $g != tn_cgan ]]; then
         j+=" train.patience=$BASELINE_PATIENCE train.epochs=${BASELINE_MAX_EPOCHS:-200} train.decay_epochs=0"
         j+=" evaluate.name=${experiment}_plateau" name+="-plateau"
-      elif [[ $g == cyclegan ]]; then
-        j+=" train.epochs=$ce train.decay_epochs=$((ce / 2))"
+      else
+        j+=" evaluate.name=$experiment"  # named: a dry run at debug=tiny would report to reports/tiny
+        [[ $g != cyclegan ]] || j+=" train.epochs=$ce train.decay_epochs=$((ce / 2))"
       fi
       jobs+=("$j") names+=("$name")
     done; done

@@ -294,14 +294,14 @@ def test_tnf_evaluate_classification_and_report(data_root, capsys):
     assert out["results"]["classify"]["train_images"] == {"Sim": 8, "Sim + T-N": 24, "T-N only": 16}
     assert out["results"]["classify"]["test_images"] == 8
     # a second seed's results, as another sweep job would write them; no model given: rebuild the report only
-    r = json.loads((data_root / "reports/default/runs/main_T-N_seed0/results.json").read_text())
-    (data_root / "reports/default/runs/main_T-N_seed1").mkdir()
-    (data_root / "reports/default/runs/main_T-N_seed1/results.json").write_text(json.dumps({**r, "seed": 1}))
-    out = run(compose("evaluate", ["progress=false"]))
-    runs = data_root / "reports/default/runs"
+    r = json.loads((data_root / "reports/tiny/runs/main_T-N_seed0/results.json").read_text())
+    (data_root / "reports/tiny/runs/main_T-N_seed1").mkdir()
+    (data_root / "reports/tiny/runs/main_T-N_seed1/results.json").write_text(json.dumps({**r, "seed": 1}))
+    out = run(compose("evaluate", ["progress=false", "evaluate.name=tiny"]))
+    runs = data_root / "reports/tiny/runs"
     assert sorted(p.name for p in runs.iterdir()) == ["main_T-N_seed0", "main_T-N_seed1"]
     assert out["tables"]["main"].accuracy["Sim"].n == 2
-    md = (data_root / "reports/default/report.md").read_text()
+    md = (data_root / "reports/tiny/report.md").read_text()
     assert "| Sim + T-N |" in md and "| Sim | " in md
     # a second call with the same settings (notes only end the report) reuses the results; the sweep folder mode
     # collects results files
@@ -309,7 +309,7 @@ def test_tnf_evaluate_classification_and_report(data_root, capsys):
     again = run(compose("evaluate", [*over, "seed=0", "evaluate.notes='Shortfalls: see the notes.'"]))
     assert "results exist with the same settings, skipped" in capsys.readouterr().out
     assert again["results"]["accuracy"] == json.loads((runs / "main_T-N_seed0/results.json").read_text())["accuracy"]
-    assert "## Notes\n\nShortfalls: see the notes.\n" in (data_root / "reports/default/report.md").read_text()
+    assert "## Notes\n\nShortfalls: see the notes.\n" in (data_root / "reports/tiny/report.md").read_text()
     out = run(compose("evaluate", ["progress=false", f"evaluate.sweep_dir={runs}", "evaluate.name=collected"]))
     assert out["tables"]["main"].accuracy["Sim + T-N"].n == 2
     assert (data_root / "reports/collected/table1b_accuracy.csv").is_file()
@@ -354,20 +354,20 @@ def test_the_report_says_where_the_generated_touches_came_from(data_root):
     over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.model=fake", "evaluate.splits=[]", "seed=0"]
     out = run(compose("evaluate", [*over, "evaluate.classifier.steps=2"]))
     assert out["results"]["classify"]["generated_poses"] == cone
-    md = (data_root / "reports/default/report.md").read_text()
+    md = (data_root / "reports/tiny/report.md").read_text()
     assert "The generated touches come from inside the held-out cone (30 degrees about [1, 0, 0]" in md
     # one object's touches from elsewhere: the runs' rows no longer say one source
     path = data_root / "generated/fake/builtin/box/manifest.json"
     path.write_text(json.dumps({**json.loads(path.read_text()), "poses": {"directions": "sphere"}}))
     out = run(compose("evaluate", [*over, "evaluate.classifier.steps=2", "evaluate.force=true"]))
     assert out["results"]["classify"]["generated_poses"] == {"directions": "mixed"}
-    md = (data_root / "reports/default/report.md").read_text()
+    md = (data_root / "reports/tiny/report.md").read_text()
     assert "held-out cone" not in md and "come from different poses" in md
     # a manifest that does not record it (made before tnf recorded poses): the report says nothing of them
     path.write_text(json.dumps({k: v for k, v in json.loads(path.read_text()).items() if k != "poses"}))
     out = run(compose("evaluate", [*over, "evaluate.classifier.steps=2", "evaluate.force=true"]))
     assert out["results"]["classify"]["generated_poses"] is None
-    md = (data_root / "reports/default/report.md").read_text()
+    md = (data_root / "reports/tiny/report.md").read_text()
     assert "The generated touches come" not in md and "different poses" not in md
 
 
@@ -391,16 +391,16 @@ def test_tnf_evaluate_keeps_one_models_row_from_another_models_results(data_root
     _touch_data(data_root, generated_run="second")
     over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.splits=[]", "evaluate.classifier.steps=4", "seed=0"]
     run(compose("evaluate", [*over, "evaluate.model=first"]))
-    row = data_root / "reports/default/runs/main_T-N_seed0/results.json"
+    row = data_root / "reports/tiny/runs/main_T-N_seed0/results.json"
     with pytest.raises(TnfError, match="already holds T-N seed 0 from model 'first'"):
         run(compose("evaluate", [*over, "evaluate.model=second"]))
     assert json.loads(row.read_text())["model"] == "first"
     # its own row label: both rows in the report
     out = run(compose("evaluate", [*over, "evaluate.model=second", "evaluate.method=T-N wide"]))
-    assert json.loads((data_root / "reports/default/runs/main_T-N_wide_seed0/results.json").read_text())["model"] == (
+    assert json.loads((data_root / "reports/tiny/runs/main_T-N_wide_seed0/results.json").read_text())["model"] == (
         "second"
     )
-    assert "| Sim + T-N wide |" in (data_root / "reports/default/report.md").read_text()
+    assert "| Sim + T-N wide |" in (data_root / "reports/tiny/report.md").read_text()
     assert out["results"]["method"] == "T-N wide"
     # forced: the second model replaces the first's row
     run(compose("evaluate", [*over, "evaluate.model=second", "evaluate.force=true"]))
@@ -416,7 +416,7 @@ def test_tnf_evaluate_keeps_one_models_row_from_another_models_results(data_root
     # and collecting the first model's run into the report whose row now holds the second's is refused, leaving
     # the row as it was; forced, it replaces it
     shutil.rmtree(sweep / "1")
-    collect = ["progress=false", f"evaluate.sweep_dir={sweep}"]
+    collect = ["progress=false", f"evaluate.sweep_dir={sweep}", "evaluate.name=tiny"]
     with pytest.raises(TnfError, match="already holds T-N seed 0 from model 'second'"):
         run(compose("evaluate", collect))
     assert json.loads(row.read_text())["model"] == "second"

@@ -202,3 +202,15 @@ def test_the_transfer_variants_start_from_the_digit_model_the_pipeline_names():
         cfg = compose("pipeline", ["experiment=sim_omnitact_transfer", f"transfer={variant}", "seed=2"])
         assert cfg.finetune.checkpoint == "tn_cgan-digit-hashgrid-seed2"
         assert re.fullmatch(rf"{cfg.finetune.checkpoint}-[0-9a-f]{{{HASH_CHARS}}}", digit), digit
+
+
+@pytest.mark.parametrize("experiment", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
+def test_a_tiny_trial_reports_apart_from_its_experiment(experiment):
+    """A trial at debug=tiny writes its own report, without the experiment's notes: its rows never join the
+    experiment's report in the same store (where evaluate would refuse the experiment's own run at its end), and
+    no estimate from the experiment's stage times."""
+    full = compose("pipeline", [f"experiment={experiment}"])
+    tiny = compose("pipeline", [f"experiment={experiment}", "debug=tiny"])
+    assert tiny.evaluate.name == "tiny" != full.evaluate.name
+    assert tiny.evaluate.next is None and "debug=tiny" in tiny.evaluate.notes
+    assert tiny.pipeline.expected_s is None

@@ -39,7 +39,7 @@ def test_a_pipeline_after_tnf_train_with_the_same_settings_reuses_its_model(data
     assert [p.name for p in (data_root / "models").iterdir()] == [run.name]  # no second run folder
     assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == files  # nothing in it rewritten
     assert (run / "last.ckpt").read_bytes() == ckpt
-    timings = json.loads((data_root / "reports" / "quickstart" / "timings" / f"{run.name}.json").read_text())
+    timings = json.loads((data_root / "reports" / "tiny" / "timings" / f"{run.name}.json").read_text())
     assert timings["model"] == run.name
 
 

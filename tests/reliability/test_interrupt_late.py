@@ -64,7 +64,7 @@ EVALUATE = (
     f"evaluate.dataset={DATASET}",
 )
 GENERATED = Path("generated") / MODEL / "builtin"
-REPORT = Path("reports") / "quickstart"
+REPORT = Path("reports") / "tiny"
 RESULTS = REPORT / "runs" / "main_T-N_seed0" / "results.json"
 
 
