@@ -124,7 +124,7 @@ def test_evaluate_reads_only_the_sim_touches_its_restarts_draw_and_records_its_p
     phases = out["results"]["phases_s"]
     assert {"setup", "classify.load", "classify.train", "classify.predict", "write", "report"} <= set(phases)
     assert all(v >= 0 for v in phases.values())
-    saved = json.loads((data_root / "reports/default/runs/main_T-N_seed0/results.json").read_text())
+    saved = json.loads((data_root / "reports/tiny/runs/main_T-N_seed0/results.json").read_text())
     assert saved["phases_s"] == phases
     printed = capsys.readouterr().out.splitlines()
     assert any(line.startswith("evaluate phases (s): setup ") for line in printed)
