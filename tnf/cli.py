@@ -76,6 +76,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         report_error(e)
         return 1
+    except KeyboardInterrupt:
+        if os.environ.get("HYDRA_FULL_ERROR") == "1":
+            raise
+        report_error(TnfError(INTERRUPTED))
+        return 130
+
+
+#: What a Ctrl-C prints: finished items are whole (each is renamed into place when complete), so a rerun resumes.
+INTERRUPTED = "interrupted; run the same command again: it skips what is done and redoes the rest"
 
 
 def run_stage(stage: str, overrides: Sequence[str]) -> int:

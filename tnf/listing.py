@@ -16,12 +16,13 @@ def component_rows() -> list[tuple[str, str, str, str]]:
 
 
 def print_components() -> None:
-    from rich.console import Console
     from rich.table import Table
+
+    from tnf.runtime import stage_console
 
     table = Table(title="registered components", header_style="bold")
     for col in ("kind", "name", "origin", "description"):
         table.add_column(col)
     for row in component_rows():
         table.add_row(*row)
-    Console(highlight=False).print(table)
+    stage_console().print(table)

@@ -167,6 +167,15 @@ def step_seed(seed: int, step: int) -> int:
     return int(np.random.SeedSequence((seed % 2**64, step)).generate_state(1, np.uint64)[0])
 
 
+def stage_console(**kwargs: Any) -> Any:
+    """The rich console a stage prints to (``kwargs`` as ``rich.console.Console``'s). Lines and table titles are
+    not wrapped at the console's width, so that a printed path stays whole on one line (80 columns when the
+    output is not a terminal)."""
+    from rich.console import Console
+
+    return Console(highlight=False, soft_wrap=True, **kwargs)
+
+
 @contextlib.contextmanager
 def progress(enabled: bool = True, transient: bool = False) -> Iterator[Any]:
     """A rich progress display: ``with progress() as p: t = p.add_task("capture", total=n); p.advance(t)``.

@@ -131,3 +131,16 @@ def test_a_sweep_with_one_bad_value_is_one_line_before_any_job(sweep, expected, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(expected), err
     assert not (tmp_path / "logs").exists()
+
+
+def test_printed_paths_are_not_wrapped_at_the_console_width(tmp_path):
+    import os
+
+    # Output to a pipe is 80 columns wide: a long data root's paths must still print whole, on one line.
+    root = tmp_path / ("a-long-folder-name-" * 4) / "tnf-data"
+    env = {**os.environ, "COLUMNS": "80", "OMP_NUM_THREADS": "1"}
+    args = ("capture", "debug=tiny", "progress=false", "object_names=[ball]", "capture.num_views=2")
+    out = run_cli(*args, "capture.num_test_views=1", f"data_root={root}", env=env)
+    assert out.returncode == 0, out.stderr[-3000:]
+    folder = root / "capture" / "builtin"
+    assert any(f"capture -> {folder}" in line for line in out.stdout.splitlines()), out.stdout

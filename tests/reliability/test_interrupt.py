@@ -216,3 +216,44 @@ def test_fit_scene_killed_resumes(tmp_path, capture_reference):
         json.loads((d / "scenes" / "hashgrid" / "builtin" / "ball" / "metrics.json").read_text()) for d in (root, ref)
     )
     assert ma["train_log"] == mb["train_log"] and ma["psnr"] == mb["psnr"]
+
+
+def test_capture_interrupted_by_ctrl_c_is_one_line_and_resumes(tmp_path):
+    import os
+    import signal
+    import subprocess
+
+    from tests.reliability.helpers import tnf_cmd, tnf_env
+    from tnf.cli import INTERRUPTED
+
+    # Started with Ctrl-C's default action even where the test runner ignores it (a background job).
+    for attempt in range(5):
+        root = tmp_path / f"data{attempt}"
+        first = root / "capture" / "builtin" / "ball" / "manifest.json"
+        p = subprocess.Popen(
+            tnf_cmd(*CAPTURE),
+            env=tnf_env(root),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
+        while p.poll() is None:
+            os.killpg(p.pid, signal.SIGSTOP)
+            if first.is_file():
+                os.killpg(p.pid, signal.SIGINT)
+                os.killpg(p.pid, signal.SIGCONT)
+                break
+            os.killpg(p.pid, signal.SIGCONT)
+            time.sleep(0.002)
+        err = p.communicate(timeout=300)[1]
+        if p.returncode != 0:
+            break
+    else:
+        pytest.fail("capture finished five times before it could be interrupted")
+    assert p.returncode == 130, err[-3000:]
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == f"error: {INTERRUPTED}"
+    run_to_end(root, *CAPTURE)
+    assert [p.name for p in finished_items(root, "capture")] == ["ball", "box"]

@@ -25,7 +25,7 @@ from tnf.data.splits import SPLITS, assign_splits, choose_novel_objects
 from tnf.data.store import PairWriter, open_pairs, write_manifest
 from tnf.errors import TnfError
 from tnf.registry import SCENES, SENSORS, config_to_dict, split_spec
-from tnf.runtime import job_device, progress, resolve_device, warp_device
+from tnf.runtime import job_device, progress, resolve_device, stage_console, warp_device
 from tnf.scenes import load_scene
 from tnf.sim.base import simulator_key
 
@@ -72,15 +72,13 @@ def capture_camera(cam: dict[str, Any], path: Path) -> tuple[tuple[float, float]
 def make_pairs(job: PairJob) -> None:
     """Render every selected object's touches into caches (this job's shard only), then assemble the dataset
     ``pairs/<job.name>/`` unless the job is one shard of a sweep."""
-    from rich.console import Console
-
     p, store, names, src = job.settings, ArtifactStore(job.data_root), job.names, job.source.name
     sensor_name, sensor_params = split_spec(job.sensor, "sensor")
     sensor_cfg = SENSORS.config(sensor_name, sensor_params)
     sensor = SENSORS.get(sensor_name)(sensor_cfg)
     sensor_dict = _plain_json(config_to_dict(sensor_cfg))  # the dataset manifest's record, to rebuild the sensor
     device = job_device(resolve_device(job.device), job.shard)
-    console = Console(highlight=False)
+    console = stage_console()
 
     inputs = _check_inputs(job, store, sensor.describe())
     framing = _framing(p, inputs, sensor)

@@ -31,7 +31,7 @@ from tnf.generators import load_generator
 from tnf.generators.poses import pose_cone, pose_source, read_poses, sample_poses
 from tnf.generators.settings import GenerateSettings
 from tnf.registry import SENSORS
-from tnf.runtime import progress, resolve_device, warp_device
+from tnf.runtime import progress, resolve_device, stage_console, warp_device
 from tnf.scenes import load_scene
 from tnf.sim.base import simulator_key
 from tnf.sim.forces import requested_forces
@@ -85,9 +85,7 @@ def generate(job: GenerateJob) -> dict[str, Any]:
     """Generate the images of every object not already done with the same settings.
 
     Returns ``{"run_dir": <generated/run_name>, "written": {object: images written}}``."""
-    from rich.console import Console
-
-    console = Console(highlight=False)
+    console = stage_console()
     store = ArtifactStore(job.data_root)
     model = _load_model(job, store, console)
     jobs = _plan(job, store, model, console)

@@ -15,14 +15,12 @@ from tnf.real.calibrate import CalibrateSettings, calibrate_sensor, search_steps
 from tnf.real.presses import presses_digest, resolve_presses
 from tnf.real.report import table
 from tnf.registry import SENSORS, from_dict, split_spec
-from tnf.runtime import progress
+from tnf.runtime import progress, stage_console
 from tnf.sim.base import simulator_key
 
 
 def run(cfg: Any) -> dict[str, Any] | None:
-    from rich.console import Console
-
-    console = Console(highlight=False)
+    console = stage_console()
     c = from_dict(CalibrateSettings, cfg.calibrate, where="calibrate")
     store = ArtifactStore(cfg.data_root)
     presses = resolve_presses(c.presses, cfg.data_root)

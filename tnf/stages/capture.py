@@ -19,8 +19,9 @@ from tnf.stages import run_objects, shard_share
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Capture the objects of ``cfg`` (cfg.object / cfg.object_names of cfg.objects); returns one row each."""
     from omegaconf import OmegaConf
-    from rich.console import Console
     from rich.table import Table
+
+    from tnf.runtime import stage_console
 
     ccfg = capture_config(cfg.capture)
     source, names = run_objects(cfg)
@@ -38,5 +39,5 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     for r in rows:
         cov = f"{r['coverage']:.0%}" if "coverage" in r else ""
         table.add_row(r["object"], r["status"], str(r["views"] or ""), cov, f"{r['seconds']:.1f}")
-    Console(highlight=False).print(table)
+    stage_console().print(table)
     return rows

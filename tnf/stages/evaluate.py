@@ -29,11 +29,11 @@ from tnf.stages.settings import identity_config
 
 def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
-    from rich.console import Console
 
     from tnf.eval.report import write_report
+    from tnf.runtime import stage_console
 
-    console = Console(highlight=False)
+    console = stage_console()
     ecfg = from_dict(EvaluateSettings, cfg.evaluate, where="evaluate")
     store = ArtifactStore(cfg.data_root)
     report_dir = store.path("reports", ecfg.name)

@@ -24,7 +24,7 @@ from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
 from tnf.generators.settings import FinetuneSettings
 from tnf.registry import from_dict
-from tnf.runtime import seed_everything
+from tnf.runtime import seed_everything, stage_console
 from tnf.stages.train import data_settings, datamodule_from_cfg, dataset_names, fit_section, run_config
 
 
@@ -53,12 +53,11 @@ def resolve_checkpoint(value: str, data_root: Any) -> Path:
 
 def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
-    from rich.console import Console
 
     from tnf.generators.names import finetune_option, run_id
     from tnf.generators.system import GeneratorSystem
 
-    console = Console(highlight=False)
+    console = stage_console()
     f = from_dict(FinetuneSettings, cfg.finetune, where="finetune")
     store = ArtifactStore(cfg.data_root)
     datasets = dataset_names(cfg)

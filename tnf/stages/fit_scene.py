@@ -23,7 +23,7 @@ from typing import Any
 from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
 from tnf.registry import SCENES, from_dict, split_spec
-from tnf.runtime import job_device, progress, resolve_device, seed_everything
+from tnf.runtime import job_device, progress, resolve_device, seed_everything, stage_console
 from tnf.stages import run_shard, shard_share
 
 log = logging.getLogger(__name__)
@@ -198,7 +198,6 @@ def _fitted_row(name: str, metrics: dict[str, Any], seconds: float, kind: str) -
 
 def _print_table(rows: list[dict[str, Any]], title: str) -> None:
     """One line per object: its status, image and depth errors on held-out views, and times."""
-    from rich.console import Console
     from rich.table import Table
 
     table = Table(title=title, header_style="bold")
@@ -215,7 +214,7 @@ def _print_table(rows: list[dict[str, Any]], title: str) -> None:
             f"{r['train_seconds']:.1f}" if "train_seconds" in r else "",
             f"{r['seconds']:.1f}" if "seconds" in r else "",
         )
-    Console(highlight=False).print(table)
+    stage_console().print(table)
 
 
 def _object_size(manifest: dict[str, Any]) -> float | None:

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 from typing import Any
 
-from tnf.runtime import progress
+from tnf.runtime import progress, stage_console
 from tnf.stages import run_objects
 
 
 def run(cfg: Any) -> list[dict[str, Any]]:
     """Print a table of the selected objects (name, size in cm, triangles); returns its rows."""
-    from rich.console import Console
     from rich.table import Table
 
     source, names = run_objects(cfg, usable=False)  # each invalid one is a row left out, counted below
@@ -29,5 +28,5 @@ def run(cfg: Any) -> list[dict[str, Any]]:
         table.add_column(col, justify=just)  # type: ignore[arg-type]
     for r in rows:
         table.add_row(r["name"], " x ".join(f"{x:.1f}" for x in r["size_cm"]), str(r["triangles"]), str(r["colour"]))
-    Console(highlight=False).print(table)
+    stage_console().print(table)
     return rows

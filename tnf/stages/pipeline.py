@@ -22,7 +22,7 @@ from typing import Any
 
 from tnf.artifacts import ArtifactStore, write_json
 from tnf.registry import FROM_YAML, SettingError, from_dict, yaml_defaults
-from tnf.runtime import resolve_device
+from tnf.runtime import resolve_device, stage_console
 
 ORDER = ("calibrate", "capture", "fit-scene", "touch", "pair", "train", "finetune", "generate", "evaluate")
 
@@ -60,9 +60,8 @@ def pipeline_settings(cfg: Any) -> PipelineSettings:
 
 def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
-    from rich.console import Console
 
-    console = Console(highlight=False)
+    console = stage_console()
     stages = pipeline_settings(cfg).ordered()
     cfg = copy.deepcopy(cfg)  # the caller's config stays as it was
     OmegaConf.resolve(cfg)

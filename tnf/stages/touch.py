@@ -13,7 +13,7 @@ from typing import Any
 from tnf.artifacts import ArtifactStore, identity
 from tnf.objects.captured import import_touches
 from tnf.registry import SENSORS, from_dict, split_spec
-from tnf.runtime import job_device, resolve_device, warp_device
+from tnf.runtime import job_device, resolve_device, stage_console, warp_device
 from tnf.sim.base import simulator_key
 from tnf.sim.forces import force_plan
 from tnf.sim.items import SPLITS, TouchJob, TouchSettings, simulate_touches
@@ -36,13 +36,12 @@ def item_config(cfg: Any, sensor: Any, settings: TouchSettings | None = None) ->
 
 def run(cfg: Any) -> None:
     from omegaconf import OmegaConf
-    from rich.console import Console
 
-    console = Console(highlight=False)
+    console = stage_console()
     tc = from_dict(TouchSettings, cfg.touch, where="touch")
     store = ArtifactStore(cfg.data_root)
     sensor = SENSORS.build(cfg.sensor)
-    sensor.check_force(tc.force)
+    sensor.check_force(tc.force, "touch.force")
     plan = force_plan(tc.force_range, sensor)  # None: every touch presses with touch.force
     source, names = run_objects(cfg)
     names = shard_share(names, cfg)  # a job of a sweep over shards: its share

@@ -16,7 +16,7 @@ from tnf.data.settings import DataSettings
 from tnf.errors import TnfError
 from tnf.generators.settings import FinetuneSettings, TrainSettings
 from tnf.registry import config_to_dict, from_dict
-from tnf.runtime import resolve_precision, seed_everything
+from tnf.runtime import resolve_precision, seed_everything, stage_console
 
 
 class TrainPlan(NamedTuple):
@@ -62,13 +62,11 @@ def model_run(cfg: Any) -> str:
 def run(cfg: Any) -> dict[str, Any]:
     """Train the generator of ``cfg``; returns ``run_name``, ``run_dir`` and the run's summary (``skipped``:
     true when a finished run with the same settings was there)."""
-    from rich.console import Console
-
     from tnf.generators.system import GeneratorSystem
     from tnf.generators.training import process_rank
 
     # Under a cluster launcher (torchrun, srun) every DDP process runs this stage; process 0 reports.
-    console = Console(highlight=False, quiet=process_rank() != 0)
+    console = stage_console(quiet=process_rank() != 0)
     checked, spec, datasets, config, run_name, t = plan(cfg)
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
