@@ -183,7 +183,7 @@ def test_run_wide_settings_take_their_defaults_from_base_yaml():
     assert defaults_source(RunSettings) == str(CONF / "base.yaml")
     fixed = [k for k in TOP_LEVEL if k != "data_root"]  # data_root's default reads TNF_DATA
     assert {k: getattr(RunSettings(), k) for k in fixed} == {k: base[k] for k in fixed}
-    assert {k: base[k] for k in fixed} == {"seed": 0, "progress": True, "device": "auto"}
+    assert {k: base[k] for k in fixed} == {"seed": 0, "data_seed": None, "progress": True, "device": "auto"}
     assert RUN_ONLY == ("progress", "device", "data_root")  # the fields marked identity=False
 
 

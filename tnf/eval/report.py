@@ -121,7 +121,8 @@ def wall_times(timings: Sequence[dict[str, Any]], runs: Sequence[dict[str, Any]]
         "### Wall times (seconds)",
         "",
         "Each model's last `tnf pipeline` run, stage by stage; a stage that found its work done takes next to no "
-        "time (in a sweep, the stages before training run in the first job). Evaluate: the evaluation that made "
+        "time (in a sweep whose seeds share one dataset, `data_seed`, the stages before training run in the first "
+        "job). Evaluate: the evaluation that made "
         "the run's results.",
         "",
         "| Model | device | " + " | ".join(shown) + " | total |",

@@ -18,6 +18,13 @@ def run_objects(cfg: Any, usable: bool = True) -> tuple[ObjectSource, list[str]]
     return source, source.usable(names) if usable else names
 
 
+def data_seed(cfg: Any) -> int:
+    """The seed of the data stages (capture, fit-scene, touch, pair): ``data_seed``, else ``seed``. A data item's
+    key holds it as its ``seed``."""
+    value = cfg.get("data_seed")
+    return int(cfg.seed if value is None else value)
+
+
 def run_shard(cfg: Any) -> tuple[int, int] | None:
     """``(shard, shards)`` of a job in a sweep over object shards, or None (the ``shard`` setting is null)."""
     return shard_of(cfg.get("shard", None), cfg.get("shards", 1))

@@ -13,7 +13,7 @@ from tnf.artifacts import ArtifactStore
 from tnf.capture import capture_config
 from tnf.capture.run import capture_objects
 from tnf.registry import split_spec
-from tnf.stages import run_objects, shard_share
+from tnf.stages import data_seed, run_objects, shard_share
 
 
 def run(cfg: Any) -> list[dict[str, Any]]:
@@ -31,8 +31,8 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     _, source_params = split_spec(cfg.objects, "objects")
     # Everything that changes the images: the object source's settings, the capture settings, the seed.
     settings = OmegaConf.to_container(cfg.capture, resolve=True)
-    config = {"objects": {"name": source.name, **source_params}, "capture": settings, "seed": cfg.seed}
-    rows = capture_objects(store, source, names, ccfg, config, int(cfg.seed), bool(cfg.progress))
+    config = {"objects": {"name": source.name, **source_params}, "capture": settings, "seed": data_seed(cfg)}
+    rows = capture_objects(store, source, names, ccfg, config, data_seed(cfg), bool(cfg.progress))
     table = Table(title=f"capture -> {store.path('capture', source.name)}", header_style="bold")
     for col in ("object", "status", "views", "coverage", "seconds"):
         table.add_column(col)

@@ -24,7 +24,7 @@ from tnf.artifacts import ArtifactStore
 from tnf.errors import TnfError
 from tnf.registry import SCENES, from_dict, split_spec
 from tnf.runtime import job_device, progress, resolve_device, seed_everything, stage_console
-from tnf.stages import run_shard, shard_share
+from tnf.stages import data_seed, run_shard, shard_share
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             "scene": spec,
             # The dataclass, so that fields out of the identity (``batch_objects`` of 1) stay out of the key.
             "fit": settings,
-            "seed": cfg.seed,
+            "seed": data_seed(cfg),
             "capture": capture_manifest.get("config_hash"),
         }
         item = (kind, source, name)
@@ -108,7 +108,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
         if together == 1:
             for job in todo:
                 name = job["name"]
-                seed_everything(cfg.seed)
+                seed_everything(data_seed(cfg))
                 task = p.add_task(f"fit {kind} {name}", total=steps)
                 resume = store.path("scenes", ".resume", kind, source, f"{name}.pt")
                 t0 = time.perf_counter()
@@ -127,7 +127,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
                         device=device,
                         resume_path=resume,
                         on_step=on_step,
-                        seed=cfg.seed,
+                        seed=data_seed(cfg),
                         size_m=job["size"],
                     )
                 rows.append(_fitted_row(name, metrics, time.perf_counter() - t0, kind))
@@ -155,7 +155,7 @@ def _fit_group(
     from tnf.scenes.batched import fit_objects, group_resume_name
 
     names = [job["name"] for job in group]
-    seed_everything(cfg.seed)
+    seed_everything(data_seed(cfg))
     label = ", ".join(names) if len(names) <= 3 else f"{names[0]} ... {names[-1]}"
     task = p.add_task(f"fit {kind} x{len(names)} ({label})", total=settings.resolved(kind).steps)
     resume = store.path("scenes", ".resume", kind, source, group_resume_name(names))
@@ -181,7 +181,7 @@ def _fit_group(
             device=device,
             resume_path=resume,
             on_step=on_step,
-            seed=cfg.seed,
+            seed=data_seed(cfg),
             sizes_m=[job["size"] for job in group],
             names=names,
         )

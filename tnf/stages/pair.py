@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 from tnf.runtime import seed_everything
-from tnf.stages import run_objects, run_shard
+from tnf.stages import data_seed, run_objects, run_shard
 
 
 def run(cfg: Any) -> None:
@@ -32,7 +32,7 @@ def run(cfg: Any) -> None:
         return OmegaConf.to_container(node, resolve=True) if node is not None else None
 
     settings = from_dict(PairSettings, cfg.pair, where="pair")
-    seed_everything(int(cfg.seed))
+    seed_everything(data_seed(cfg))
     source, names = run_objects(cfg)
     job = PairJob(
         settings=settings,
@@ -45,7 +45,7 @@ def run(cfg: Any) -> None:
         simulator=plain(cfg.get("simulator")),
         objects=plain(cfg.objects),
         touch_force=float(cfg.touch.force),
-        seed=int(cfg.seed),
+        seed=data_seed(cfg),
         device=str(cfg.device),
         progress=bool(cfg.progress),
         shard=run_shard(cfg),

@@ -24,6 +24,8 @@ class RunSettings:
 
     seed: int = FROM_YAML
     """Seed for everything random in a run (object split, poses, training); >= 0."""
+    data_seed: int | None = FROM_YAML
+    """Seed of the data stages (capture, fit-scene, touch, pair); None: ``seed``. >= 0."""
     progress: bool = yaml_field(identity=False)
     """Show progress bars."""
     device: str = yaml_field(identity=False)
@@ -33,6 +35,8 @@ class RunSettings:
 
     def validate(self) -> None:
         at_least(self, 0, "seed")
+        if self.data_seed is not None:
+            at_least(self, 0, "data_seed")
 
 
 TOP_LEVEL = tuple(f.name for f in dataclasses.fields(RunSettings))

@@ -17,7 +17,7 @@ from tnf.runtime import job_device, resolve_device, stage_console, warp_device
 from tnf.sim.base import simulator_key
 from tnf.sim.forces import force_plan
 from tnf.sim.items import SPLITS, TouchJob, TouchSettings, simulate_touches
-from tnf.stages import run_objects, run_shard, shard_share
+from tnf.stages import data_seed, run_objects, run_shard, shard_share
 
 __all__ = ["SPLITS", "item_config", "run"]
 
@@ -30,7 +30,7 @@ def item_config(cfg: Any, sensor: Any, settings: TouchSettings | None = None) ->
         "sensor": sensor.describe(),
         "simulator": split_spec(simulator_key(cfg.simulator), "simulator"),
         "touch": identity(tc),
-        "seed": int(cfg.seed),
+        "seed": data_seed(cfg),
     }
 
 
@@ -64,7 +64,7 @@ def run(cfg: Any) -> None:
         names=todo,
         config=config,
         plan=plan,
-        seed=int(cfg.seed),
+        seed=data_seed(cfg),
         device=warp_device(job_device(resolve_device(cfg.device), run_shard(cfg))),
         progress=bool(cfg.progress),
     )
