@@ -122,6 +122,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
                 return value
             raise TnfError(f"{where}: expected true, false or one of {', '.join(switch)}, got {value!r}")
         errors = []
+        own = []  # the messages of the types of the value's kind (a NaN's float, a list's list): they say more
         for a in args:
             if a is type(None):
                 continue
@@ -129,8 +130,10 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
                 return _coerce(value, a, where)
             except TnfError as e:
                 errors.append(str(e))
-        if len(errors) == 1:  # one type besides None (an optional setting): its own message says more
-            raise TnfError(errors[0])
+                if _of_kind(value, a):
+                    own.append(str(e))
+        if len(errors) == 1 or len(own) == 1:  # one type besides None (an optional setting), or of the kind
+            raise TnfError(own[0] if len(own) == 1 else errors[0])
         raise TnfError(f"{where}: expected {_name(tp)}, got {value!r}")
     if origin is typing.Literal:
         if value not in args:
@@ -174,6 +177,19 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             raise TnfError(f"{where}: expected a string, got {value!r}")
         return value
     return value
+
+
+def _of_kind(value: Any, tp: Any) -> bool:
+    """Whether ``value`` is of the kind of type ``tp`` (a number for int or float, a list for a list or tuple, a
+    string for str), whatever its content."""
+    base = typing.get_origin(tp) or tp
+    if isinstance(value, bool):
+        return base is bool
+    if base in (int, float):
+        return isinstance(value, (int, float))
+    if base in (list, tuple):
+        return isinstance(value, (list, tuple))
+    return isinstance(base, type) and base in (str, dict) and isinstance(value, base)
 
 
 def _name(tp: Any) -> str:

@@ -122,6 +122,24 @@ def test_generate_sweeps_forces_and_records_them(models, capsys):
     assert capsys.readouterr().err.strip() == "error: generate.touch_force: a force must be >= 0 N, got -2.0"
 
 
+def test_a_force_the_sensor_cannot_press_is_one_line(models, capsys):
+    # The Digit presses up to 20 N (sensor.force_range): a request above it is refused, not generated.
+    _sphere_scene(models)
+    gen = [f"data_root={models}", *MESH, "object=ball", "generate.model=plane", "generate.run_name=over"]
+    capsys.readouterr()
+    assert main(["generate", *gen, "generate.touch_force=1e9"]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: generate.touch_force: sensor 'digit': force must be in (0.0, 20.0] N, got 1000000000.0 "
+        "(sensor.force_range)"
+    ]
+    assert not (models / "generated" / "over").exists()
+    over = [*_base(models), "generator=tn_cgan_force", "evaluate.model=plane", "evaluate.classify.enabled=false"]
+    assert main(["evaluate", *over, "evaluate.name=over", "evaluate.by_force.sweep=[1.0,100.0]"]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: evaluate.by_force.sweep: sensor 'digit': force must be in (0.0, 20.0] N, got 100.0 (sensor.force_range)"
+    ]
+
+
 def test_evaluate_reports_by_force_band_with_the_physical_check(models):
     from tnf.stages import evaluate
 

@@ -54,6 +54,8 @@ def test_training_forces_skip_the_interpolation_band_and_test_forces_cover_every
         ({"dist": "normal"}, r"touch.force_range.dist must be one of uniform, log_uniform"),
         ({"extrapolation": [8.0, 30.0]}, r"force must be in \(0.0, 20.0\] N, got 30.0"),
         ({"mx": 3}, r"unknown setting 'mx'"),
+        # The default extrapolation band (max to 1.25 max) leaves the Digit's 20 N: the message names the band.
+        ({"max": 19.0}, r"touch.force_range.extrapolation \[19.0, 23.75\] \(null: \[max, 1.25 max\]\): sensor 'digit'"),
     ],
 )
 def test_a_bad_force_range_is_one_line(spec, message):
@@ -75,6 +77,8 @@ def test_the_touch_stage_refuses_a_bad_range_in_one_line(data_root, capsys):
         (float("nan"), "generate.touch_force: expected a finite force, got nan"),
         ("9:1:3", "needs low <= high"),
         ("heavy", "expected newtons, a list, 'low:high:count' or sim"),
+        ("0:5:3", "a press needs a force > 0 N, got 0"),
+        ("3.5", r"got the string '3.5'; give the force as a number, without quotes \(generate.touch_force=3.5\)"),
     ],
 )
 def test_a_bad_requested_force_is_one_line(value, message):
@@ -107,3 +111,39 @@ def test_a_force_given_to_the_redo_switch_points_to_touch_force(data_root, capsy
         "error: generate.force: expected true or false, got 3.5 (it redoes finished images; the force of a "
         "generated touch is generate.touch_force)"
     ]
+
+
+@pytest.mark.parametrize(
+    "stage, setting, line",
+    [
+        ("generate", "generate.touch_force=nan", "error: generate.touch_force: expected a finite number, got nan"),
+        (
+            "generate",
+            "generate.touch_force=[3,nan]",
+            "error: generate.touch_force[1]: expected a finite number, got nan",
+        ),
+        (
+            "touch",
+            "touch.force=25",
+            "error: touch.force: sensor 'digit': force must be in (0.0, 20.0] N, got 25.0 (sensor.force_range)",
+        ),
+    ],
+)
+def test_a_bad_force_setting_names_itself_in_one_line(data_root, capsys, stage, setting, line):
+    assert main([stage, "debug=tiny", "progress=false", setting]) == 1
+    assert capsys.readouterr().err.strip().splitlines() == [line]
+
+
+def test_touches_that_stop_at_the_deepest_press_are_reported(data_root, capsys):
+    # 19 N is inside the Digit's force range, but a box's edges and corners stop at its 3 mm max_penetration first.
+    over = ["debug=tiny", "object=box", "progress=false", "device=cpu", "touch.force=19.0"]
+    assert main(["touch", *over]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    touches = json.loads((data_root / "touch" / "digit" / "builtin" / "box" / "manifest.json").read_text())["touches"]
+    short = [t for t in touches if t["force"] < 19.0 * 0.999]
+    assert short and all(t["penetration"] == pytest.approx(0.003, rel=1e-4) for t in short)
+    assert (
+        f"warning: touch digit/builtin/box: {len(short)} of {len(touches)} touches stopped at the deepest press "
+        "(sensor.max_penetration, 3 mm) short of their target force"
+    ) in out
+    assert "Lower touch.force or raise sensor.max_penetration" in out

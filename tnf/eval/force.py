@@ -206,6 +206,10 @@ def by_force(
     sweep = [check_force_value(f, "evaluate.by_force.sweep") for f in (bf.sweep or plan.sweep(6))]
     if len(sweep) < 2 or any(b <= a for a, b in zip(sweep, sweep[1:], strict=False)):
         raise TnfError(f"evaluate.by_force.sweep must hold at least two forces in ascending order, got {sweep}")
+    sensor_name = str(manifest["sensor"]["name"])
+    sensor = SENSORS.get(sensor_name)(SENSORS.config(sensor_name, manifest["sensor"]["config"]))
+    for f in sweep:  # before any scoring: the simulator presses the figure's touch at each
+        sensor.check_force(f, "evaluate.by_force.sweep")
     threshold = bf.area_threshold
     out: dict[str, Any] = {"plan": plan.describe(), "sweep": sweep, "area_threshold": threshold}
     splits = list(settings.splits)
@@ -225,8 +229,6 @@ def by_force(
     row = int(torch.argmax((areas > 0).float()))  # the first with a contact (0 when none has one)
     obj = ds.arrays.objects[int(ds.arrays.object_id[ds.index[row]])]
     touch_index = int(ds.arrays.touch_index[ds.index[row]])
-    sensor_name = str(manifest["sensor"]["name"])
-    sensor = SENSORS.get(sensor_name)(SENSORS.config(sensor_name, manifest["sensor"]["config"]))
     source = OBJECTS.build(objects)
     source.name = split_spec(objects, "objects")[0]
     store = ArtifactStore(data_root)

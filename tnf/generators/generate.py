@@ -121,6 +121,8 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
     # The force of each image (generate.touch_force): a list of forces, "sim" or None (a model without force).
     wanted = requested_forces(g.touch_force, hp.get("force", "none") != "none", g.model, job.touch_force)
     sensor = SENSORS.build(job.sensor)
+    for f in wanted if isinstance(wanted, list) else ():
+        sensor.check_force(f, "touch.force" if g.touch_force is None else "generate.touch_force")
     background_full = sensor.background()
     mirror = sensor.mirror_channels() if g.mirror_average else None
     if g.mirror_average:

@@ -255,11 +255,15 @@ class Sensor:
         """Contact modulus ``E* = E / (1 - nu^2)`` against a rigid indenter, pascals."""
         return self.cfg.young_modulus / (1.0 - self.cfg.poisson_ratio**2)
 
-    def check_force(self, force: float) -> None:
-        """Raise a TnfError when ``force`` (newtons) is outside the sensor's force range."""
+    def check_force(self, force: float, what: str | None = None) -> None:
+        """Raise a TnfError when ``force`` (newtons) is outside the sensor's force range; ``what`` names the
+        setting the force came from (the message then starts with it)."""
         lo, hi = self.cfg.force_range
         if not lo < force <= hi:
-            raise TnfError(f"sensor {self.name!r}: force must be in ({lo}, {hi}] N, got {force}")
+            where = f"{what}: " if what else ""
+            raise TnfError(
+                f"{where}sensor {self.name!r}: force must be in ({lo}, {hi}] N, got {force} (sensor.force_range)"
+            )
 
     # -- lighting -------------------------------------------------------------------------------------
     def light_arrays(self) -> tuple[np.ndarray, np.ndarray]:

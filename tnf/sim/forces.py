@@ -198,8 +198,9 @@ def force_plan(spec: Any, sensor: Any) -> ForcePlan | None:
         )
     if extra[0] < hi:
         raise TnfError(f"touch.force_range.extrapolation [{extra[0]}, {extra[1]}] must start at or above max ({hi} N)")
-    for f in (lo, extra[1]):
-        sensor.check_force(f)
+    sensor.check_force(lo, "touch.force_range.min")
+    band = "" if spec.get("extrapolation") is not None else " (null: [max, 1.25 max])"
+    sensor.check_force(extra[1], f"touch.force_range.extrapolation [{extra[0]}, {extra[1]}]{band}")
     return ForcePlan(lo, hi, dist, interp, extra)
 
 
@@ -240,18 +241,32 @@ def requested_forces(value: Any, trained_with_force: bool, model: str, default: 
         try:
             lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
         except (IndexError, ValueError):
+            if _is_float(value):
+                raise TnfError(
+                    f"generate.touch_force: got the string {value!r}; give the force as a number, without quotes "
+                    f"(generate.touch_force={value.strip()})"
+                ) from None
             raise TnfError(
                 f"generate.touch_force: expected newtons, a list, 'low:high:count' or sim, got {value!r}"
             ) from None
         if len(parts) != 3 or n < 1 or not lo <= hi:
             raise TnfError(f"generate.touch_force={value}: a sweep 'low:high:count' needs low <= high and count >= 1")
-        check_force_value(lo, "generate.touch_force")
-        check_force_value(hi, "generate.touch_force")
-        return [float(v) for v in np.linspace(lo, hi, n)]
-    values = list(value) if isinstance(value, Sequence) else [value]
-    if not values:
-        raise TnfError("generate.touch_force: an empty list of forces")
-    out = [check_force_value(v, "generate.touch_force") for v in values]
+        for v in (lo, hi):
+            check_force_value(v, "generate.touch_force")
+        out = [float(v) for v in np.linspace(lo, hi, n)]
+    else:
+        values = list(value) if isinstance(value, Sequence) else [value]
+        if not values:
+            raise TnfError("generate.touch_force: an empty list of forces")
+        out = [check_force_value(v, "generate.touch_force") for v in values]
     if any(v == 0 for v in out):
         raise TnfError("generate.touch_force: a press needs a force > 0 N, got 0")
     return out
+
+
+def _is_float(text: str) -> bool:
+    """Whether ``text`` reads as a finite number."""
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False

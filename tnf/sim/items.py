@@ -142,6 +142,27 @@ def simulate_touches(job: TouchJob, store: Any, console: Any) -> None:
             n_disc = sum(discarded.values())
             sensor, src = job.sensor, job.source.name
             console.print(f"touch {sensor.name}/{src}/{name}: {len(touches)} touches, {n_disc} discarded")
+            short = short_of_target(touches, tc.force)
+            if short:
+                lower = "touch.force" if job.plan is None else "touch.force_range"
+                reached = [t.force or 0.0 for t in short]
+                console.print(
+                    f"[yellow]warning:[/] touch {sensor.name}/{src}/{name}: {len(short)} of {len(touches)} touches "
+                    f"stopped at the deepest press (sensor.max_penetration, {sensor.cfg.max_penetration * 1e3:g} mm) "
+                    f"short of their target force, at {min(reached):.2f}-{max(reached):.2f} N; each records the "
+                    f"force it reached. Lower {lower} or raise sensor.max_penetration"
+                )
+
+
+def short_of_target(touches: list[TouchRecord], force: float, rel: float = 1e-3) -> list[TouchRecord]:
+    """The touches whose recorded force is more than ``rel`` below their target (``force_target``, else
+    ``force``, newtons): presses that stopped at the sensor's ``max_penetration``."""
+    out = []
+    for t in touches:
+        target = force if t.force_target is None else t.force_target
+        if t.force is not None and t.force < target * (1 - rel):
+            out.append(t)
+    return out
 
 
 def _simulate_item(
