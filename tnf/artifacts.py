@@ -206,6 +206,28 @@ def exclusive(folder: str | os.PathLike[str]) -> Iterator[None]:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
+@contextlib.contextmanager
+def sole(folder: str | os.PathLike[str], busy: str) -> Iterator[None]:
+    """Hold ``folder``'s lock (``exclusive``'s) for the block, or raise a one-line TnfError ``busy`` at once when
+    another process holds it: for work that two processes must never do into one folder at the same time."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        yield
+        return
+    with open(folder / ".lock", "a") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise TnfError(busy) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
 def read_json(path: str | os.PathLike[str], what: str = "file") -> Any:
     """Read JSON, turning a missing or malformed file into a one-line TnfError naming it."""
     path = Path(path)

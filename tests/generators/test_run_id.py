@@ -108,3 +108,20 @@ def test_cpu_flags_are_read_from_the_machine():
         pytest.skip("no /proc/cpuinfo")
     flags = cpu_flags()
     assert flags and all(" " not in f for f in flags)
+
+
+def test_a_run_another_process_is_training_is_refused_at_once(data_root, capsys):
+    """Two processes training one run id would write one folder's checkpoints and metrics.csv at once."""
+    import fcntl
+
+    from tests.reliability.helpers import run_tnf
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    assert run_tnf(capsys, "train", *SETTINGS)[0] == 0
+    (run,) = (data_root / "models").iterdir()
+    ckpt = (run / "last.ckpt").read_bytes()
+    with open(run / ".lock", "a") as other:  # as the other process holds it
+        fcntl.flock(other.fileno(), fcntl.LOCK_EX)
+        rc, err = run_tnf(capsys, "train", *SETTINGS, "train.force=true")
+    assert rc == 1 and err.startswith(f"error: another process is training {run.name}"), err
+    assert (run / "last.ckpt").read_bytes() == ckpt  # its folder untouched

@@ -13,6 +13,7 @@ resuming (``keep_epochs``), and the CSV logger appends to the rows kept (``RunCS
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import logging
@@ -28,7 +29,7 @@ from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 
-from tnf.artifacts import MANIFEST, config_hash, manifest_record, read_json, write_bytes, write_json
+from tnf.artifacts import MANIFEST, config_hash, manifest_record, read_json, sole, write_bytes, write_json
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.callbacks import PENDING, LatestCheckpoint
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once, resolve_precision
@@ -196,50 +197,54 @@ def fit(
             "(callbacks.weight_average=null)"
         )
     run_dir = Path(run_dir)
-    ckpt_path = prepare_run_dir(run_dir, config, resume)
-    targs = dict(trainer_cfg)
-    if "precision" in targs:  # auto: bf16-mixed where the device runs it natively
-        targs["precision"] = resolve_precision(str(targs["precision"]), str(targs.get("accelerator", "auto")))
-    targs.setdefault("num_sanity_val_steps", 0)
-    targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"), fixed_graph=system.generator.fixed_graph())
-    on_gpu = str(targs.get("accelerator", "auto")) != "cpu"
-    if on_gpu:
-        targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
-    every: list[Any] = [*checkpoints(run_dir, checkpoint_every_s), ProcessSetup(tf32=on_gpu), *extra]
-    if patience is not None:
-        from lightning.pytorch.callbacks import EarlyStopping
+    with contextlib.ExitStack() as held:
+        if process_rank() == 0:  # (the other processes of a distributed run train it with process 0)
+            busy = f"another process is training {run_dir.name} (in {run_dir}); wait for it, or name this run"
+            held.enter_context(sole(run_dir, f"{busy} another way (train.run_name, finetune.run_name)"))
+        ckpt_path = prepare_run_dir(run_dir, config, resume)
+        targs = dict(trainer_cfg)
+        if "precision" in targs:  # auto: bf16-mixed where the device runs it natively
+            targs["precision"] = resolve_precision(str(targs["precision"]), str(targs.get("accelerator", "auto")))
+        targs.setdefault("num_sanity_val_steps", 0)
+        targs["strategy"] = ddp_strategy(targs.get("strategy", "auto"), fixed_graph=system.generator.fixed_graph())
+        on_gpu = str(targs.get("accelerator", "auto")) != "cpu"
+        if on_gpu:
+            targs.setdefault("benchmark", True)  # fixed 128 px shapes: let cuDNN pick the fastest kernels
+        every: list[Any] = [*checkpoints(run_dir, checkpoint_every_s), ProcessSetup(tf32=on_gpu), *extra]
+        if patience is not None:
+            from lightning.pytorch.callbacks import EarlyStopping
 
-        # Counted in validations; its state is in last.ckpt, so a resumed run counts on.
-        every.append(EarlyStopping(monitor="val_ssim", mode="max", patience=patience, min_delta=min_delta))
-    if progress:
-        every.append(RichProgressBar(leave=True))
-    _quiet_trainer_start()
-    trainer = L.Trainer(
-        default_root_dir=str(run_dir),
-        max_epochs=system.hparams["epochs"],
-        logger=make_loggers(logger_cfg, run_dir),
-        callbacks=every,
-        enable_progress_bar=progress,
-        enable_model_summary=progress,
-        limit_train_batches=limit_train_batches,
-        limit_val_batches=limit_val_batches,
-        log_every_n_steps=log_every_n_steps,
-        check_val_every_n_epoch=val_every_n_epochs,
-        **targs,
-    )
-    _run(trainer, system, datamodule, ckpt_path, run_dir)
-    if trainer.interrupted:
-        raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
-    summary = _summary(trainer, datamodule, run_dir, info)
-    if patience is not None:
-        summary["plateau"] = {
-            "patience": patience,
-            "min_delta": min_delta,
-            "stopped": summary["epochs"] < int(system.hparams["epochs"]),
-        }
-    if trainer.is_global_zero:
-        write_json(run_dir / MANIFEST, manifest_record("models", [run_dir.name], config, summary))
-    return summary
+            # Counted in validations; its state is in last.ckpt, so a resumed run counts on.
+            every.append(EarlyStopping(monitor="val_ssim", mode="max", patience=patience, min_delta=min_delta))
+        if progress:
+            every.append(RichProgressBar(leave=True))
+        _quiet_trainer_start()
+        trainer = L.Trainer(
+            default_root_dir=str(run_dir),
+            max_epochs=system.hparams["epochs"],
+            logger=make_loggers(logger_cfg, run_dir),
+            callbacks=every,
+            enable_progress_bar=progress,
+            enable_model_summary=progress,
+            limit_train_batches=limit_train_batches,
+            limit_val_batches=limit_val_batches,
+            log_every_n_steps=log_every_n_steps,
+            check_val_every_n_epoch=val_every_n_epochs,
+            **targs,
+        )
+        _run(trainer, system, datamodule, ckpt_path, run_dir)
+        if trainer.interrupted:
+            raise TnfError(f"training interrupted; resume with the same command (last checkpoint in {run_dir})")
+        summary = _summary(trainer, datamodule, run_dir, info)
+        if patience is not None:
+            summary["plateau"] = {
+                "patience": patience,
+                "min_delta": min_delta,
+                "stopped": summary["epochs"] < int(system.hparams["epochs"]),
+            }
+        if trainer.is_global_zero:
+            write_json(run_dir / MANIFEST, manifest_record("models", [run_dir.name], config, summary))
+        return summary
 
 
 def _summary(trainer: Any, datamodule: Any, run_dir: Path, info: Mapping[str, Any] | None) -> dict[str, Any]:
