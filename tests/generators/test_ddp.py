@@ -44,6 +44,7 @@ def test_ddp_train_writes_one_complete_loadable_run_with_sharded_epochs(data_roo
         assert (run_dir / f).is_file(), f
     # Written by process 0 alone: no second metrics file, no temporary or partial files anywhere.
     assert sorted(p.name for p in run_dir.iterdir()) == [
+        ".lock",  # process 0's, held while it trains (artifacts.sole)
         "best.ckpt",
         "grids",
         "hparams.yaml",
@@ -53,7 +54,7 @@ def test_ddp_train_writes_one_complete_loadable_run_with_sharded_epochs(data_roo
         "run.json",
     ]
     assert sorted(p.name for p in (run_dir / "grids").iterdir()) == ["epoch_000.png", "epoch_001.png"]
-    assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".")]
+    assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".") and p.name != ".lock"]
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["world_size"] == 2 and manifest["epochs"] == 2
     # Manual optimisation without the adversarial term (the default): one generator step per batch, one batch per
@@ -166,7 +167,7 @@ def test_ddp_with_processes_started_by_torchrun(data_root):
     assert manifest["world_size"] == 2 and manifest["epochs"] == 2 and manifest["global_step"] == 2
     rows = epoch_rows(run_dir, "train/samples")
     assert all(float(r["train/samples"]) == 8 and float(r["train/rank_samples"]) == 4 for r in rows)
-    assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".")]
+    assert not [p for p in (data_root / "models").rglob("*") if p.name.startswith(".") and p.name != ".lock"]
 
 
 @pytest.mark.slow
