@@ -175,6 +175,24 @@ def test_a_force_model_on_fixed_force_pairs_generates_at_touch_force(models, tmp
     assert "force" not in out["results"] and out["results"]["image"]["novel_view"]["T-N"]["n"] > 0
 
 
+def test_a_force_model_on_pairs_of_one_recorded_force_is_scored_without_bands(models, tmp_path, capsys):
+    # Pairs with force.npy from touches all pressed at touch.force (touch.force_range=null): scored, no bands.
+    import shutil
+
+    from tnf.stages import evaluate
+
+    root = tmp_path / "tnf-data"
+    for stage in ("capture", "touch", "pair"):
+        assert main([stage, f"data_root={root}", *MESH, "pair.force=true"]) == 0
+    assert not open_pairs(root / "pairs" / "digit-mesh").manifest["force"].get("range")
+    shutil.copytree(models / "models" / "film", root / "models" / "film")
+    over = [f"data_root={root}", *MESH, "pair.force=true", "generator=tn_cgan_force", "evaluate.model=film"]
+    capsys.readouterr()
+    out = evaluate.run(compose("evaluate", [*over, "evaluate.dataset=digit-mesh", "evaluate.classify.enabled=false"]))
+    assert "force" not in out["results"] and out["results"]["image"]["novel_view"]["T-N"]["n"] > 0
+    assert "were pressed at one force (touch.force_range=null)" in " ".join(capsys.readouterr().out.split())
+
+
 def test_training_a_force_model_on_pairs_without_force_is_one_line(models, capsys):
     assert main(["pair", f"data_root={models}", *MESH, "pair.name=fixed-pairs"]) == 0
     capsys.readouterr()

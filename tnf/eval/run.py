@@ -275,7 +275,14 @@ def image_metrics(
     if bg_all is not None:
         results["all"] = {BG: bg_all.summary()}
     force = None
-    if uses_force and fixed_force is None:
+    recorded = read_json(pairs / MANIFEST, "dataset manifest").get("force") or {}
+    if uses_force and fixed_force is None and not recorded.get("range"):
+        # Pairs of touches pressed at one force (touch.force_range=null): no bands to evaluate by
+        bar.console.print(
+            f"evaluate: the touches of dataset {pairs.name} were pressed at one force (touch.force_range=null); "
+            "the evaluation by force is skipped"
+        )
+    elif uses_force and fixed_force is None:
         from tnf.eval.force import by_force
 
         with timer.phase("by_force"):
