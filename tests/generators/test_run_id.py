@@ -81,6 +81,36 @@ def test_a_run_family_names_its_one_finished_run(data_root):
         find_run(models, "tn_cgan-digit-hashgrid-seed0")
 
 
+def test_settings_diff_names_the_dotted_keys_that_differ():
+    from tnf.generators.names import settings_diff
+
+    old = {"generator": {"ngf": 8, "ndf": 8, "name": "tn_cgan"}, "train": {"epochs": 2, "lr": 0.001}, "seed": 0}
+    new = {"generator": {"ngf": 16, "ndf": 8, "name": "lee"}, "train": {"epochs": 2, "ema": 0.9}, "seed": 0}
+    assert settings_diff(old, old) == ""
+    assert settings_diff(old, new) == (
+        'generator.name: "tn_cgan" -> "lee"; generator.ngf: 8 -> 16; train.ema: unset -> 0.9; train.lr: 0.001 -> unset'
+    )
+    assert settings_diff(old, {**new, "seed": 1, "data": {"size": [64, 64]}}) == (
+        'data.size: unset -> [64, 64]; generator.name: "tn_cgan" -> "lee"; generator.ngf: 8 -> 16; '
+        "seed: 0 -> 1; and 2 more"
+    )
+
+
+def test_a_new_run_names_the_settings_that_differ_from_the_latest_run_of_its_family(data_root, capsys):
+    from tests.reliability.helpers import run_tnf
+    from tnf.cli import main
+
+    write_pairs(data_root / "pairs" / "digit-hashgrid")
+    assert run_tnf(capsys, "train", *SETTINGS)[0] == 0
+    (old,) = (data_root / "models").iterdir()
+    (data_root / "models" / f"{old.name[:-HASH_CHARS]}0123abcd").mkdir()
+    (data_root / "models" / f"{old.name[:-HASH_CHARS]}0123abcd" / "run.json").write_text("{")  # malformed: passed over
+    capsys.readouterr()
+    assert main(["train", *SETTINGS, "generator.ngf=16"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("a new run:")]
+    assert lines == [f"a new run: {old.name} has other settings (generator.ngf: 8 -> 16)"]
+
+
 @pytest.mark.parametrize(("flags", "expected"), [({"avx512_bf16", "avx2"}, "bf16-mixed"), ({"avx2"}, "32-true")])
 def test_precision_auto_trains_in_bf16_only_on_cpus_that_run_it_natively(data_root, monkeypatch, flags, expected):
     from tnf import runtime

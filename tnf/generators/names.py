@@ -14,18 +14,20 @@ A run id is ``<option>-<dataset>-seed<k>-<hash>``:
 
 ``tnf train``, ``tnf finetune``, ``tnf pipeline`` and ``tnf generate`` name the model of a config the same way;
 ``train.run_name`` and ``finetune.run_name`` replace the id. The id without its hash, ``run_family``, names
-the runs of one option, dataset and seed; ``find_run`` finds the one finished run a family name stands for.
+the runs of one option, dataset and seed; ``find_run`` finds the one finished run a family name stands for, and
+``new_run_note`` tells how a new run's settings differ from its family's latest run (``settings_diff``).
 """
 
 from __future__ import annotations
 
 import glob
+import json
 import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from tnf.artifacts import MANIFEST, config_hash
+from tnf.artifacts import MANIFEST, config_hash, identity
 from tnf.errors import TnfError
 
 HASH_CHARS = 8
@@ -86,3 +88,47 @@ def find_run(models: Path, name: str) -> str | None:
     if len(found) > 1:
         raise TnfError(f"{name} stands for several finished runs under {models}: {', '.join(found)}; name one")
     return found[0] if found else None
+
+
+def settings_diff(old: Mapping[str, Any], new: Mapping[str, Any], limit: int = 4) -> str:
+    """The settings that differ from ``old`` to ``new`` (nested dicts, compared by dotted key), as
+    ``key: old -> new`` joined by ``; `` in key order, the first ``limit`` of them then ``and N more``; a key only
+    one of them has is ``unset`` in the other. Empty when they agree."""
+
+    def flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            key = f"{prefix}{k}"
+            out.update(flat(v, f"{key}.") if isinstance(v, Mapping) and v else {key: v})
+        return out
+
+    def show(d: dict[str, Any], key: str) -> str:
+        return json.dumps(d[key], default=str) if key in d else "unset"
+
+    a, b = flat(old), flat(new)
+    keys = sorted(k for k in a.keys() | b.keys() if k not in a or k not in b or a[k] != b[k])
+    shown = [f"{k}: {show(a, k)} -> {show(b, k)}" for k in keys[:limit]]
+    more = [f"and {len(keys) - limit} more"] if len(keys) > limit else []
+    return "; ".join(shown + more)
+
+
+def new_run_note(models: Path, name: str, config: Mapping[str, Any]) -> str | None:
+    """For the run id ``name`` whose folder under ``models`` does not exist yet, with settings ``config``: ``a new
+    run: <run> has other settings (...)`` naming the latest run of its family (``run_family``; by the time of its
+    ``run.json``) and the settings that differ (``settings_diff``); None when there is none. A run whose
+    ``run.json`` is unreadable is passed over."""
+    from tnf.generators.training import RUN_FILE
+
+    family, _, digits = name.rpartition("-")
+    if (models / name).exists() or not re.fullmatch(rf"[0-9a-f]{{{HASH_CHARS}}}", digits) or not models.is_dir():
+        return None
+    pattern = re.compile(rf"{re.escape(family)}-[0-9a-f]{{{HASH_CHARS}}}")
+    runs = [p / RUN_FILE for p in models.glob(f"{glob.escape(family)}-*") if pattern.fullmatch(p.name)]
+    for run_file in sorted((f for f in runs if f.is_file()), key=lambda f: f.stat().st_mtime_ns, reverse=True):
+        try:
+            old = json.loads(run_file.read_text())["config"]
+        except (OSError, ValueError, TypeError, KeyError):
+            continue
+        if isinstance(old, Mapping) and (diff := settings_diff(old, identity(config))):
+            return f"a new run: {run_file.parent.name} has other settings ({diff})"
+    return None

@@ -54,7 +54,7 @@ def resolve_checkpoint(value: str, data_root: Any) -> Path:
 def run(cfg: Any) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
-    from tnf.generators.names import finetune_option, run_id
+    from tnf.generators.names import finetune_option, new_run_note, run_id
     from tnf.generators.system import GeneratorSystem
 
     console = stage_console()
@@ -97,6 +97,8 @@ def run(cfg: Any) -> dict[str, Any]:
             f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true trains it again)"
         )
         return done
+    if not f.run_name and (note := new_run_note(run_dir.parent, run_name, config)):
+        console.print(note, markup=False)
 
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)

@@ -62,6 +62,7 @@ def model_run(cfg: Any) -> str:
 def run(cfg: Any) -> dict[str, Any]:
     """Train the generator of ``cfg``; returns ``run_name``, ``run_dir`` and the run's summary (``skipped``:
     true when a finished run with the same settings was there)."""
+    from tnf.generators.names import new_run_note
     from tnf.generators.system import GeneratorSystem
     from tnf.generators.training import process_rank
 
@@ -73,6 +74,8 @@ def run(cfg: Any) -> dict[str, Any]:
     if not t.force and store.is_done("models", run_name, config=config):
         console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
         return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
+    if not t.run_name and (note := new_run_note(run_dir.parent, run_name, config)):
+        console.print(note, markup=False)
 
     seed_everything(int(cfg.seed))
     dm = datamodule_from_cfg(cfg, datasets)
