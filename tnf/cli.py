@@ -81,6 +81,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         report_error(TnfError(INTERRUPTED))
         return 130
+    except BrokenPipeError:
+        # The reader of the output has gone (`tnf train --help | head`): stop without a word, as other commands do.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # and no second error at exit's flush
+        return 141
 
 
 #: What a Ctrl-C prints: finished items are whole (each is renamed into place when complete), so a rerun resumes.

@@ -144,3 +144,19 @@ def test_printed_paths_are_not_wrapped_at_the_console_width(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     folder = root / "capture" / "builtin"
     assert any(f"capture -> {folder}" in line for line in out.stdout.splitlines()), out.stdout
+
+
+def test_output_to_a_reader_that_has_gone_ends_quietly(tmp_path):
+    """`tnf train --help | head`: the pipe's reader exits first; no traceback, the exit code of a broken pipe."""
+    import os
+
+    r, w = os.pipe()
+    os.close(r)  # every write to w fails: the reader has gone
+    env = {**os.environ, "TNF_DATA": str(tmp_path)}
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "tnf.cli", "train", "--help"], stdout=w, stderr=subprocess.PIPE, env=env, timeout=120
+        )
+    finally:
+        os.close(w)
+    assert out.returncode == 141 and "Traceback" not in out.stderr.decode() and not out.stderr.strip(), out.stderr
