@@ -183,12 +183,14 @@ def _tree_bytes(folder: Path) -> int:
 
 
 @contextlib.contextmanager
-def exclusive(folder: str | os.PathLike[str]) -> Iterator[None]:
+def exclusive(folder: str | os.PathLike[str], busy: str | None = None) -> Iterator[None]:
     """Hold ``folder``'s lock (an advisory ``flock`` on its ``.lock`` file) for the block.
 
-    For files that several jobs rebuild from what they all write, such as a report made from every run present:
-    the jobs take turns, so the last one to write has listed every run written before it took the lock, and no
-    job writes over a newer rebuild with an older one. Where the platform has no ``flock``, the block runs
+    ``busy`` None: wait for the lock. For files that several jobs rebuild from what they all write, such as a
+    report made from every run present: the jobs take turns, so the last one to write has listed every run written
+    before it took the lock, and no job writes over a newer rebuild with an older one. ``busy`` a message: raise it
+    as a one-line TnfError at once when another process holds the lock, for work that two processes must never do
+    into one folder at the same time (training a run). Where the platform has no ``flock``, the block runs
     unlocked.
     """
     folder = Path(folder)
@@ -199,29 +201,10 @@ def exclusive(folder: str | os.PathLike[str]) -> Iterator[None]:
         yield
         return
     with open(folder / ".lock", "a") as f:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
         try:
-            yield
-        finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
-
-
-@contextlib.contextmanager
-def sole(folder: str | os.PathLike[str], busy: str) -> Iterator[None]:
-    """Hold ``folder``'s lock (``exclusive``'s) for the block, or raise a one-line TnfError ``busy`` at once when
-    another process holds it: for work that two processes must never do into one folder at the same time."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    try:
-        import fcntl
-    except ImportError:  # not a POSIX system
-        yield
-        return
-    with open(folder / ".lock", "a") as f:
-        try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | (fcntl.LOCK_NB if busy is not None else 0))
         except BlockingIOError:
-            raise TnfError(busy) from None
+            raise TnfError(str(busy)) from None
         try:
             yield
         finally:

@@ -44,7 +44,7 @@ def test_ddp_train_writes_one_complete_loadable_run_with_sharded_epochs(data_roo
         assert (run_dir / f).is_file(), f
     # Written by process 0 alone: no second metrics file, no temporary or partial files anywhere.
     assert sorted(p.name for p in run_dir.iterdir()) == [
-        ".lock",  # process 0's, held while it trains (artifacts.sole)
+        ".lock",  # process 0's, held while it trains (artifacts.exclusive)
         "best.ckpt",
         "grids",
         "hparams.yaml",

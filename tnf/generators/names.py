@@ -31,6 +31,9 @@ from tnf.artifacts import MANIFEST, config_hash, identity
 from tnf.errors import TnfError
 
 HASH_CHARS = 8
+
+#: Each run folder's record of the settings it was started with (``{"config", "config_hash"}``).
+RUN_FILE = "run.json"
 """Hex digits of the settings hash at the end of a run id."""
 
 
@@ -117,8 +120,6 @@ def new_run_note(models: Path, name: str, config: Mapping[str, Any]) -> str | No
     run: <run> has other settings (...)`` naming the latest run of its family (``run_family``; by the time of its
     ``run.json``) and the settings that differ (``settings_diff``); None when there is none. A run whose
     ``run.json`` is unreadable is passed over."""
-    from tnf.generators.training import RUN_FILE
-
     family, _, digits = name.rpartition("-")
     if (models / name).exists() or not re.fullmatch(rf"[0-9a-f]{{{HASH_CHARS}}}", digits) or not models.is_dir():
         return None

@@ -29,12 +29,11 @@ from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 
-from tnf.artifacts import MANIFEST, config_hash, manifest_record, read_json, sole, write_bytes, write_json
+from tnf.artifacts import MANIFEST, config_hash, exclusive, manifest_record, read_json, write_bytes, write_json
 from tnf.errors import NonFiniteLoss, TnfError
 from tnf.generators.callbacks import PENDING, LatestCheckpoint
+from tnf.generators.names import RUN_FILE
 from tnf.runtime import ignore_lightning_deprecations, lightning_logs_once, resolve_precision
-
-RUN_FILE = "run.json"
 
 #: The run's metrics, one CSV row per logging event (Lightning's ``CSVLogger`` layout).
 METRICS = "metrics.csv"
@@ -200,7 +199,7 @@ def fit(
     with contextlib.ExitStack() as held:
         if process_rank() == 0:  # (the other processes of a distributed run train it with process 0)
             busy = f"another process is training {run_dir.name} (in {run_dir}); wait for it, or name this run"
-            held.enter_context(sole(run_dir, f"{busy} another way (train.run_name, finetune.run_name)"))
+            held.enter_context(exclusive(run_dir, f"{busy} another way (train.run_name, finetune.run_name)"))
         ckpt_path = prepare_run_dir(run_dir, config, resume)
         targs = dict(trainer_cfg)
         if "precision" in targs:  # auto: bf16-mixed where the device runs it natively

@@ -92,7 +92,7 @@ def run(cfg: Any) -> dict[str, Any]:
         if real is not None and real["test"] and not (run_dir / "realism.json").is_file():
             # Trained, but its scoring never finished (stopped, or failed): score it now
             console.print(f"[green]{run_name}[/]: fine-tuned with the same settings; scoring its held-out presses")
-            return {**done, "press_realism": _score_presses(cfg, real, run_dir, console)["mean"][run_dir.name]}
+            return {**done, "press_realism": _score_presses(cfg, real, run_dir, console)}
         console.print(
             f"[green]{run_name}[/]: fine-tuned with the same settings, skipped (finetune.force=true trains it again)"
         )
@@ -131,7 +131,7 @@ def run(cfg: Any) -> dict[str, Any]:
         f"val MSE {last.get('val_mse', float('nan')):.1f}"
     )
     if real is not None and real["test"]:
-        summary["press_realism"] = _score_presses(cfg, real, run_dir, console)["mean"][run_dir.name]
+        summary["press_realism"] = _score_presses(cfg, real, run_dir, console)
     return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
 
@@ -222,7 +222,8 @@ def _press_dataset(
 
 
 def _score_presses(cfg: Any, real: dict[str, Any], run_dir: Path, console: Any) -> dict[str, Any]:
-    """Generate the test presses with the run's last checkpoint and score them against the real frames."""
+    """Generate the test presses with the run's last checkpoint, score them against the real frames (the run's
+    ``realism.md``, ``.json``, ``.png``) and return the run's mean of each metric."""
     from tnf.real.finetune import write_press_realism
     from tnf.real.report import table
 
@@ -233,7 +234,7 @@ def _score_presses(cfg: Any, real: dict[str, Any], run_dir: Path, console: Any) 
     )  # fmt: skip
     console.print(table(record["mean"], record["seconds_per_frame"]))
     console.print(f"held-out presses {real['test']} scored: {run_dir / 'realism.md'}")
-    return record
+    return record["mean"][run_dir.name]
 
 
 def _file_hash(path: Path) -> str:
