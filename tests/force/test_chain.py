@@ -103,6 +103,9 @@ def test_generate_sweeps_forces_and_records_them(models, capsys):
     gen = [*_base(models), "object=ball", "generate.model=plane", "generate.n_poses=2", "generate.radius=0.1"]
     out = generate.run(compose("generate", [*gen, "generate.touch_force=[1.0,4.5,9.0]", "generate.run_name=sweep"]))
     assert out["written"] == {"ball": 6}
+    # 9 N lies above the 1-8 N the model trained on: a warning names it and only it.
+    warned = [line for line in capsys.readouterr().out.splitlines() if "warning" in line]
+    assert len(warned) == 1 and "touch_force: 9 N lie outside" in warned[0] and "(1-8 N)" in warned[0]
     m = json.loads((models / "generated" / "sweep" / "builtin" / "ball" / "manifest.json").read_text())
     assert [(t["pose_index"], t["force"]) for t in m["touches"]] == [(p, f) for p in (0, 1) for f in (1.0, 4.5, 9.0)]
     assert m["force"]["requested"] == [1.0, 4.5, 9.0]

@@ -123,6 +123,8 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
     sensor = SENSORS.build(job.sensor)
     for f in wanted if isinstance(wanted, list) else ():
         sensor.check_force(f, "touch.force" if g.touch_force is None else "generate.touch_force")
+    if isinstance(wanted, list) and g.touch_force is not None:
+        _warn_untrained_forces(wanted, _trained_forces(store, g.model), g.model, console)
     background_full = sensor.background()
     mirror = sensor.mirror_channels() if g.mirror_average else None
     if g.mirror_average:
@@ -153,6 +155,35 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
         vocabulary=vocabulary,
         device=device,
     )
+
+
+def _trained_forces(store: Any, model: str) -> tuple[float, float] | None:
+    """The force range (newtons) of the pairs ``model`` trained on, from its datasets' manifests; None when they
+    record none (pairs of one force, or a model trained elsewhere)."""
+    ranges = []
+    for name in (store.manifest("models", model) or {}).get("datasets") or ():
+        rng = ((store.manifest("pairs", name) or {}).get("force") or {}).get("range")
+        if not rng:
+            return None
+        ranges.append((float(rng["min"]), float(rng["max"])))
+    if not ranges:
+        return None
+    return min(lo for lo, _ in ranges), max(hi for _, hi in ranges)
+
+
+def _warn_untrained_forces(wanted: list[float], trained: tuple[float, float] | None, model: str, console: Any) -> None:
+    """A warning when ``generate.touch_force`` asks for forces outside the range ``model`` trained on: its images
+    there are extrapolation (the sensor may press them; the generator never saw them)."""
+    if trained is None:
+        return
+    lo, hi = trained
+    outside = [f for f in wanted if not lo <= f <= hi]
+    if outside:
+        shown = ", ".join(f"{f:g}" for f in outside[:5]) + (", ..." if len(outside) > 5 else "")
+        console.print(
+            f"[yellow]warning:[/] generate.touch_force: {shown} N lie outside the forces model {model!r} trained on "
+            f"({lo:g}-{hi:g} N); its touches there are extrapolated"
+        )
 
 
 def _plan(job: GenerateJob, store: Any, model: _Model, console: Any) -> list[tuple[Any, ...]]:
