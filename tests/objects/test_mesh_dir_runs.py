@@ -60,6 +60,16 @@ def test_only_invalid_meshes_is_one_line_error(capsys, data_root, tmp_path):
     assert "box_mm.stl" in err and "objects.scale=0.001" in err
 
 
+def test_objects_lists_and_fails_when_no_mesh_is_valid(capsys, data_root, tmp_path):
+    d = tmp_path / "mm"
+    d.mkdir()
+    trimesh.creation.box((60.0, 40.0, 30.0)).export(d / "box_mm.stl")
+    rc, err = run_tnf(capsys, "objects", *QUIET, *source_args(d))
+    assert rc == 1 and err.startswith("error: no valid object:") and "\n" not in err and "objects.scale=0.001" in err
+    trimesh.creation.box((0.06, 0.04, 0.03)).export(d / "box.obj")
+    assert run_tnf(capsys, "objects", *QUIET, *source_args(d))[0] == 0
+
+
 def test_broken_link_is_named(tmp_path, caplog):
     d = tmp_path / "links"
     d.mkdir()

@@ -9,7 +9,8 @@ from tnf.stages import run_objects
 
 
 def run(cfg: Any) -> list[dict[str, Any]]:
-    """Print a table of the selected objects (name, size in cm, triangles); returns its rows."""
+    """Print a table of the selected objects (name, size in cm, triangles); returns its rows. A one-line
+    TnfError (exit 1) after the table when none of them is a valid mesh."""
     from rich.table import Table
 
     source, names = run_objects(cfg, usable=False)  # each invalid one is a row left out, counted below
@@ -29,4 +30,6 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     for r in rows:
         table.add_row(r["name"], " x ".join(f"{x:.1f}" for x in r["size_cm"]), str(r["triangles"]), str(r["colour"]))
     stage_console().print(table)
+    if names and not rows:
+        source.usable(names)  # a one-line TnfError: no valid object, with the first one's reason
     return rows
