@@ -117,12 +117,15 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
 def _hydra_args(stage: str, args: Sequence[str]) -> list[str]:
     """The command line Hydra gets: ``args`` with the stage's job name (it names the run folder
     ``logs/stage/<name>/`` and the log file) and its group choices (``conf/stage_choices.yaml``), placed next to
-    the user's overrides (Hydra's parser takes a single run of overrides: not after ``-m`` when overrides follow it)."""
+    the user's overrides. Hydra's parser takes a single run of overrides, so every override goes first and the
+    flags (``-m``, ``--cfg job``, ``--info``) after them, in their order (``a=1 -m b=2,3`` -> ``<own> a=1 b=2,3 -m``).
+    """
 
-    overrides = [a for a in args if not a.startswith("-") and ("=" in a or a.startswith("~"))]
+    is_override = [not a.startswith("-") and ("=" in a or a.startswith("~")) for a in args]
+    overrides = [a for a, o in zip(args, is_override, strict=True) if o]
+    flags = [a for a, o in zip(args, is_override, strict=True) if not o]
     own = [f"hydra.job.name={stage.replace('-', '_')}", *stage_choices(stage, overrides)]
-    at = args.index(overrides[0]) if overrides else 0
-    return [*args[:at], *own, *args[at:]]
+    return [*own, *overrides, *flags]
 
 
 # Flags with which Hydra only prints something (help, config, info): no run folder, so nothing to check.

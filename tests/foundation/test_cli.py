@@ -61,13 +61,29 @@ def test_hydra_gets_the_job_name_and_stage_defaults_beside_the_overrides():
     from tnf.cli import _hydra_args
 
     assert _hydra_args("pipeline", ["-m", "seed=1,2"]) == [
-        "-m",
         "hydra.job.name=pipeline",
         "experiment=quickstart",
         "seed=1,2",
+        "-m",
     ]
     assert _hydra_args("pipeline", ["experiment=sim_digit"]) == ["hydra.job.name=pipeline", "experiment=sim_digit"]
     assert _hydra_args("fit-scene", ["--cfg=job", "--info"]) == ["hydra.job.name=fit_scene", "--cfg=job", "--info"]
+    # Overrides on both sides of a flag (the README's sweep) become one run of overrides.
+    assert _hydra_args("train", ["experiment=sim_digit", "-m", "generator=lee,cyclegan", "--cfg", "job"]) == [
+        "hydra.job.name=train",
+        "experiment=sim_digit",
+        "generator=lee,cyclegan",
+        "-m",
+        "--cfg",
+        "job",
+    ]
+
+
+def test_overrides_before_and_after_multirun_sweep(data_root, capsys):
+    """``tnf STAGE a=1 -m b=2,3`` (the README's GPU sweep) runs the sweep; Hydra's parser alone refuses it."""
+    assert main(["objects", "object_names=[ball]", "-m", "seed=1,2"]) == 0
+    runs = sorted((data_root / "logs" / "stage" / "objects-multirun").glob("*/*"))
+    assert [p.name for p in runs if p.is_dir()] == ["0", "1"]
 
 
 def test_stage_user_error_exits_nonzero_with_one_line(echo_stage, data_root, capsys):
