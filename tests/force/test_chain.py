@@ -203,3 +203,15 @@ def test_training_a_force_model_on_pairs_without_force_is_one_line(models, capsy
     assert main(["train", *over, "train.run_name=no-force"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].endswith("the force comes with datasets made with pair.force=true")
+
+
+def test_evaluate_takes_the_model_and_dataset_train_takes(models, capsys):
+    # Neither evaluate.model, evaluate.dataset nor data.datasets: the model `tnf train` trains with these settings
+    # (train.run_name=fixed) and the dataset `tnf pair` builds with them (digit-mesh), as `tnf generate` takes them.
+    from tnf.stages import evaluate
+
+    over = [f"data_root={models}", *MESH, *FORCE, "generator=tn_cgan", "train.run_name=fixed"]
+    capsys.readouterr()
+    out = evaluate.run(compose("evaluate", [*over, "evaluate.classify.enabled=false", "evaluate.name=defaults"]))
+    assert out["results"]["model"] == "fixed" and out["results"]["image"]["novel_view"]["T-N"]["n"] > 0
+    assert "evaluate.model not set: the model trained with these settings, fixed" in capsys.readouterr().out

@@ -249,6 +249,34 @@ def test_nan_loss_stops_and_keeps_last_good_checkpoint(tmp_path):
     assert torch.load(run_dir / "last.ckpt", weights_only=True)["epoch"] == 0
 
 
+@pytest.mark.parametrize(
+    ("change", "says"),
+    [
+        (lambda out: (out + 1) * 3, r"returned images in \[.*\]"),
+        (lambda out: out[:, :1], r"returned images of shape \[4, 1, 32, 32\], expected \[4, 3, 32, 32\]"),
+        (lambda out: out * float("nan"), r"returned non-finite images \(12288 NaN or Inf values\)"),
+        (lambda out: ((out + 1) * 127.5).to(torch.uint8), "returned torch.uint8 images"),
+        (lambda out: (out,), "returned a tuple, not a tensor"),
+    ],
+)
+def test_a_generators_bad_images_are_one_line(tmp_path, change, says):
+    """A generator whose ``generate()`` breaks its contract stops validation (and generation) in one line that
+    says what it returned and what it must, rather than being scored (or failing deep inside the metrics)."""
+    system = GeneratorSystem(SPEC, epochs=1, decay_epochs=0)
+    real = system.generator.generate
+    system.generator.generate = lambda batch: change(real(batch))
+    batch = make_pairs(4)
+    system.eval()  # as in validation
+    system.on_validation_epoch_start()
+    must = r".*must return float images \[B, 3, H, W\] in \[-1, 1\]"
+    with pytest.raises(TnfError, match=f"generator 'tn_cgan' {says}{must}"):
+        system.validation_step(batch, 0)
+    with pytest.raises(TnfError, match=f"generator 'tn_cgan' {says}"):
+        system.generate({k: v for k, v in batch.items() if k != "tactile"})
+    system.generator.generate = real
+    assert system.validation_step(batch, 0)["fake"].shape == (4, 3, 32, 32)
+
+
 def test_finetune_changes_only_unfrozen_parameters(trained, tmp_path):
     run_dir, _, _ = trained
     src = run_dir / "best.ckpt"

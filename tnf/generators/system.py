@@ -76,6 +76,34 @@ def compile_networks(generator: torch.nn.Module, mode: str | None = None) -> Non
             child.compile(mode=mode)
 
 
+# Slack on the [-1, 1] range of a generator's images (a tanh in bf16 rounds to exactly 1).
+RANGE_SLACK = 1e-3
+
+
+def checked_images(fake: Any, batch: Mapping[str, torch.Tensor], name: str) -> torch.Tensor:
+    """``fake`` when it is valid output of generator ``name`` for ``batch``: a float tensor [B, 3, H, W] (B and
+    H, W those of ``batch``'s tactile or background images), finite, in [-1, 1]. Else a one-line TnfError that
+    says what is wrong and what ``generate()`` must return (each check waits for the device once)."""
+    must = f"; Generator.generate() of {name!r} must return float images [B, 3, H, W] in [-1, 1] (end in tanh)"
+    if not isinstance(fake, torch.Tensor):
+        raise TnfError(f"generator {name!r} returned a {type(fake).__name__}, not a tensor{must}")
+    if not fake.is_floating_point():
+        raise TnfError(f"generator {name!r} returned {fake.dtype} images{must}")
+    ref = batch.get("tactile", batch.get("background"))
+    want = (next(iter(batch.values())).shape[0], 3, *(ref.shape[-2:] if ref is not None else fake.shape[-2:]))
+    if tuple(fake.shape) != want:
+        raise TnfError(f"generator {name!r} returned images of shape {list(fake.shape)}, expected {list(want)}{must}")
+    finite = torch.isfinite(fake)
+    if not bool(finite.all()):
+        raise TnfError(
+            f"generator {name!r} returned non-finite images ({int((~finite).sum())} NaN or Inf values){must}"
+        )
+    lo, hi = (float(v) for v in torch.aminmax(fake.detach().float()))
+    if lo < -1 - RANGE_SLACK or hi > 1 + RANGE_SLACK:
+        raise TnfError(f"generator {name!r} returned images in [{lo:.3g}, {hi:.3g}]{must}")
+    return fake
+
+
 class GeneratorSystem(L.LightningModule):
     """Trains and validates the generator named in ``generator`` (``{"name": ..., **config}``).
 
@@ -169,7 +197,7 @@ class GeneratorSystem(L.LightningModule):
         was = self.training
         self.eval()
         try:
-            fake = self.generating.generate(batch)
+            fake = checked_images(self.generating.generate(batch), batch, self.generator_name)
             if mirror is None:
                 return fake
             flipped = self.generating.generate({**batch, **mirror_batch(batch, mirror)})
@@ -235,7 +263,7 @@ class GeneratorSystem(L.LightningModule):
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
         """Scores the generated images of a batch; returns them (``fake``, [B, 3, H, W] in [-1, 1])."""
-        fake = self.generating.generate(batch).float()
+        fake = checked_images(self.generating.generate(batch), batch, self.generator_name).float()
         real = batch["tactile"].float()
         self._val["l1"].append((fake - real).abs().flatten(1).mean(1))
         self._val["ssim"].append(metrics.ssim(fake, real))

@@ -9,6 +9,7 @@ there. ``evaluate.sweep_dir=DIR`` instead collects the results.json files of a H
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import time
 from collections.abc import Mapping
@@ -16,7 +17,6 @@ from pathlib import Path
 from typing import Any, cast
 
 from tnf.artifacts import ArtifactStore, config_hash, exclusive, write_bytes, write_json
-from tnf.data.settings import DataSettings
 from tnf.errors import TnfError
 from tnf.eval.aggregate import RESULTS_FILE, find_results, load_results
 from tnf.eval.paper import METHOD_LABELS
@@ -42,6 +42,14 @@ def run(cfg: Any) -> dict[str, Any]:
     force = ecfg.force
     timer: Phases | None = None  # this run's phases (None when no model is evaluated)
     folder = None
+
+    if not ecfg.model and not ecfg.sweep_dir:
+        from tnf.stages.train import model_run
+
+        trained = model_run(cfg)  # the model `tnf train` trains with these settings, as `tnf generate` takes
+        if store.manifest("models", trained) is not None:
+            console.print(f"evaluate.model not set: the model trained with these settings, {trained}")
+            ecfg = dataclasses.replace(ecfg, model=trained)
 
     if ecfg.sweep_dir:
         n = collect_sweep(ecfg.sweep_dir, runs_dir, force)
@@ -117,7 +125,9 @@ def _job(cfg: Any, ecfg: EvaluateSettings, settings: dict[str, Any], method: str
     """The evaluation of ``evaluate.model`` (``ecfg``: the ``evaluate`` section; ``settings``: the whole config as
     plain data)."""
 
-    datasets = from_dict(DataSettings, cfg.data, where="data").datasets
+    from tnf.stages.train import dataset_names
+
+    datasets = dataset_names(cfg)  # an unset name is the dataset `tnf pair` builds with cfg, as train takes it
     return EvalJob(
         settings=ecfg,
         method=method,
@@ -126,7 +136,7 @@ def _job(cfg: Any, ecfg: EvaluateSettings, settings: dict[str, Any], method: str
         progress=bool(cfg.progress),
         data_root=str(cfg.data_root),
         generator=str(cfg.generator.name) if "generator" in cfg else None,
-        datasets=[str(d) for d in datasets] if datasets else None,
+        datasets=datasets,
         mirror_average=bool(cfg.generate.mirror_average),
         touch_force=float(cfg.touch.force),
         sensor=str(cfg.sensor.name),
