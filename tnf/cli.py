@@ -21,7 +21,7 @@ from tnf.env import PRIMARY_CONFIG, conf_dir, stage_choices, stage_overrides
 from tnf.errors import TnfError
 from tnf.listing import print_components
 from tnf.runtime import available_memory
-from tnf.stages.settings import check_settings, check_sizes
+from tnf.stages.settings import check_components, check_settings, check_sizes
 
 # name -> one line of help. Order is the pipeline's order; COMMANDS are not Hydra apps.
 STAGES: dict[str, str] = {
@@ -271,6 +271,7 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
                         lines = [f"{lines[0].split(':', 1)[-1].strip()}: {UNREADABLE}"]
                     raise TnfError(" ".join(lines[:2])) from None
                 check_settings(cfg)  # before Hydra makes its run folder
+                check_components(cfg, stage)
                 check_sizes(cfg, stage)
     finally:
         GlobalHydra.instance().clear()

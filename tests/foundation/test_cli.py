@@ -176,3 +176,14 @@ def test_output_to_a_reader_that_has_gone_ends_quietly(tmp_path):
     finally:
         os.close(w)
     assert out.returncode == 141 and "Traceback" not in out.stderr.decode() and not out.stderr.strip(), out.stderr
+
+
+def test_a_bad_generator_setting_is_refused_before_any_stage(data_root, capsys):
+    """The pipeline builds the generator after hours of data stages, and a sweep's first jobs run before a later
+    job's values are read: a value its Config refuses stops the command before any work."""
+    assert main(["pipeline", "debug=tiny", "generator=lee", "generator.norm=bogus"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: generator.lee: norm must be batch, instance or none, got 'bogus'"]
+    assert main(["train", "debug=tiny", "-m", "generator.ngf=4,0"]) == 1
+    assert "generator.tn_cgan: ngf and ndf must be >= 1, got 0" in capsys.readouterr().err
+    assert not (data_root / "capture").exists() and not (data_root / "models").exists()

@@ -124,6 +124,34 @@ def check_settings(cfg: Any) -> None:
 
 _UNRESOLVED = object()
 
+# The component groups whose settings a stage's command line is checked for before any work: those it builds
+# late (the pipeline trains after hours of data stages; a sweep's first jobs run before a later job's values).
+STAGE_COMPONENTS = {
+    "pipeline": ("objects", "scene", "sensor", "simulator", "generator"),
+    "train": ("generator",),
+    "generate": ("generator",),
+    "evaluate": ("generator",),
+}
+
+
+def check_components(cfg: Any, stage: str) -> None:
+    """Raise a one-line TnfError for the first component section of ``cfg`` (``generator``, ``scene``, ...) that
+    ``stage`` builds (``STAGE_COMPONENTS``) whose values its component's Config refuses (``generator.ngf=0``)."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from tnf.registry import REGISTRIES, split_spec
+
+    for kind in STAGE_COMPONENTS.get(stage, ()):
+        if kind not in cfg:
+            continue
+        try:
+            spec = OmegaConf.to_container(cfg[kind], resolve=True)
+        except OmegaConfBaseException:  # an interpolation only a running Hydra job resolves: left to the stage
+            continue
+        name, params = split_spec(spec, kind)
+        REGISTRIES[kind].config(name, params)
+
 
 # Bytes that one unit of each size setting needs at the least (a lower bound: a refusal is never wrong).
 _RAY_BYTES = 128  # a fitting ray: origin, direction, target colour, index and at least one sample's features
