@@ -21,6 +21,7 @@ once, in the file that users read and override, and each field says so with ``= 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import importlib.metadata as md
 import sys
 import threading
@@ -89,12 +90,20 @@ class Registry:
         group: the entry-point group that registers components of this kind ("tnf.sensors", ...).
         in_tree: tnf itself registers components of this kind; discovery fails with a one-line error when
             tnf's package metadata lists none (tnf not installed, or installed from an older checkout).
+        base: ``"module:Class"``, the base class every entry point's class must subclass (named, not imported,
+            so that this module stays below the components' layers); None checks nothing.
+        required: methods of ``base`` a subclass must override (the base's only raise NotImplementedError),
+            ``"a|b"`` for either of two; an abstract base's abstract methods are checked as well.
     """
 
-    def __init__(self, kind: str, group: str, in_tree: bool = False):
+    def __init__(
+        self, kind: str, group: str, in_tree: bool = False, base: str | None = None, required: tuple[str, ...] = ()
+    ):
         self.kind = kind
         self.group = group
         self.in_tree = in_tree
+        self.base = base
+        self.required = required
         self._entries: dict[str, Entry] = {}
         self._from_entry_points: set[str] = set()
         self._discovered = False
@@ -132,11 +141,32 @@ class Registry:
             self._discovered = True
             try:
                 for ep in eps:
-                    self.add(ep.name, _load(ep, self.kind), origin=_dist_name(ep))
+                    obj = _load(ep, self.kind)
+                    self._check_contract(ep.name, obj, _dist_name(ep))
+                    self.add(ep.name, obj, origin=_dist_name(ep))
                     self._from_entry_points.add(ep.name)
             except BaseException:
                 self._discovered = False
                 raise
+
+    def _check_contract(self, name: str, obj: Any, origin: str) -> None:
+        """A one-line TnfError when entry point ``name``'s object is not a subclass of ``base``, or leaves one of
+        its ``required`` (or abstract) methods unimplemented."""
+        if self.base is None:
+            return
+        module, _, attr = self.base.partition(":")
+        base = getattr(importlib.import_module(module), attr)
+        where = f"{self.kind} {name!r} ({_where(obj, origin)})"
+        if not (isinstance(obj, type) and issubclass(obj, base)):
+            raise TnfError(f"{where} is not a subclass of {module}.{attr}; subclass it (docs/plugins.md)")
+        missing = [
+            m.replace("|", " (or ") + ")" * ("|" in m)
+            for m in self.required
+            if all(getattr(obj, a, None) is getattr(base, a, None) for a in m.split("|"))
+        ]
+        missing += sorted(set(getattr(obj, "__abstractmethods__", ())) - set(missing))
+        if missing:
+            raise TnfError(f"{where} does not implement {', '.join(missing)} of {module}.{attr} (docs/plugins.md)")
 
     def refresh(self) -> None:
         """Forget what entry points registered and discover again (after installing a plugin in a running process)."""
@@ -256,10 +286,18 @@ def _where(obj: Any, origin: str) -> str:
 
 # -- the registries ---------------------------------------------------------------------------------
 # tnf's own components are entry points in pyproject.toml, like a plugin's.
-OBJECTS = Registry("objects", "tnf.objects", in_tree=True)
-SCENES = Registry("scene", "tnf.scenes", in_tree=True)
-SENSORS = Registry("sensor", "tnf.sensors", in_tree=True)
-SIMULATORS = Registry("simulator", "tnf.simulators", in_tree=True)
-GENERATORS = Registry("generator", "tnf.generators", in_tree=True)
+OBJECTS = Registry(
+    "objects", "tnf.objects", in_tree=True, base="tnf.objects:ObjectSource", required=("names", "_load|load")
+)
+SCENES = Registry("scene", "tnf.scenes", in_tree=True, base="tnf.scenes.base:Scene", required=("render_rgbd",))
+SENSORS = Registry("sensor", "tnf.sensors", in_tree=True, base="tnf.sensors:Sensor")
+SIMULATORS = Registry("simulator", "tnf.simulators", in_tree=True, base="tnf.sim.base:Simulator")
+GENERATORS = Registry(
+    "generator",
+    "tnf.generators",
+    in_tree=True,
+    base="tnf.generators:Generator",
+    required=("generate", "training_step", "configure_optimizers"),
+)
 
 REGISTRIES: dict[str, Registry] = {r.kind: r for r in (OBJECTS, SCENES, SENSORS, SIMULATORS, GENERATORS)}

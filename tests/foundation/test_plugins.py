@@ -8,6 +8,8 @@ import pytest
 
 from tests.foundation.plugin_util import install_tiny_plugin
 from tnf import TnfError
+from tnf.generators import Generator
+from tnf.objects import ObjectSource
 from tnf.registry import Registry
 
 
@@ -254,3 +256,62 @@ def test_the_contract_wants_the_defaults_from_the_plugins_yaml(tmp_path, monkeyp
 
     with pytest.raises(AssertionError, match="sensor=tiny composes other values than"):
         check(Stale)
+
+
+class NotAGenerator:
+    """A generator class that forgot tnf's base class."""
+
+    @dataclass
+    class Config:
+        ngf: int = 4
+
+
+class HalfGenerator(Generator):
+    """Implements generate, but not training_step or configure_optimizers."""
+
+    @dataclass
+    class Config:
+        ngf: int = 4
+
+    def generate(self, batch):
+        return batch["rgb"]
+
+
+@pytest.mark.parametrize(
+    ("target", "error"),
+    [
+        ("NotAGenerator", r"is not a subclass of tnf\.generators\.Generator; subclass it"),
+        ("HalfGenerator", r"does not implement training_step, configure_optimizers of tnf\.generators\.Generator"),
+    ],
+)
+def test_a_plugin_class_that_breaks_the_contract_is_one_line_at_discovery(monkeypatch, target, error):
+    """Found when the registry discovers it, naming the class and its distribution, not as an AttributeError or a
+    bare NotImplementedError deep in training."""
+    from tnf.registry import GENERATORS
+
+    group = {"tnf.generators": {"mine": f"{__name__}:{target}"}}
+    monkeypatch.setattr(md, "entry_points", fake_entry_points(group))
+    reg = Registry("generator", "tnf.generators", base=GENERATORS.base, required=GENERATORS.required)
+    with pytest.raises(TnfError, match=rf"generator 'mine' \({__name__}\.{target} \(from tnf-fake\)\) {error}"):
+        reg.names()
+
+
+def test_an_object_source_may_override_load_or__load(monkeypatch):
+    from tnf.registry import OBJECTS
+
+    group = {"tnf.objects": {"captured": "tnf.objects.captured:Captured", "half": f"{__name__}:HalfSource"}}
+    monkeypatch.setattr(md, "entry_points", fake_entry_points(group))
+    reg = Registry("objects", "tnf.objects", base=OBJECTS.base, required=OBJECTS.required)
+    with pytest.raises(TnfError, match=r"'half' .* does not implement _load \(or load\) of tnf\.objects\.ObjectSource"):
+        reg.names()
+
+
+class HalfSource(ObjectSource):
+    """Lists names but loads nothing."""
+
+    @dataclass
+    class Config:
+        pass
+
+    def names(self):
+        return ["a"]

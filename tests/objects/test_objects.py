@@ -195,3 +195,21 @@ def test_objects_stage_lists(capsys, data_root):
     assert main(["objects", "object_names=[ball,can]", "progress=false"]) == 0
     out = capsys.readouterr().out
     assert "ball" in out and "can" in out and "triangles" in out
+
+
+def test_a_source_that_loads_a_scene_is_one_line():
+    """A trimesh.Scene is what trimesh.load gives for a GLB or a multi-material OBJ: refused in one line naming the
+    fix, not an AttributeError inside the centring."""
+    from tnf.objects import ObjectSource
+
+    class SceneSource(ObjectSource):
+        name = "scenes"
+
+        def names(self):
+            return ["pair"]
+
+        def _load(self, name):
+            return trimesh.Scene([trimesh.creation.box((0.05, 0.05, 0.05)), trimesh.creation.icosphere()])
+
+    with pytest.raises(TnfError, match=r"loaded a trimesh\.scene\.scene\.Scene, not a trimesh\.Trimesh; .*to_geometry"):
+        SceneSource().load("pair")

@@ -74,8 +74,16 @@ class ObjectSource:
         A largest extent outside ``REFUSE_SIZE`` (1 mm .. 10 m) is a TnfError, outside ``WARN_SIZE`` (5 mm .. 1.5 m)
         a logged warning, both naming the object, its size and ``objects.scale`` (a unit mix-up, most likely).
         """
+        import trimesh
+
         self.check_name(name)
         mesh = self._load(name)
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise TnfError(
+                f"{self.where(name)}: source {self.name!r} loaded a {type(mesh).__module__}.{type(mesh).__name__}, "
+                "not a trimesh.Trimesh; _load must return one mesh (a trimesh.Scene: scene.to_geometry(); "
+                "a file: tnf.objects.mesh_dir.load_mesh_file)"
+            )
         mesh = centre(mesh)
         # Size first: a mesh in metres read with objects.scale=0.001 is also "flat", which would hide the cause.
         size = _largest_extent(mesh)
