@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import functools
 import glob
 import hashlib
 import json
@@ -299,6 +300,7 @@ class ArtifactStore:
             if not _writer_alive(stale):
                 shutil.rmtree(stale, ignore_errors=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.{_writer_tag()}.", suffix=".partial", dir=final.parent))
+        tmp.chmod(0o777 & ~_umask())  # mkdtemp's folder is private (0700); a finished item is as readable as its store
         extra: dict[str, Any] = {}
         try:
             yield tmp
@@ -365,6 +367,14 @@ def _writer_alive(temporary: Path) -> bool:
     return True
 
 
+@functools.cache
+def _umask() -> int:
+    """The process's file-mode creation mask (read once, by setting it and setting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def _replace_dir(src: Path, dst: Path) -> None:
     """Move folder ``src`` to ``dst``, replacing an old ``dst`` with as short a gap as a rename allows.
 
@@ -399,19 +409,35 @@ def _version() -> str:
     return __version__
 
 
+# Each stage's folder in the store, by the stage's command name.
+STAGE_FOLDERS = {
+    "capture": "capture",
+    "fit-scene": "scenes",
+    "touch": "touch",
+    "pair": "pairs",
+    "train": "models",
+    "generate": "generated",
+}
+
+
 def clean(args: list[str]) -> str:
-    """``tnf clean STAGE [ITEM] [data_root=DIR]``: remove the finished item ``<data_root>/STAGE/ITEM`` (a path
+    """``tnf clean STAGE [ITEM] [data_root=DIR]``: remove the finished item ``<data_root>/<folder>/ITEM`` (a path
     such as ``digit/builtin/ball`` for a touch item) so that the next run of its stage redoes it; without ITEM,
-    list the stage's finished items. Returns what was done, as text."""
+    list the stage's finished items. STAGE is a stage's command (``fit-scene``) or its folder (``scenes``).
+    Returns what was done, as text."""
     root_arg = [a for a in args if a.startswith("data_root=")]
     rest = [a for a in args if not a.startswith("data_root=")]
     store = ArtifactStore(root_arg[-1].split("=", 1)[1] if root_arg else None)
     if not rest or len(rest) > 2:
         raise TnfError("usage: tnf clean STAGE [ITEM] [data_root=DIR], e.g. tnf clean touch digit/builtin/ball")
-    stage = rest[0]
-    base = store.path(stage)
+    commands = {folder: command for command, folder in STAGE_FOLDERS.items()}
+    if rest[0] not in STAGE_FOLDERS and rest[0] not in commands:
+        raise TnfError(f"tnf clean: no stage {rest[0]!r}; stages: {', '.join(STAGE_FOLDERS)}")
+    folder = STAGE_FOLDERS.get(rest[0], rest[0])
+    stage = commands[folder]
+    base = store.path(folder)
     if not base.is_dir():
-        raise TnfError(f"no stage folder {base}")
+        raise TnfError(f"no {stage} items: {base} does not exist")
     if len(rest) == 1:
         found = sorted(str(m.parent.relative_to(base)) for m in base.rglob(MANIFEST))
         return "\n".join(found) if found else f"{base}: no finished items"
@@ -422,4 +448,4 @@ def clean(args: list[str]) -> str:
     if not (item / MANIFEST).is_file():
         raise TnfError(f"{item} is not a finished item (no {MANIFEST}); `tnf clean {stage}` lists them")
     shutil.rmtree(item)
-    return f"removed {item}; `tnf {stage} ...` redoes it"
+    return f"removed {item}; `tnf {stage}` with its settings redoes it"

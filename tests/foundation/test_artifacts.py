@@ -4,7 +4,7 @@ import os
 import pytest
 
 from tnf import TnfError
-from tnf.artifacts import ArtifactStore, config_hash, data_root, read_json, write_json
+from tnf.artifacts import ArtifactStore, _umask, config_hash, data_root, read_json, write_json
 
 
 def test_data_root_precedence(tmp_path, monkeypatch):
@@ -36,6 +36,17 @@ def test_item_written_atomically_and_skipped_when_config_matches(tmp_path):
     assert store.is_done("capture", "builtin", "ball", config=cfg)
     assert not store.is_done("capture", "builtin", "ball", config={"views": 12})
     assert store.items("capture") == ["builtin/ball"]
+
+
+def test_a_finished_item_is_as_readable_as_its_store(tmp_path):
+    """A shared store (docs/cluster.md): under umask 022 a finished item's folder is 0755, as its parent is, not
+    the private 0700 of a temporary folder."""
+    store = ArtifactStore(tmp_path)
+    with store.writing("capture", "builtin", "ball", config={}) as tmp:
+        (tmp / "a.txt").write_text("hello")
+    item = store.path("capture", "builtin", "ball")
+    assert item.stat().st_mode & 0o777 == item.parent.stat().st_mode & 0o777 == 0o777 & ~_umask()
+    assert item.stat().st_mode & 0o077 == 0o077 & ~_umask()
 
 
 def test_failed_write_leaves_old_item_and_no_partial(tmp_path):

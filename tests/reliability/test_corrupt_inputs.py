@@ -43,9 +43,17 @@ def test_clean_removes_a_finished_item_and_the_stage_redoes_it(touched, capsys):
     assert main(["clean", "touch"]) == 0
     assert capsys.readouterr().out.strip() == "digit/builtin/ball"
     assert main(["clean", "touch", "digit/builtin/ball"]) == 0
+    assert capsys.readouterr().out.strip().endswith("; `tnf touch` with its settings redoes it")
     assert not touched.exists()
     for bad in (["clean", "touch", "digit/builtin/ball"], ["clean", "touch", "../capture"], ["clean", "nope", "x"]):
         assert main(bad) == 1
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    # A stage's command or its folder; the message names the command that redoes the item.
+    assert main(["clean", "fit-scene"]) == 1
+    assert capsys.readouterr().err.strip() == f"error: no fit-scene items: {root / 'scenes'} does not exist"
+    assert main(["clean", "nope"]) == 1
+    assert "stages: capture, fit-scene, touch, pair, train, generate" in capsys.readouterr().err
+    assert main(["clean", "scenes"]) == 1  # the folder's name says the same
+    assert capsys.readouterr().err.strip() == f"error: no fit-scene items: {root / 'scenes'} does not exist"
     assert main(["touch", "debug=tiny", "object_names=[ball]", "progress=false"]) == 0
     assert (touched / "manifest.json").is_file() and root.exists()

@@ -161,12 +161,21 @@ def check_format(manifest: Any, folder: str | os.PathLike[str]) -> None:
     """Refuse the ``manifest`` of the dataset in ``folder`` unless it is a JSON object of this ``FORMAT_VERSION``
     (a TnfError that says to rebuild it)."""
     if not isinstance(manifest, dict):
-        raise TnfError(f"dataset manifest {Path(folder) / MANIFEST} is not a JSON object; rebuild it with `tnf pair`")
+        raise TnfError(f"dataset manifest {Path(folder) / MANIFEST} is not a JSON object; {_rebuild(folder)}")
     if manifest.get("format_version") != FORMAT_VERSION:
         raise TnfError(
             f"dataset {folder} has format version {manifest.get('format_version')!r}, this tnf reads "
-            f"{FORMAT_VERSION}; rebuild it with `tnf pair`"
+            f"{FORMAT_VERSION}; {_rebuild(folder)}"
         )
+
+
+def _rebuild(folder: str | os.PathLike[str]) -> str:
+    """How to rebuild dataset ``folder``: `tnf pair` keeps a dataset whose manifest matches its settings, so a
+    damaged one in the store is removed first."""
+    f = Path(folder)
+    if f.parent.name == "pairs":
+        return f"rebuild it: `tnf clean pair {f.name}`, then `tnf pair` with its settings"
+    return "rebuild it with `tnf pair`"
 
 
 def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
@@ -187,17 +196,15 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
         try:
             arrays[name] = np.load(path, mmap_mode="r")
         except FileNotFoundError:
-            raise TnfError(
-                f"dataset {folder} is incomplete: {path.name} is missing; rebuild it with `tnf pair`"
-            ) from None
+            raise TnfError(f"dataset {folder} is incomplete: {path.name} is missing; {_rebuild(folder)}") from None
         except (OSError, ValueError, EOFError) as e:  # not a .npy file, truncated, pickled objects
-            raise TnfError(f"dataset {folder}: {path.name} is not a readable array ({e}); rebuild it") from None
+            raise TnfError(f"dataset {folder}: {path.name} is not a readable array ({e}); {_rebuild(folder)}") from None
         a = arrays[name]
         if a.dtype != np.dtype(dtype) or a.ndim != 1 + len(shape) or a.shape[1:] != shape:
             raise TnfError(
                 f"dataset {folder}: {path.name} is {a.dtype} {list(a.shape)}, expected {dtype} [N, "
                 f"{', '.join(map(str, shape))}]".replace(", ]", "]")
-                + "; rebuild it with `tnf pair`"
+                + f"; {_rebuild(folder)}"
             )
     n = len(arrays["rgb"])
     for name in (k for k in expected if k != "backgrounds"):
@@ -205,7 +212,7 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
             raise TnfError(f"dataset {folder} is inconsistent: {name}.npy has {len(arrays[name])} rows, rgb.npy {n}")
     count = manifest.get("count")
     if count is not None and count != n:
-        raise TnfError(f"dataset {folder}: the manifest says {count} pairs but the arrays hold {n}; rebuild it")
+        raise TnfError(f"dataset {folder}: the manifest says {count} pairs but the arrays hold {n}; {_rebuild(folder)}")
     # Index arrays must point into what they index (a bad index would fail deep inside a data loader).
     limits = {
         "object_id": (len(objects), "the manifest's objects"),
@@ -217,6 +224,6 @@ def open_pairs(folder: str | os.PathLike[str]) -> PairArrays:
         if n and (a.min() < 0 or a.max() >= k):
             raise TnfError(
                 f"dataset {folder}: {name}.npy holds values in [{a.min()}, {a.max()}] but {what} has {k} "
-                "entries; the manifest does not match the arrays, rebuild it with `tnf pair`"
+                f"entries; the manifest does not match the arrays, {_rebuild(folder)}"
             )
     return PairArrays(folder=folder, manifest=manifest, **arrays)
