@@ -170,7 +170,10 @@ def test_generate_frames_novel_poses_as_its_training_dataset(data_root, trained_
         generate.run(compose("generate", [*gen, "generate.crop_px=48", "generate.run_name=fixed"]))
     # A dataset of another format version (its framing may lack settings) is refused, not read.
     write_json(manifest, {**m, "format_version": 1})
-    with pytest.raises(TnfError, match=r"has format version 1, this tnf reads \d+; rebuild it with `tnf pair`"):
+    with pytest.raises(
+        TnfError,
+        match=r"has format version 1, this tnf reads \d+; rebuild it: `tnf clean pair digit-\w+`, then `tnf pair`",
+    ):
         generate.run(compose("generate", [*gen, "generate.n_poses=3", "generate.run_name=old"]))
 
 

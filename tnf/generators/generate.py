@@ -111,7 +111,10 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
         raise TnfError("generate.model is not set: name a trained run under models/ (see `tnf train`)")
     ckpt = store.path("models", g.model) / g.checkpoint
     if not ckpt.is_file():
-        raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check generate.model/checkpoint")
+        raise TnfError(
+            f"checkpoint not found: {ckpt}; train it with `tnf train` (train.force=true trains it again) or check "
+            "generate.model/checkpoint"
+        )
     device = resolve_device(job.device)
     system = load_generator(ckpt, device)
     hp = system.hparams["generator"]

@@ -18,6 +18,8 @@ import csv
 import io
 import logging
 import os
+import signal
+import threading
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -304,10 +306,21 @@ def _run(trainer: Any, system: Any, datamodule: Any, ckpt_path: Path | None, run
     training can resume from."""
     from torch.multiprocessing import ProcessRaisedException
 
+    sigint = signal.getsignal(signal.SIGINT)
     with warnings.catch_warnings():
         quiet_advice()
         try:
             trainer.fit(system, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None)
+        except SystemExit as e:
+            # Lightning ends a fit on Ctrl+C (KeyboardInterrupt) with exit(1), after its shutdown (callbacks'
+            # on_exception, loggers finalised), and ignores SIGINT from then on. As tnf's own interruption (the
+            # one line and exit 130 of the tnf command), with the SIGINT handler put back; last.ckpt is where it
+            # was, so the same command resumes. Any other exit passes on as it is.
+            if not isinstance(e.__context__, KeyboardInterrupt):
+                raise
+            if sigint is not None and threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGINT, sigint)
+            raise e.__context__ from None
         except NonFiniteLoss as e:
             raise NonFiniteLoss(f"{e}; {_last_good(run_dir)}") from None
         except ProcessRaisedException as e:
@@ -345,11 +358,14 @@ def quiet_advice() -> None:
 class _NoAdvice(logging.Filter):
     """Drops two of Lightning's start-up notices: the advertisement for its cloud logger, printed at every
     Trainer's start, and the advice to set the fp32 matmul precision on GPUs with tensor cores, which tnf sets
-    itself (``ProcessSetup(tf32=True)``) after Lightning has checked."""
+    itself (``ProcessSetup(tf32=True)``) after Lightning has checked; and its notice of a Ctrl+C, which the
+    ``tnf`` command reports itself (``_run``)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         message = record.getMessage()
-        return "litlogger" not in message and "set_float32_matmul_precision" not in message
+        return not any(
+            s in message for s in ("litlogger", "set_float32_matmul_precision", "Detected KeyboardInterrupt")
+        )
 
 
 _NO_ADVICE = _NoAdvice()

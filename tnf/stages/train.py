@@ -4,7 +4,8 @@ Reads the datasets of ``data.datasets`` (default: the one ``tnf pair`` builds), 
 trainer of ``trainer=`` (cpu, gpu, ddp) and logs with ``logger=`` (csv, tensorboard, wandb). Writes
 ``<data_root>/models/<run id>/`` (``tnf.generators.names``; ``train.run_name`` replaces the id): ``last.ckpt``,
 ``best.ckpt`` (lowest validation L1), ``grids/``, ``metrics.csv`` and ``manifest.json``. An unfinished run
-resumes from ``last.ckpt``; a finished run with the same settings is skipped.
+resumes from ``last.ckpt``; a finished run with the same settings is skipped, unless its ``best.ckpt`` is gone:
+then it is trained again.
 """
 
 from __future__ import annotations
@@ -71,9 +72,15 @@ def run(cfg: Any) -> dict[str, Any]:
     checked, spec, datasets, config, run_name, t = plan(cfg)
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
+    fresh = False  # start again rather than resume from last.ckpt
     if not t.force and store.is_done("models", run_name, config=config):
-        console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
-        return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
+        if (run_dir / "best.ckpt").is_file():
+            console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
+            return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
+        # Finished, but the checkpoint generate and finetune load is gone. The finished run's last.ckpt holds
+        # every epoch, so resuming from it would train none and write no best.ckpt: the run starts again.
+        console.print(f"{run_name}: finished, but its best.ckpt is missing; training it again", markup=False)
+        fresh = True
     if not t.run_name and (note := new_run_note(run_dir.parent, run_name, config)):
         console.print(note, markup=False)
 
@@ -90,7 +97,7 @@ def run(cfg: Any) -> dict[str, Any]:
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
     info = {"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names}
-    summary = fit_section(cfg, t, system, dm, run_dir, config, info)
+    summary = fit_section(cfg, t, system, dm, run_dir, config, info, fresh=fresh)
     _print_summary(console, run_name, summary)
     return {"run_name": run_name, "run_dir": str(run_dir), **summary}
 
@@ -120,10 +127,12 @@ def fit_section(
     run_dir: Any,
     config: dict[str, Any],
     info: dict[str, Any],
+    *,
+    fresh: bool = False,
 ) -> dict[str, Any]:
     """Train ``system`` on ``dm`` into ``run_dir`` with the run settings of ``section`` (the ``train`` or
     ``finetune`` section's settings) and the ``trainer``, ``logger`` and ``callbacks`` groups; returns the run's
-    summary."""
+    summary. ``fresh``: start the run again even where ``section`` would resume it."""
     from omegaconf import OmegaConf
 
     from tnf.generators.callbacks import build_callbacks
@@ -137,7 +146,7 @@ def fit_section(
         trainer_cfg=trainer_args(cfg),
         logger_cfg=cast(dict[str, Any], OmegaConf.to_container(cfg.logger, resolve=True)),
         callbacks=build_callbacks(cast(dict[str, Any], OmegaConf.to_container(cfg.callbacks, resolve=True))),
-        resume=section.resume and not section.force,
+        resume=section.resume and not section.force and not fresh,
         progress=bool(cfg.progress),
         limit_train_batches=section.limit_train_batches,
         limit_val_batches=section.limit_val_batches,
