@@ -52,7 +52,8 @@ from tnf.scenes.settings import FitSettings
 log = logging.getLogger(__name__)
 
 #: Version of the group resume checkpoint's ``tnf`` entry; a checkpoint of another version is not resumed from.
-RESUME_FORMAT = 1
+#: 2: the fingerprint holds the objects' inputs (``inputs``), which checkpoints of version 1 do not record.
+RESUME_FORMAT = 2
 
 #: Points per batched density evaluation of an occupancy refresh, over all objects (bounds its memory).
 OCCUPANCY_CHUNK = 1 << 20
@@ -322,6 +323,7 @@ def fit_batched(
     on_step: Callable[[int, float], None] | None = None,
     seed: int = 0,
     names: Sequence[str] | None = None,
+    inputs: Sequence[Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Train K hash-grid ``scenes`` on their ``views`` together, in place; returns per object what
     ``fit_scene`` returns (``steps``, ``train_seconds``: the group's wall time, ``final_loss``, ``log``) and
@@ -332,10 +334,12 @@ def fit_batched(
     objects' learning-rate schedule, loss (colour, distortion), random backgrounds and occupancy refreshes
     are those of ``fit_scene``. ``settings`` must be resolved (``FitSettings.resolved``). ``resume_path``: a
     checkpoint of the whole group written atomically every ``checkpoint_every`` steps; a checkpoint of the
-    same group and settings is resumed from and the fit ends exactly as an uninterrupted one; removed at the
-    end. ``on_step(step, loss)``: after every step, with the mean over objects of the last recorded losses.
-    ``names``: the objects' names, for messages. A NaN or infinite loss raises ``NonFiniteLoss`` naming the
-    object and step. The scenes end on ``device`` in eval mode.
+    same group, inputs and settings is resumed from and the fit ends exactly as an uninterrupted one; another
+    is removed, with a warning that says why; removed at the end. ``inputs``: what each object's fit is made
+    from (``tnf.scenes.fit.fit_inputs``), which the checkpoint must match; None checks only the settings, ray
+    counts, bounds and tensor shapes. ``on_step(step, loss)``: after every step, with the mean over objects of
+    the last recorded losses. ``names``: the objects' names, for messages. A NaN or infinite loss raises
+    ``NonFiniteLoss`` naming the object and step. The scenes end on ``device`` in eval mode.
 
     One difference from separate fits: an object none of whose samples lies in an occupied cell during a
     step gets zero gradients for its MLPs there, which Adam applies (its momentum moves them), where its
@@ -352,12 +356,12 @@ def fit_batched(
     rays = _Rays(views, dev)
     opt = torch.optim.Adam(model.param_groups(s.lr), lr=s.lr, betas=(0.9, 0.99), eps=1e-15)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, s.lr_final_factor ** (1.0 / max(steps, 1)))
-    fingerprint = _fingerprint(s, seed, rays.count, model)
+    fingerprint = _fingerprint(s, seed, rays.count, model, inputs)
     logs: list[list[dict[str, Any]]] = [[] for _ in range(K)]
     first, earlier_seconds = 0, 0.0
     resume = Path(resume_path) if resume_path is not None else None
     if resume is not None and resume.is_file():
-        ckpt, why = _read_resume(resume, fingerprint)
+        ckpt, why = _read_resume(resume, fingerprint, names)
         if ckpt is None:
             log.warning("not resuming from %s (%s): the batched fit starts afresh", resume, why)
             resume.unlink()
@@ -473,9 +477,13 @@ def _read_losses(
     return [float(x) for x in r[-1]]
 
 
-def _fingerprint(s: FitSettings, seed: int, counts: Sequence[int], model: BatchedHashGrid) -> dict[str, Any]:
-    """What a group's resume checkpoint must match: the training settings, the seed, each object's ray count
-    and bound, and the shapes of the stacked tensors."""
+def _fingerprint(
+    s: FitSettings, seed: int, counts: Sequence[int], model: BatchedHashGrid, inputs: Sequence[Any] | None = None
+) -> dict[str, Any]:
+    """What a group's resume checkpoint must match: each object's inputs (``tnf.scenes.fit.fit_inputs``: the
+    identity of its captured images and its scene's settings), the training settings, the seed, each object's
+    ray count and bound, and the shapes of the stacked tensors. Settings that do not change the fitted scenes
+    (``checkpoint_every``, ``log_every``, ``chunk``, the evaluation's) are left out."""
     return {
         "steps": s.steps,
         "batch_rays": s.batch_rays,
@@ -486,6 +494,7 @@ def _fingerprint(s: FitSettings, seed: int, counts: Sequence[int], model: Batche
         "distortion_start": s.distortion_start,
         **({"train_kernel": True} if s.train_kernel else {}),
         "seed": seed,
+        "inputs": list(inputs) if inputs is not None else None,
         "rays": list(counts),
         "bounds": list(model.bounds),
         "shapes": {k: list(v.shape) for k, v in model.state_dict().items()},
@@ -559,8 +568,9 @@ class _ResumeWriter:
             raise error
 
 
-def _read_resume(path: Path, fingerprint: dict[str, Any]) -> tuple[dict[str, Any] | None, str]:
-    """The group checkpoint at ``path`` if it can be resumed from, else None and why not."""
+def _read_resume(path: Path, fingerprint: dict[str, Any], names: Sequence[str]) -> tuple[dict[str, Any] | None, str]:
+    """The group checkpoint at ``path`` if it can be resumed from, else None and why not (``names``: the objects'
+    names, to say whose inputs changed)."""
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises several types for files that are not checkpoints
@@ -568,9 +578,28 @@ def _read_resume(path: Path, fingerprint: dict[str, Any]) -> tuple[dict[str, Any
     meta = ckpt.get("tnf") if isinstance(ckpt, dict) else None
     if not isinstance(meta, dict) or meta.get("kind") != "scene_fit_batched" or meta.get("format") != RESUME_FORMAT:
         return None, "written by another tnf version"
-    if meta.get("fit") != fingerprint:
-        return None, "written by a fit with other settings or objects"
+    fit = meta.get("fit")
+    if fit != fingerprint:
+        return None, _other_inputs(fit, fingerprint, names) or "written by a fit with other settings or objects"
     return ckpt, ""
+
+
+def _other_inputs(old: Any, new: dict[str, Any], names: Sequence[str]) -> str | None:
+    """Why a group checkpoint of fingerprint ``old`` was made from other inputs than a fit of fingerprint
+    ``new`` of the objects ``names``; None when the inputs are the same, unknown or of another number of
+    objects."""
+    from tnf.scenes.system import other_inputs
+
+    a = old.get("inputs") if isinstance(old, dict) else None
+    b = new.get("inputs")
+    if not isinstance(a, list) or not isinstance(b, list) or len(a) != len(b) or len(b) != len(names):
+        return None
+    why: dict[str, list[str]] = {}
+    for name, x, y in zip(names, a, b, strict=True):
+        reason = other_inputs({"inputs": x}, {"inputs": y})
+        if reason is not None:
+            why.setdefault(reason, []).append(name)
+    return "; ".join(f"{reason} of {', '.join(objs)}" for reason, objs in why.items()) or None
 
 
 def group_resume_name(names: Sequence[str]) -> str:
@@ -598,7 +627,7 @@ def fit_objects(
     whole, ``batch_objects`` K."""
     from tnf.cameras import read_views
     from tnf.registry import split_spec
-    from tnf.scenes.fit import build_scene, write_fit
+    from tnf.scenes.fit import build_scene, fit_inputs, write_fit
 
     K = len(scene_specs)
     kinds = {split_spec(spec, "scene")[0] for spec in scene_specs}
@@ -623,7 +652,8 @@ def fit_objects(
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     setup_seconds = time.perf_counter() - t_setup
-    infos = fit_batched(scenes, trains, s, device, resume_path, on_step, seed, names)
+    inputs = [fit_inputs(spec, c) for spec, c in zip(scene_specs, capture_dirs, strict=True)]
+    infos = fit_batched(scenes, trains, s, device, resume_path, on_step, seed, names, inputs)
     t_write = time.perf_counter()
     out = []
     for k in range(K):

@@ -10,6 +10,7 @@ ground-truth depth where the dataset has it.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
 import time
@@ -21,7 +22,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 import torch
 
-from tnf.artifacts import write_json
+from tnf.artifacts import MANIFEST, identity, read_json, write_json
 from tnf.cameras import Views, camera_rays, read_views
 from tnf.errors import TnfError
 from tnf.metrics import ssim
@@ -82,6 +83,25 @@ def build_scene(spec: dict[str, Any], views: Views) -> FieldScene:
     return scene
 
 
+def fit_inputs(scene_spec: dict[str, Any], capture_dir: str | os.PathLike[str]) -> dict[str, Any]:
+    """What a fit of ``scene_spec`` to the capture in ``capture_dir`` is made from, as plain data for its resume
+    checkpoint (``SceneFitSystem``'s ``inputs``): ``scene``, the scene's settings, and ``capture``, the identity
+    of the captured images: the capture item's ``config_hash`` (its manifest), or for a folder without a
+    manifest a digest of its files."""
+    folder = Path(capture_dir)
+    manifest = folder / MANIFEST
+    key = read_json(manifest, "manifest").get("config_hash") if manifest.is_file() else None
+    if key:
+        capture = f"item:{key}"
+    else:
+        digest = hashlib.sha256()
+        for f in sorted(p for p in folder.rglob("*") if p.is_file()):
+            digest.update(f.relative_to(folder).as_posix().encode() + b"\0")
+            digest.update(hashlib.sha256(f.read_bytes()).digest())
+        capture = f"files:{digest.hexdigest()[:16]}"
+    return {"scene": identity(scene_spec), "capture": capture}
+
+
 def use_kernel(model: Any, settings: FitSettings) -> None:
     """Set the hash encoding of ``model`` (a hash-grid scene) to train by Warp kernels when
     ``settings.train_kernel`` is on; a TnfError when it is on for a scene without one (nerf)."""
@@ -104,14 +124,17 @@ def fit_scene(
     resume_path: str | os.PathLike[str] | None = None,
     on_step: Callable[[int, float], None] | None = None,
     seed: int = 0,
+    inputs: Any = None,
 ) -> dict[str, Any]:
     """Train ``scene`` on ``views`` in place; returns ``{"steps", "train_seconds", "final_loss", "log"}``.
 
     A ``lightning.Trainer`` runs ``tnf.scenes.system.SceneFitSystem`` for ``steps`` steps of ``batch_rays``
     random rays on ``device`` (``cpu``, ``cuda``, ``cuda:N``). ``resume_path``: a checkpoint file written
     atomically every ``checkpoint_every`` steps (scene, optimiser, scheduler, step, loss log, training
-    seconds); when one of a fit with the same settings exists, training resumes from it and ends exactly as
-    an uninterrupted fit would. It is removed when training completes. ``on_step(step, loss)`` is called
+    seconds); when one of a fit with the same inputs and settings exists, training resumes from it and ends
+    exactly as an uninterrupted fit would; another is removed, with a warning that says why. It is removed
+    when training completes. ``inputs``: what the fit is made from (``fit_inputs``), which the checkpoint
+    must match; None checks only the settings, ray count and tensor shapes. ``on_step(step, loss)`` is called
     after every step (progress bars). ``train_seconds``: wall time of the training steps (all parts of a
     resumed fit). ``log``: ``{"step", "loss"}`` every ``log_every`` steps and at the last. The scene ends on
     ``device`` in eval mode. A NaN or infinite loss raises ``tnf.errors.NonFiniteLoss`` naming the step.
@@ -122,7 +145,7 @@ def fit_scene(
 
     s = settings.resolved(kind)
     use_kernel(scene, s)
-    system = SceneFitSystem(scene, views, s, seed=seed, resume_path=resume_path, on_step=on_step)
+    system = SceneFitSystem(scene, views, s, seed=seed, resume_path=resume_path, on_step=on_step, inputs=inputs)
     resume = Path(resume_path) if resume_path else None
     ckpt_path = None
     if resume is not None and resume.is_file():
@@ -292,7 +315,8 @@ def fit_object(
         cast(Any, scene).carve(*train.cameras(), train.rgba()[..., 3])
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    info = fit_scene(scene, train, settings, kind, device, resume_path, on_step, seed)
+    inputs = fit_inputs(scene_spec, capture_dir)
+    info = fit_scene(scene, train, settings, kind, device, resume_path, on_step, seed, inputs)
     return write_fit(scene, kind, train, capture_dir, out_dir, settings, info, device, size_m)
 
 

@@ -41,16 +41,20 @@ class FitSettings:
     """Learning rate at the last step as a fraction of lr (exponential decay)."""
     random_background: bool = FROM_YAML
     """Composite each training ray's RGBA target over a random colour (teaches empty space to be empty)."""
-    checkpoint_every: int = FROM_YAML
-    """Steps between resumable checkpoints (0: none)."""
+    checkpoint_every: int = yaml_field(identity=False)
+    """Steps between resumable checkpoints (0: none). Not part of a scene's identity: a resumed fit ends exactly
+    as an uninterrupted one, however often it saved."""
     eval_views: int | None = FROM_YAML
     """Held-out views to evaluate (null: all of transforms_test.json)."""
     preview_views: int = FROM_YAML
     """Held-out views shown in preview.png."""
-    chunk: int | None = FROM_YAML
-    """Rays per rendering chunk during evaluation (bounds memory); null: the scene kind's default."""
-    log_every: int = FROM_YAML
-    """Steps between loss records in the training log."""
+    chunk: int | None = yaml_field(identity=False)
+    """Rays per rendering chunk during evaluation (bounds memory); null: the scene kind's default. Not part of a
+    scene's identity: the fitted scene does not depend on it, the held-out renders (metrics, preview) by float
+    rounding only (pixels within 1e-6 of each other on the CPU, equal metrics)."""
+    log_every: int = yaml_field(identity=False)
+    """Steps between loss records in the training log (metrics.json's ``train_log``). Not part of a scene's
+    identity: it changes only how densely the log samples the loss, not the fit."""
     carve: bool = FROM_YAML
     """Start the occupancy grid from the visual hull of the training views' alpha masks (skips empty space)."""
     distortion_weight: float = FROM_YAML

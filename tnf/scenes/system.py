@@ -29,7 +29,8 @@ from tnf.scenes.render import FieldScene, composite
 from tnf.scenes.settings import FitSettings
 
 #: Version of the resume checkpoint's ``tnf`` entry; a checkpoint of another version is not resumed from.
-RESUME_FORMAT = 1
+#: 2: the fingerprint holds the fit's inputs (``inputs``), which checkpoints of version 1 do not record.
+RESUME_FORMAT = 2
 
 
 class Steps:
@@ -69,6 +70,10 @@ class SceneFitSystem(L.LightningModule):
         resume_path: where to write a resumable checkpoint every ``settings.checkpoint_every`` steps; None
             writes none.
         on_step: called as ``on_step(step, loss)`` after every step (0-based step; the last recorded loss).
+        inputs: what the fit is made from, as plain data (``tnf.scenes.fit.fit_inputs``: the identity of the
+            captured images and the scene's settings); part of the resume checkpoint's ``fingerprint``, so that
+            a checkpoint of other inputs is not resumed from. None: the caller vouches that ``views`` and
+            ``scene`` are those of any checkpoint at ``resume_path``.
     """
 
     def __init__(
@@ -79,6 +84,7 @@ class SceneFitSystem(L.LightningModule):
         seed: int = 0,
         resume_path: str | os.PathLike[str] | None = None,
         on_step: Callable[[int, float], None] | None = None,
+        inputs: Any = None,
     ):
         super().__init__()
         self.automatic_optimization = False
@@ -90,6 +96,7 @@ class SceneFitSystem(L.LightningModule):
         self.seed = seed
         self.resume_path = Path(resume_path) if resume_path is not None else None
         self.on_step = on_step
+        self.inputs = inputs
         o, d, _ = camera_rays(*views.cameras(), views.width, views.height)
         # Plain attributes, not buffers: they are no part of a checkpoint and Lightning's teardown need not
         # copy them back to the CPU. on_fit_start moves them to the device.
@@ -108,8 +115,10 @@ class SceneFitSystem(L.LightningModule):
 
     @property
     def fingerprint(self) -> dict[str, Any]:
-        """What a resume checkpoint must match to be resumed from: the training settings, the seed, the
-        number of rays and the shapes of the scene's tensors."""
+        """What a resume checkpoint must match to be resumed from: the fit's inputs (``inputs``: the captured
+        images' identity and the scene's settings), the training settings, the seed, the number of rays and
+        the shapes of the scene's tensors. Settings that do not change the fitted scene (``checkpoint_every``,
+        ``log_every``, ``chunk``, the evaluation's) are left out."""
         s = self.settings
         return {
             "steps": self.steps,
@@ -121,6 +130,7 @@ class SceneFitSystem(L.LightningModule):
             "distortion_start": s.distortion_start,
             **({"train_kernel": True} if s.train_kernel else {}),
             "seed": self.seed,
+            "inputs": self.inputs,
             "rays": self.num_rays,
             "shapes": {k: list(v.shape) for k, v in self.scene.state_dict().items()},
         }
@@ -248,8 +258,9 @@ class SceneFitSystem(L.LightningModule):
             self._loss = float(self.loss_log[-1]["loss"])
 
     def resumable(self, path: Path) -> tuple[bool, str]:
-        """Whether the checkpoint at ``path`` can be resumed from (written by a fit with these settings and
-        this seed, scene and capture), and if not why."""
+        """Whether the checkpoint at ``path`` can be resumed from, and if not why: it must have been written by
+        this tnf version's fit with the same ``fingerprint`` (inputs, training settings, seed, ray count and
+        tensor shapes). With ``inputs`` None nothing checks that the checkpoint was made from these views."""
         try:
             ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
         except Exception as e:  # torch raises several types for files that are not checkpoints
@@ -257,8 +268,9 @@ class SceneFitSystem(L.LightningModule):
         meta = ckpt.get("tnf") if isinstance(ckpt, dict) else None
         if not isinstance(meta, dict) or meta.get("kind") != "scene_fit" or meta.get("format") != RESUME_FORMAT:
             return False, "written by another tnf version"
-        if meta.get("fit") != self.fingerprint:
-            return False, "written by a fit with other settings"
+        fit = meta.get("fit")
+        if fit != self.fingerprint:
+            return False, other_inputs(fit, self.fingerprint) or "written by a fit with other settings"
         return True, ""
 
 
@@ -271,3 +283,18 @@ def lightning_device(device: str) -> tuple[str, int | list[int]]:
     if dev.type == "cuda":
         return "gpu", [dev.index if dev.index is not None else torch.cuda.current_device()]
     raise TnfError(f"device must be cpu, cuda or cuda:N, got {device!r}")
+
+
+def other_inputs(old: Any, new: dict[str, Any]) -> str | None:
+    """Why a checkpoint of fingerprint ``old`` was made from other inputs than a fit of fingerprint ``new``
+    (``inputs`` as ``fit_inputs`` makes them: ``capture``, ``scene``); None when the inputs are the same or
+    unknown."""
+    a = old.get("inputs") if isinstance(old, dict) else None
+    b = new.get("inputs")
+    if not isinstance(a, dict) or not isinstance(b, dict) or a == b:
+        return None
+    if a.get("capture") != b.get("capture"):
+        return "made from other captured images"
+    if a.get("scene") != b.get("scene"):
+        return "made with other scene settings"
+    return "made from other inputs"
