@@ -148,6 +148,17 @@ def test_a_checkpoint_of_an_earlier_cache_version_is_refused_in_one_line(trained
     assert "\n" not in str(e.value)
 
 
+def test_a_checkpoint_of_a_plugin_not_installed_names_the_package(trained, tmp_path):
+    run_dir, _, _ = trained
+    ckpt = torch.load(run_dir / "last.ckpt", weights_only=True)
+    assert ckpt["tnf"]["origin"] == "tnf"  # the distribution that registers the generator
+    ckpt["tnf"]["generator"]["name"] = "tiny_p2p"
+    ckpt["tnf"]["origin"] = "tnf-tiny"
+    torch.save(ckpt, tmp_path / "plugin.ckpt")
+    with pytest.raises(TnfError, match=r"generator 'tiny_p2p' of the package 'tnf-tiny', .*pip install tnf-tiny"):
+        load_generator(tmp_path / "plugin.ckpt")
+
+
 def test_resume_continues_from_last(tmp_path):
     run_dir = tmp_path / "run"
     _, s1 = train(run_dir, epochs=1)

@@ -283,6 +283,8 @@ class GeneratorSystem(L.LightningModule):
             "kind": "generator",
             "generator": dict(self.hparams["generator"]),
             "tnf_version": __version__,
+            # The distribution that registers the generator: a plugin's, named when it is not installed.
+            "origin": GENERATORS.entry(self.generator_name).origin,
         }
 
     @classmethod
@@ -310,6 +312,12 @@ class GeneratorSystem(L.LightningModule):
         spec = {**saved, **dict(generator_overrides or {})}
         if expected is not None and spec.get("name") != expected:
             raise TnfError(f"checkpoint {path} holds generator {spec.get('name')!r}, expected {expected!r}")
+        origin = meta.get("origin")
+        if spec.get("name") not in GENERATORS and origin:
+            raise TnfError(
+                f"checkpoint {path} holds generator {spec.get('name')!r} of the package {origin!r}, which is not "
+                f"installed here; install it (pip install {origin}) to load the model"
+            )
         hp = {k: v for k, v in ckpt.get("hyper_parameters", {}).items() if k != "generator"}
         hp.update(kw)
         system = cls(spec, **hp)
