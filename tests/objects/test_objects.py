@@ -213,3 +213,26 @@ def test_a_source_that_loads_a_scene_is_one_line():
 
     with pytest.raises(TnfError, match=r"loaded a trimesh\.scene\.scene\.Scene, not a trimesh\.Trimesh; .*to_geometry"):
         SceneSource().load("pair")
+
+
+@pytest.mark.parametrize(
+    ("names", "error"),
+    [
+        ([], r"object source 'listing' lists no objects \(its names\(\) is empty\)"),
+        ([1, "b"], r"object source 'listing': names\(\) must return a list of non-empty strings, got 1, 'b'"),
+        ("ab", r"names\(\) must return a list of non-empty strings, got 'ab'"),
+    ],
+)
+def test_a_source_whose_names_are_wrong_is_one_line(monkeypatch, names, error):
+    """Before any selection: a source that lists nothing is not 'object_names is empty', and names that are not
+    strings are not a TypeError deep in the selection."""
+    from tnf.objects import ObjectSource
+
+    class Listing(ObjectSource):
+        def names(self):
+            return names
+
+    monkeypatch.setattr(OBJECTS, "build", lambda spec: Listing())
+    for object_names in (None, ["b"]):
+        with pytest.raises(TnfError, match=error):
+            select("listing", object_names)

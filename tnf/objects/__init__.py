@@ -264,6 +264,13 @@ def select(
     source = OBJECTS.build(spec)
     source.name = split_spec(spec, "objects")[0]
     available = source.names()
+    if not isinstance(available, list | tuple) or not all(isinstance(n, str) and n for n in available):
+        raise TnfError(
+            f"object source {source.name!r}: names() must return a list of non-empty strings, got "
+            f"{_short_list([repr(n) for n in available]) if isinstance(available, list | tuple) else repr(available)}"
+        )
+    if not available:
+        raise TnfError(f"object source {source.name!r} lists no objects (its names() is empty)")
     if single not in (None, ""):
         wanted: Sequence[str] = [str(single)]
     elif object_names is not None:
