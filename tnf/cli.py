@@ -309,7 +309,9 @@ def _combinations(overrides: list[str]) -> list[list[str]]:
 
 
 def _missing_option(e: Exception, overrides: Sequence[str]) -> str:
-    """``generator=foo: no such option; options: ...`` from Hydra's missing-config error."""
+    """``generator=foo: no such option; options: ...`` from Hydra's missing-config error; an option registered
+    without its YAML names the fix."""
+    import difflib
     import re
 
     m = re.search(r"Could not find '([^']+)'", str(e))
@@ -319,7 +321,18 @@ def _missing_option(e: Exception, overrides: Sequence[str]) -> str:
     given = next((o for o in overrides if o.lstrip("+~").split("=")[0].lstrip("/") == group), f"{group}={option}")
     if not group:
         return f"no config {missing!r}"
-    return f"{given}: no such {group}; options: {', '.join(options) if options else '(none)'}"
+    listed = f"options: {', '.join(options) if options else '(none)'}"
+    from tnf.registry import REGISTRIES
+
+    registry = REGISTRIES.get(group)
+    if registry is not None and option in registry:  # registered, but no YAML joined the config group
+        origin = registry.entry(option).origin
+        return (
+            f"{given}: {group} {option!r} is registered by {origin} but has no {group}/{option}.yaml; "
+            f"{origin} needs a tnf.conf entry point naming the package of its YAML files (docs/plugins.md); {listed}"
+        )
+    close = difflib.get_close_matches(option, options, n=1, cutoff=0.6)
+    return f"{given}: no such {group}" + (f" (did you mean {group}={close[0]}?)" if close else "") + f"; {listed}"
 
 
 def _choices_only(compose: Callable[..., Any], name: str, stage: str, overrides: Sequence[str]) -> Any:

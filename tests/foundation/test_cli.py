@@ -108,7 +108,10 @@ def test_multirun_runs_each_job(echo_stage, data_root):
     "override, expected",
     [
         ("generator=foo", "error: generator=foo: no such generator; options: cyclegan, lee, tn_cgan"),
-        ("sensor=gelsigth_mini", "error: sensor=gelsigth_mini: no such sensor; options: digit, gelsight_mini"),
+        (
+            "sensor=gelsigth_mini",
+            "error: sensor=gelsigth_mini: no such sensor (did you mean sensor=gelsight_mini?); options: digit",
+        ),
         ("trian.epochs=1", "error: trian.epochs: no such setting; did you mean train.epochs?"),
         ("sensor.widht=3", "error: sensor.widht: no such setting; did you mean sensor.width?"),
         (
@@ -132,6 +135,25 @@ def test_hydra_config_errors_are_one_line(override, expected, capsys, tmp_path, 
     assert len(err) == 1 and err[0].startswith(expected), err
     assert "+sensor" not in err[0]
     assert not (tmp_path / "logs").exists()  # refused before Hydra made its run folder
+
+
+def test_a_registered_option_without_its_yaml_names_the_conf_entry_point(capsys, tmp_path, monkeypatch):
+    """A plugin that forgot its tnf.conf entry point: `tnf list` shows its sensor, and `sensor=NAME` says why it
+    cannot be chosen rather than that there is no such sensor."""
+    from tnf.registry import SENSORS, Entry
+
+    SENSORS.names()  # discovered: the entry below joins them
+    monkeypatch.setitem(SENSORS._entries, "tiny", Entry("tiny", object, "tnf-tiny"))
+    monkeypatch.setenv("TNF_DATA", str(tmp_path))
+    assert main(["train", "sensor=tiny"]) == 1
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .startswith(
+            "error: sensor=tiny: sensor 'tiny' is registered by tnf-tiny but has no sensor/tiny.yaml; tnf-tiny needs a "
+            "tnf.conf entry point naming the package of its YAML files (docs/plugins.md); options: digit"
+        )
+    )
 
 
 @pytest.mark.parametrize(
