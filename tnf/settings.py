@@ -266,6 +266,11 @@ def yaml_defaults(
         where = f"{path}" + (f" ({node})" if node else "")
         if "__dataclass_fields__" in cls.__dict__:  # its __init__ keeps FROM_YAML as every default
             raise TnfError(f"{where}: {cls.__qualname__} is a dataclass already; put @yaml_defaults under @dataclass")
+        if conf is None and not path.is_file() and cls.__module__.split(".")[0] != "tnf":
+            raise TnfError(
+                f"{path}: no such file; {cls.__module__}.{cls.__qualname__} is not tnf's own, so give its package's "
+                f'folder: @yaml_defaults({option!r}, conf=Path(__file__).parent / "conf")'
+            )
         values = _yaml_values(path, node, where)  # interpolations still as written
         hints = typing.get_type_hints(cls)
         own = inspect.get_annotations(cls)

@@ -170,6 +170,17 @@ def test_a_missing_file_is_named(tmp_path):
         yaml_defaults("nothing", conf=tmp_path)(Config)
 
 
+def test_a_plugin_config_without_conf_is_told_to_give_its_folder():
+    """A plugin's Config that leaves out ``conf=`` is looked up in tnf's own conf/: the error says to pass its
+    package's folder, not only that tnf's file is missing."""
+
+    class Config:
+        size: int = FROM_YAML
+
+    with pytest.raises(TnfError, match=r"tiny_p2p\.yaml: no such file; .*Config is not tnf's own, so give its package"):
+        yaml_defaults("generator/tiny_p2p")(Config)
+
+
 def test_a_field_left_from_yaml_without_a_value_stops_the_import(tmp_path, monkeypatch):
     """A Config module whose YAML lacks one of its fields fails to import, with the one line naming file and key."""
     package = tmp_path / "stray_widgets"
