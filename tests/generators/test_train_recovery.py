@@ -35,11 +35,12 @@ class Probe(Callback):
     def __init__(self):
         self.batches = []
         self.stop_at = None
+        self.sig = signal.SIGINT
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         self.batches.append((trainer.current_epoch, batch_idx))
         if self.batches[-1] == self.stop_at:
-            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(self.sig)
 
 
 @pytest.fixture
@@ -51,8 +52,10 @@ def probe(monkeypatch):
     monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
     p, build = Probe(), callbacks.build_callbacks
     monkeypatch.setattr(callbacks, "build_callbacks", lambda cfg=None: [*build(cfg), p])
+    sigterm = signal.getsignal(signal.SIGTERM)
     yield p
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, sigterm)
 
 
 # Two training batches of 4 pairs per epoch (8 training pairs of 12), two epochs.
@@ -81,6 +84,22 @@ def test_ctrl_c_during_training_is_an_interruption_and_the_same_command_resumes(
     # Each step's training losses once and each epoch's validation once, as in an uninterrupted run.
     assert [int(r["step"]) for r in rows if r["train/loss_g_step"]] == [0, 1, 2, 3]
     assert [int(r["epoch"]) for r in rows if r["val_l1"]] == [0, 1]
+
+
+def test_sigterm_during_training_is_an_error_not_success_and_the_same_command_resumes(data_root, probe, capsys):
+    """A scheduler stops a job with SIGTERM: Lightning ends the fit with exit status 0, which tnf turns into its
+    one-line error (exit 1), so that the job is not taken for finished."""
+    write_pairs(data_root / "pairs" / "digit-hashgrid", n=12)
+    run_dir = data_root / "models" / "run"
+    probe.stop_at, probe.sig = (1, 1), signal.SIGTERM
+    rc, _, errors = tnf(capsys, *TRAIN)
+    assert rc == 1 and len(errors) == 1
+    assert errors[0].startswith("error: training stopped by SIGTERM; the last good checkpoint is ")
+    assert not (run_dir / "manifest.json").exists()
+    probe.batches, probe.stop_at = [], None
+    rc, _, errors = tnf(capsys, *TRAIN)
+    assert (rc, errors) == (0, []) and (run_dir / "manifest.json").is_file()
+    assert probe.batches[0][0] == 1  # resumed after epoch 0
 
 
 def test_a_finished_run_without_its_best_checkpoint_is_trained_again(data_root, probe, capsys):

@@ -315,7 +315,14 @@ def _run(trainer: Any, system: Any, datamodule: Any, ckpt_path: Path | None, run
             # Lightning ends a fit on Ctrl+C (KeyboardInterrupt) with exit(1), after its shutdown (callbacks'
             # on_exception, loggers finalised), and ignores SIGINT from then on. As tnf's own interruption (the
             # one line and exit 130 of the tnf command), with the SIGINT handler put back; last.ckpt is where it
-            # was, so the same command resumes. Any other exit passes on as it is.
+            # was, so the same command resumes. SIGTERM (a scheduler's stop) ends it with status 0, as success:
+            # a tnf error instead. Any other exit passes on as it is.
+            from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+            if isinstance(e, SIGTERMException):
+                raise TnfError(
+                    f"training stopped by SIGTERM; {_last_good(run_dir)}: the same command resumes"
+                ) from None
             if not isinstance(e.__context__, KeyboardInterrupt):
                 raise
             if sigint is not None and threading.current_thread() is threading.main_thread():
