@@ -190,6 +190,11 @@ def test_finetune_stage_from_checkpoint_and_from_scratch(data_root):
 
     with pytest.raises(TnfError, match="finetune.checkpoint"):
         finetune.run(compose("finetune", [*ft, "finetune.checkpoint=nope"]))
+    # A finished fine-tune whose best.ckpt is gone is fine-tuned again, not skipped.
+    assert finetune.run(compose("finetune", ft)).get("skipped")
+    (data_root / "models" / scratch["run_name"] / "best.ckpt").unlink()
+    again = finetune.run(compose("finetune", ft))
+    assert not again.get("skipped") and (data_root / "models" / scratch["run_name"] / "best.ckpt").is_file()
 
 
 def test_finetune_on_per_object_touches_and_extra_ones_records_its_pairs(data_root, capsys):

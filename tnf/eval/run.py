@@ -224,7 +224,10 @@ def image_metrics(
     pairs = resolve_dataset(str(dataset), job.data_root)
     ckpt = store.path("models", str(ecfg.model), ecfg.checkpoint)
     if not ckpt.is_file():
-        raise TnfError(f"checkpoint not found: {ckpt}; train it with `tnf train` or check evaluate.model/checkpoint")
+        raise TnfError(
+            f"checkpoint not found: {ckpt}; train it with `tnf train` (train.force=true trains it again) or check "
+            "evaluate.model/checkpoint"
+        )
     with timer.phase("load_model"):
         generate, uses_force, fixed_force = _model_images(job, ckpt, pairs, device, bar)
     out: dict[str, Any] = {}
