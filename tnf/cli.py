@@ -20,7 +20,7 @@ from tnf.artifacts import clean, data_root
 from tnf.env import PRIMARY_CONFIG, conf_dir, stage_choices, stage_overrides
 from tnf.errors import TnfError
 from tnf.listing import print_components
-from tnf.runtime import available_memory
+from tnf.runtime import available_memory, interrupts_held
 from tnf.stages.settings import check_components, check_settings, check_sizes
 
 # name -> one line of help. Order is the pipeline's order; COMMANDS are not Hydra apps.
@@ -64,6 +64,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if stage not in STAGES:
             raise TnfError(f"unknown stage {stage!r}; stages: {', '.join(STAGES)} (see tnf --help)")
+        if stage != "clean":
+            with interrupts_held():  # trimesh swallows a Ctrl-C during its import (and imports networkx halfway)
+                import trimesh  # noqa: F401
         if stage == "list":
             print_components()
             return 0

@@ -14,6 +14,32 @@ import tnf
 from tnf.errors import TnfError
 
 
+@contextlib.contextmanager
+def interrupts_held() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) while the body runs; one pressed meanwhile arrives as a KeyboardInterrupt when it
+    ends. For imports that catch ``BaseException`` around their optional parts (trimesh's): a Ctrl-C inside them
+    is otherwise swallowed, and leaves a module half imported. The press is noted by a handler of its own, which
+    Python runs in the main thread whichever thread the signal reaches. Outside the main thread, or under a
+    handler other than Python's default, it holds nothing."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.getsignal(signal.SIGINT)
+    if old is not signal.default_int_handler:
+        yield
+        return
+    pressed: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: pressed.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+    if pressed:
+        raise KeyboardInterrupt
+
+
 def resolve_device(name: str = "auto") -> str:
     """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``; ``cpu``/``cuda``/``cuda:N`` pass through."""
     import torch
