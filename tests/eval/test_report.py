@@ -424,6 +424,35 @@ def test_tnf_evaluate_keeps_one_models_row_from_another_models_results(data_root
     assert json.loads(row.read_text())["model"] == "first"
 
 
+def test_a_model_trained_on_its_data_made_again_replaces_its_row(data_root, capsys):
+    """After an upstream change the same settings train a new run on the datasets made again: its row replaces the
+    old model's, with a line that says so. A model with other settings of its own is still refused."""
+    from tnf.errors import TnfError
+    from tnf.generators.names import RUN_FILE
+    from tnf.stages.evaluate import run
+
+    config = {"generator": {"name": "tn_cgan", "ngf": 8}, "datasets": {"digit-hashgrid": "aaaa"}, "seed": 0}
+    runs = {
+        "old": config,
+        "rebuilt": {**config, "datasets": {"digit-hashgrid": "bbbb"}},
+        "wider": {**config, "generator": {"name": "tn_cgan", "ngf": 16}, "datasets": {"digit-hashgrid": "cccc"}},
+    }
+    for name, c in runs.items():
+        _touch_data(data_root, generated_run=name)
+        (data_root / "models" / name).mkdir(parents=True)
+        (data_root / "models" / name / RUN_FILE).write_text(json.dumps({"config": c, "config_hash": name}))
+    over = ["debug=tiny", "progress=false", "device=cpu", "evaluate.splits=[]", "evaluate.classifier.steps=4", "seed=0"]
+    row = data_root / "reports/tiny/runs/main_T-N_seed0/results.json"
+    run(compose("evaluate", [*over, "evaluate.model=old"]))
+    capsys.readouterr()
+    run(compose("evaluate", [*over, "evaluate.model=rebuilt"]))
+    assert json.loads(row.read_text())["model"] == "rebuilt"
+    assert "T-N seed 0: the results of model 'old' replaced by those of 'rebuilt'" in capsys.readouterr().out
+    with pytest.raises(TnfError, match="already holds T-N seed 0 from model 'rebuilt'"):
+        run(compose("evaluate", [*over, "evaluate.model=wider"]))
+    assert json.loads(row.read_text())["model"] == "rebuilt"
+
+
 def test_parallel_jobs_rebuild_the_report_one_at_a_time(data_root, capsys):
     """Jobs of a sweep each rebuild the report from every run present. A rebuild waits while another job holds
     the report (writing its run, then its own rebuild), so the report written last lists that job's run too."""

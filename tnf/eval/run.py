@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 import logging
 import re
 import shutil
@@ -58,14 +59,24 @@ def run_id(r: Mapping[str, Any]) -> str:
     return re.sub(r"[^A-Za-z0-9_.+-]", "_", raw)
 
 
-def check_not_another_models(results_file: Path, model: str, method: str, seed: Any, force: bool) -> None:
+def check_not_another_models(
+    results_file: Path, model: str, method: str, seed: Any, force: bool, models: Path | None = None
+) -> str | None:
     """A report holds one run per table, row label and seed: refuse to replace another model's results there
     (two models evaluated with the same label and seed, as a sweep over a generator setting would, would
-    otherwise leave only the last one's numbers, silently). ``evaluate.force`` replaces them."""
+    otherwise leave only the last one's numbers, silently). ``evaluate.force`` replaces them. So does a model
+    whose settings (``models/<run>/run.json``, ``models``: the store's model folder) differ from the other's in
+    the content of their datasets only (the data made again after an upstream change): then the line returned
+    says so. None when nothing is replaced."""
 
     if force or not results_file.is_file():
-        return
+        return None
     other = load_results([results_file])[0].get("model")
+    if other is not None and other != model and models is not None and _data_rebuilt(models, str(other), model):
+        return (
+            f"{method} seed {seed}: the results of model {other!r} replaced by those of {model!r}, the same settings "
+            "trained on its datasets made again"
+        )
     if other is not None and other != model:
         raise TnfError(
             f"report {results_file.parents[2].name!r} already holds {method} seed {seed} from model {other!r}; "
@@ -73,6 +84,26 @@ def check_not_another_models(results_file: Path, model: str, method: str, seed: 
             "over a generator setting, a label naming that setting), its own report (evaluate.name=...), or "
             "replace it (evaluate.force=true)"
         )
+
+
+def _data_rebuilt(models: Path, old: str, new: str) -> bool:
+    """Whether model runs ``old`` and ``new`` under ``models`` have the same settings but for their datasets'
+    content (the ``datasets`` hashes of their ``run.json``); False when either record is missing or unreadable."""
+    from tnf.generators.names import RUN_FILE
+
+    configs = []
+    for run in (old, new):
+        try:
+            configs.append(json.loads((models / run / RUN_FILE).read_text())["config"])
+        except (OSError, ValueError, TypeError, KeyError):
+            return False
+    a, b = configs
+    if not isinstance(a, dict) or not isinstance(b, dict) or set(a) != set(b) or "datasets" not in a:
+        return False
+    same_names = (
+        isinstance(a["datasets"], dict) and isinstance(b["datasets"], dict) and set(a["datasets"]) == set(b["datasets"])
+    )
+    return same_names and all(a[k] == b[k] for k in a if k != "datasets")
 
 
 def collect_sweep(sweep_dir: str, runs_dir: Path, force: bool) -> int:

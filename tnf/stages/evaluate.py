@@ -62,7 +62,9 @@ def run(cfg: Any) -> dict[str, Any]:
         chash = config_hash(identity_config(cfg))
         folder = runs_dir / run_id({"table": ecfg.table, "method": method, "seed": cfg.seed})
         old = folder / RESULTS_FILE
-        check_not_another_models(old, str(ecfg.model), method, cfg.seed, force)
+        replaced = check_not_another_models(old, str(ecfg.model), method, cfg.seed, force, store.path("models"))
+        if replaced:
+            console.print(replaced, markup=False)
         if not force and old.is_file() and load_results([old])[0].get("config_hash") == chash:
             console.print(
                 f"{method} seed {cfg.seed}: results exist with the same settings, skipped (evaluate.force=true)"
@@ -75,7 +77,7 @@ def run(cfg: Any) -> dict[str, Any]:
             results["config_hash"] = chash
             # Again: a job beside this one (a sweep, parallel runs) may have written this row meanwhile. Nothing
             # of this run is in the row's folder until here, so a refused run leaves the other model's intact.
-            check_not_another_models(old, str(ecfg.model), method, cfg.seed, force)
+            check_not_another_models(old, str(ecfg.model), method, cfg.seed, force, store.path("models"))
             with timer.phase("write"):
                 if examples_png is not None:
                     write_bytes(folder / str(results["examples"]), examples_png)
