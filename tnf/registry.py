@@ -213,8 +213,19 @@ class Registry:
         """
         name, params = split_spec(spec, self.kind)
         cfg = self.config(name, params)
-        obj = self.get(name)(cfg, **kwargs)
-        return obj
+        entry = self.entry(name)
+        try:
+            return entry.obj(cfg, **kwargs)
+        except TnfError:
+            raise
+        except Exception as e:  # a plugin's own failure: one line naming it (tnf's own keep their traceback)
+            if entry.origin == IN_TREE:
+                raise
+            first = (str(e).splitlines() or [""])[0][:300]
+            raise TnfError(
+                f"{self.kind} {name!r} ({_where(entry.obj, entry.origin)}) failed to build: {type(e).__name__}: "
+                f"{first} (HYDRA_FULL_ERROR=1 shows the traceback)"
+            ) from e
 
 
 def split_spec(spec: Mapping[str, Any] | str, kind: str = "component") -> tuple[str, dict[str, Any]]:

@@ -315,3 +315,26 @@ class HalfSource(ObjectSource):
 
     def names(self):
         return ["a"]
+
+
+class BrokenSensor:
+    """A plugin sensor whose constructor fails."""
+
+    @dataclass
+    class Config:
+        width: int = 4
+
+    def __init__(self, cfg):
+        raise ValueError("lookup table missing\nsecond line")
+
+
+def test_a_plugin_component_that_fails_to_build_is_one_line_naming_it(monkeypatch):
+    monkeypatch.setattr(md, "entry_points", fake_entry_points({"tnf.sensors": {"broken": f"{__name__}:BrokenSensor"}}))
+    reg = Registry("sensor", "tnf.sensors")
+    with pytest.raises(TnfError) as e:
+        reg.build("broken")
+    assert str(e.value) == (
+        f"sensor 'broken' ({__name__}.BrokenSensor (from tnf-fake)) failed to build: ValueError: lookup table "
+        "missing (HYDRA_FULL_ERROR=1 shows the traceback)"
+    )
+    assert isinstance(e.value.__cause__, ValueError)
