@@ -31,7 +31,7 @@ timed() {  # timed NAME CMD...: run, log to $OUT/NAME.log, append the wall time 
 chosen() {  # the force input that decide wrote (plane until it has run)
   cat "$force/force_input.txt" 2>/dev/null || echo plane
 }
-case "$1" in
+case "${1:-}" in
   data)
     TNF_DATA=$paper bash "$here/paper_runs.sh" digit-scenes
     mkdir -p "$force"
@@ -113,5 +113,5 @@ PY
       [[ -f $run/metrics.csv ]] && mkdir -p "$OUT/metrics" && cp "$run/metrics.csv" "$OUT/metrics/$(basename "$run").csv"
     done
     ;;
-  *) echo "unknown phase $1" >&2; exit 2 ;;
+  *) echo "usage: force_runs.sh PHASE; phases: data models decide report (got '${1:-}')" >&2; exit 2 ;;
 esac

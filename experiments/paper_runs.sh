@@ -55,7 +55,7 @@ pair_stage() {  # tnf pair, timed; with PROFILE=1 under cProfile (the top functi
     timed pair tnf pair "${digit[@]}"
   fi
 }
-case "$1" in
+case "${1:-}" in
   bench)
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/hardware.txt"
     python -c "import torch, warp, lightning; print('torch', torch.__version__, 'warp', warp.__version__, 'lightning', lightning.__version__)" | tee -a "$out/hardware.txt"
@@ -190,5 +190,5 @@ PY
     tnf evaluate experiment=sim_omnitact_transfer "${dev[@]}" 2>&1 | tee "$out/report_transfer.log" || true
     tar czf "$out/reports.tgz" -C "$TNF_DATA/reports" .
     ;;
-  *) echo "unknown phase $1" >&2; exit 2 ;;
+  *) echo "usage: paper_runs.sh PHASE; phases: bench digit-data digit-scenes digit-pairs digit-models transfer train-scaling report (got '${1:-}')" >&2; exit 2 ;;
 esac
