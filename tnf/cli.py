@@ -112,6 +112,10 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
         app()
     except SystemExit as e:
         return int(e.code or 0) if not isinstance(e.code, str) else 1
+    except ValueError as e:  # Hydra refuses two modes at once (-m with --cfg) by a bare ValueError
+        if str(e).startswith("Only one of "):
+            raise TnfError(f"{e} (-m runs a sweep; --cfg prints one job's config: give one of them)") from None
+        raise
     finally:
         sys.argv = old
     return 0

@@ -209,3 +209,10 @@ def test_a_bad_generator_setting_is_refused_before_any_stage(data_root, capsys):
     assert main(["train", "debug=tiny", "-m", "generator.ngf=4,0"]) == 1
     assert "generator.tn_cgan: ngf and ndf must be >= 1, got 0" in capsys.readouterr().err
     assert not (data_root / "capture").exists() and not (data_root / "models").exists()
+
+
+def test_a_sweep_with_cfg_is_one_line(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("TNF_DATA", str(tmp_path))
+    assert main(["objects", "-m", "seed=1,2", "--cfg", "job"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: Only one of --run, --multirun") and "give one of them" in err[0]
