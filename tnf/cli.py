@@ -247,9 +247,13 @@ def check_overrides(stage: str, overrides: Sequence[str]) -> None:
     key or a malformed value is one line (a TnfError) instead of Hydra's report with its search path.
 
     A sweep (``-m a=x,y b=z``) is checked one value at a time: each swept value with the others' first values.
-    Hydra's other flags (``--cfg``...) and ``hydra...`` overrides are left to Hydra itself.
+    ``--cfg job`` (printing the config) is checked as a run is; Hydra's other flags and ``hydra...`` overrides are
+    left to Hydra itself.
     """
     multirun = {"-m", "--multirun"}
+    # Printing the config (--cfg job) checks the overrides too; Hydra's other flags are left to Hydra.
+    printing = {"--cfg", "-c", "--resolve", "job", "hydra", "all"}
+    overrides = [o for o in overrides if o not in printing or "=" in o]
     if any((o.startswith("-") and o not in multirun) or o.lstrip("+~").startswith("hydra") for o in overrides):
         return
     from hydra import compose, initialize_config_dir

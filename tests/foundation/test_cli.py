@@ -216,3 +216,12 @@ def test_a_sweep_with_cfg_is_one_line(capsys, tmp_path, monkeypatch):
     assert main(["objects", "-m", "seed=1,2", "--cfg", "job"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: Only one of --run, --multirun") and "give one of them" in err[0]
+
+
+def test_printing_the_config_checks_the_overrides_as_a_run_does(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("TNF_DATA", str(tmp_path))
+    assert main(["train", "trian.epochs=1", "--cfg", "job"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: trian.epochs: no such setting; did you mean train.epochs?"]
+    assert main(["train", "train.epochs=3", "--cfg", "job"]) == 0
+    assert "epochs: 3" in capsys.readouterr().out
