@@ -118,7 +118,16 @@ def run_stage(stage: str, overrides: Sequence[str]) -> int:
         raise
     finally:
         sys.argv = old
+        _forget_hydra_job()
     return 0
+
+
+def _forget_hydra_job() -> None:
+    """Clear the job config Hydra keeps after an app returns (``--cfg job`` leaves one without a run folder), so
+    that code run later in this process (the API, another stage) does not take it for its own Hydra job."""
+    from hydra.core.hydra_config import HydraConfig
+
+    HydraConfig.instance().cfg = None  # type: ignore[assignment]
 
 
 def _hydra_args(stage: str, args: Sequence[str]) -> list[str]:

@@ -225,3 +225,7 @@ def test_printing_the_config_checks_the_overrides_as_a_run_does(capsys, tmp_path
     assert err == ["error: trian.epochs: no such setting; did you mean train.epochs?"]
     assert main(["train", "train.epochs=3", "--cfg", "job"]) == 0
     assert "epochs: 3" in capsys.readouterr().out
+    # and leaves no Hydra job behind that later code in this process would take for its own
+    from hydra.core.hydra_config import HydraConfig
+
+    assert not HydraConfig.initialized()

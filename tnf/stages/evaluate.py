@@ -152,9 +152,12 @@ def _copy_to_hydra_output(folder: Path) -> None:
     """Put the run's results into the Hydra job folder too, so a multirun folder can be aggregated later."""
     try:
         from hydra.core.hydra_config import HydraConfig
+        from omegaconf.errors import OmegaConfBaseException
 
         out = Path(HydraConfig.get().runtime.output_dir)
-    except (ImportError, ValueError):  # not inside a Hydra app (tests, API use)
+    except ImportError:
+        return
+    except (ValueError, OmegaConfBaseException):  # not inside a Hydra app that has a run folder (tests, API use)
         return
     for f in folder.iterdir():
         if f.is_file():
