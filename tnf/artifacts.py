@@ -367,6 +367,19 @@ def _writer_alive(temporary: Path) -> bool:
     return True
 
 
+def files_digest(folder: Path, skip: str | None = None) -> str:
+    """A hash of the names, sizes and modification times of every file under ``folder`` (except the
+    sub-folder ``skip``), without reading them: it changes when any file is written again."""
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        rel = p.relative_to(folder)
+        if not p.is_file() or (skip is not None and rel.parts[0] == skip):
+            continue
+        st = p.stat()
+        h.update(f"{rel.as_posix()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()[:16]
+
+
 @functools.cache
 def _umask() -> int:
     """The process's file-mode creation mask (read once, by setting it and setting it back)."""

@@ -6,6 +6,7 @@ import resource
 import pytest
 import torch
 
+from tests.scenes.stops import Stop, stop_at
 from tnf.cameras import camera_rays, look_at, read_views
 from tnf.errors import TnfError
 from tnf.scenes import load_scene, save_scene
@@ -90,18 +91,6 @@ def test_renders_a_pose_outside_the_training_set(fitted):
     assert err < 0.025, err  # 2.5 cm: a quarter of the sphere's size, after 120 steps on 24 px images
 
 
-class Stop(Exception):
-    pass
-
-
-def _stop_at(step):
-    def on_step(s, loss):
-        if s == step:
-            raise Stop
-
-    return on_step
-
-
 def test_resume_continues_from_the_checkpoint(dataset, tmp_path):
     views = read_views(dataset / "transforms.json")
     resume = tmp_path / "resume.pt"
@@ -109,7 +98,7 @@ def test_resume_continues_from_the_checkpoint(dataset, tmp_path):
     torch.manual_seed(0)
     scene = build_scene(TINY, views)
     with pytest.raises(Stop):
-        fit_scene(scene, views, settings, "hashgrid", resume_path=resume, on_step=_stop_at(7))
+        fit_scene(scene, views, settings, "hashgrid", resume_path=resume, on_step=stop_at(7))
     assert resume.is_file()
     steps = []
     torch.manual_seed(0)
@@ -137,7 +126,7 @@ def test_resumed_fit_equals_an_uninterrupted_fit(dataset, tmp_path):
                 settings,
                 "hashgrid",
                 resume_path=resume,
-                on_step=_stop_at(stop),
+                on_step=stop_at(stop),
                 seed=5,
             )
         assert resume.is_file()
@@ -175,7 +164,7 @@ def test_a_checkpoint_of_other_settings_is_not_resumed_from(dataset, tmp_path, c
     resume = tmp_path / "resume.pt"
     settings = FitSettings(steps=12, batch_rays=64, checkpoint_every=5)
     with pytest.raises(Stop):
-        fit_scene(build_scene(TINY, views), views, settings, "hashgrid", resume_path=resume, on_step=_stop_at(7))
+        fit_scene(build_scene(TINY, views), views, settings, "hashgrid", resume_path=resume, on_step=stop_at(7))
     steps = []
     other = FitSettings(steps=12, batch_rays=64, checkpoint_every=5, lr=1e-3)
     fit_scene(

@@ -6,6 +6,7 @@ import json
 import pytest
 import torch
 
+from tests.scenes.stops import Stop
 from tests.scenes.test_fit import TINY
 from tests.scenes.test_stage import OVERRIDES, _capture
 from tnf.artifacts import identity
@@ -129,10 +130,6 @@ def test_objects_of_very_unequal_sample_counts_each_get_their_own_field(captures
         weights = [m.weight for m in scene.density_net.modules() if isinstance(m, torch.nn.Linear)]
         torch.testing.assert_close(model.density_w[0].grad[k], weights[0].grad, rtol=1e-4, atol=1e-6)
         start += n
-
-
-class Stop(Exception):
-    pass
 
 
 def test_a_group_resumes_from_its_checkpoint_as_if_never_stopped(captures, tmp_path):

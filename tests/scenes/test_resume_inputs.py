@@ -5,6 +5,7 @@ import shutil
 
 import pytest
 
+from tests.scenes.stops import Stop, stop_at
 from tests.scenes.test_fit import TINY
 from tests.scenes.test_stage import OVERRIDES
 from tnf.artifacts import ArtifactStore, identity
@@ -17,18 +18,6 @@ from tnf.testing import compose
 
 # Checkpoints after steps 4 and 9; a fit stopped at step 7 resumes at step 5.
 SETTINGS = FitSettings(steps=12, batch_rays=64, checkpoint_every=5, log_every=4, eval_views=1, preview_views=1)
-
-
-class Stop(Exception):
-    pass
-
-
-def _stop_at(n):
-    def on_step(step, loss):
-        if step == n:
-            raise Stop
-
-    return on_step
 
 
 def _capture(root, name, config, radius=0.05, manifest=True):
@@ -61,7 +50,7 @@ def test_a_checkpoint_of_other_captured_images_is_not_resumed_from(tmp_path, cap
     resume = tmp_path / "resume" / "sphere.pt"
     capture = _capture(tmp_path, "sphere", {"ambient": 0.3}, manifest=manifest)
     with pytest.raises(Stop):
-        _fit(capture, tmp_path / "out", resume, on_step=_stop_at(7))
+        _fit(capture, tmp_path / "out", resume, on_step=stop_at(7))
     assert resume.is_file()
     # Captured again with other settings: other images of the same size (the same rays, the same tensor shapes).
     capture = _capture(tmp_path, "sphere", {"ambient": 0.9}, radius=0.035, manifest=manifest)
@@ -73,7 +62,7 @@ def test_a_checkpoint_of_other_captured_images_is_not_resumed_from(tmp_path, cap
     assert not resume.exists()
     # A checkpoint of these images: resumed.
     with pytest.raises(Stop):
-        _fit(capture, tmp_path / "out", resume, on_step=_stop_at(7))
+        _fit(capture, tmp_path / "out", resume, on_step=stop_at(7))
     caplog.clear()
     with caplog.at_level("WARNING", logger="tnf.scenes.fit"):
         assert _fit(capture, tmp_path / "out", resume) == list(range(5, 12))
@@ -84,7 +73,7 @@ def test_a_checkpoint_of_other_scene_settings_is_not_resumed_from(tmp_path, capl
     resume = tmp_path / "resume.pt"
     capture = _capture(tmp_path, "sphere", {"ambient": 0.3})
     with pytest.raises(Stop):
-        _fit(capture, tmp_path / "out", resume, on_step=_stop_at(7))
+        _fit(capture, tmp_path / "out", resume, on_step=stop_at(7))
     # A finer march: the scene's tensors keep their shapes, its training does not.
     with caplog.at_level("WARNING", logger="tnf.scenes.fit"):
         steps = _fit(capture, tmp_path / "out", resume, spec={**TINY, "samples_per_ray": 64})
@@ -109,7 +98,7 @@ def test_a_group_checkpoint_of_other_captured_images_is_not_resumed_from(tmp_pat
     outs = [tmp_path / "out-a", tmp_path / "out-b"]
     captures = [_capture(tmp_path, "a", {"ambient": 0.3}), _capture(tmp_path, "b", {"ambient": 0.3})]
     with pytest.raises(Stop):
-        _fit_group(captures, outs, resume, on_step=_stop_at(7))
+        _fit_group(captures, outs, resume, on_step=stop_at(7))
     assert resume.is_file()
     captures[1] = _capture(tmp_path, "b", {"ambient": 0.9}, radius=0.035)
     with caplog.at_level("WARNING", logger="tnf.scenes.batched"):
@@ -119,7 +108,7 @@ def test_a_group_checkpoint_of_other_captured_images_is_not_resumed_from(tmp_pat
     assert not resume.exists()
     # The same inputs: resumed.
     with pytest.raises(Stop):
-        _fit_group(captures, outs, resume, on_step=_stop_at(7))
+        _fit_group(captures, outs, resume, on_step=stop_at(7))
     caplog.clear()
     with caplog.at_level("WARNING", logger="tnf.scenes.batched"):
         assert _fit_group(captures, outs, resume) == list(range(5, 12))

@@ -253,12 +253,9 @@ def image_metrics(
     if not dataset:
         raise TnfError("evaluate.dataset is not set: name the paired dataset (under pairs/) with the test splits")
     pairs = resolve_dataset(str(dataset), job.data_root)
-    ckpt = store.path("models", str(ecfg.model), ecfg.checkpoint)
-    if not ckpt.is_file():
-        raise TnfError(
-            f"checkpoint not found: {ckpt}; train it with `tnf train` (train.force=true trains it again) or check "
-            "evaluate.model/checkpoint"
-        )
+    from tnf.generators.names import require_checkpoint
+
+    ckpt = require_checkpoint(store.path("models", str(ecfg.model), ecfg.checkpoint), "evaluate.model")
     with timer.phase("load_model"):
         generate, uses_force, fixed_force = _model_images(job, ckpt, pairs, device, bar)
     out: dict[str, Any] = {}

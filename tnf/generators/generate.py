@@ -28,6 +28,7 @@ from tnf.data.settings import PairSettings
 from tnf.data.store import check_format
 from tnf.errors import TnfError
 from tnf.generators import load_generator
+from tnf.generators.names import require_checkpoint
 from tnf.generators.poses import pose_cone, pose_source, read_poses, sample_poses
 from tnf.generators.settings import GenerateSettings
 from tnf.registry import SENSORS
@@ -109,12 +110,7 @@ def _load_model(job: GenerateJob, store: Any, console: Any) -> _Model:
     g = job.settings
     if not g.model:
         raise TnfError("generate.model is not set: name a trained run under models/ (see `tnf train`)")
-    ckpt = store.path("models", g.model) / g.checkpoint
-    if not ckpt.is_file():
-        raise TnfError(
-            f"checkpoint not found: {ckpt}; train it with `tnf train` (train.force=true trains it again) or check "
-            "generate.model/checkpoint"
-        )
+    ckpt = require_checkpoint(store.path("models", g.model) / g.checkpoint, "generate.model")
     device = resolve_device(job.device)
     system = load_generator(ckpt, device)
     hp = system.hparams["generator"]

@@ -133,3 +133,14 @@ def new_run_note(models: Path, name: str, config: Mapping[str, Any]) -> str | No
         if isinstance(old, Mapping) and (diff := settings_diff(old, identity(config))):
             return f"a new run: {run_file.parent.name} has other settings ({diff})"
     return None
+
+
+def require_checkpoint(path: Path, setting: str) -> Path:
+    """``path``, a model run's checkpoint, when it exists; else a one-line TnfError naming how to make it and
+    ``setting`` (``generate.model``, ``evaluate.model``), the setting that chose it."""
+    if not path.is_file():
+        raise TnfError(
+            f"checkpoint not found: {path}; train it with `tnf train` (train.force=true trains it again) or check "
+            f"{setting}/checkpoint"
+        )
+    return path

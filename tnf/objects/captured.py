@@ -33,7 +33,6 @@ touch simulation) stops with an error.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 import time
@@ -44,7 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tnf.artifacts import read_json, write_json
+from tnf.artifacts import files_digest, read_json, write_json
 from tnf.cameras import Views, read_views
 from tnf.errors import TnfError
 from tnf.objects import TOUCH_SPLITS, ObjectSource
@@ -433,16 +432,3 @@ def _copy_images(folder: Path, background: Path, images: Sequence[Path], names: 
                 im.convert("RGB").save(folder / name, compress_level=1)
         except OSError as e:  # truncated or corrupt past the header
             raise TnfError(f"{image}: not a readable image ({e})") from None
-
-
-def files_digest(folder: Path, skip: str | None = None) -> str:
-    """A hash of the names, sizes and modification times of every file under ``folder`` (except the
-    sub-folder ``skip``): an import is redone when any of its files changes."""
-    h = hashlib.sha256()
-    for p in sorted(folder.rglob("*")):
-        rel = p.relative_to(folder)
-        if not p.is_file() or (skip is not None and rel.parts[0] == skip):
-            continue
-        st = p.stat()
-        h.update(f"{rel.as_posix()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
-    return h.hexdigest()[:16]

@@ -10,7 +10,6 @@ ground-truth depth where the dataset has it.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import logging
 import os
 import time
@@ -22,7 +21,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 import torch
 
-from tnf.artifacts import MANIFEST, identity, read_json, write_json
+from tnf.artifacts import MANIFEST, files_digest, identity, read_json, write_json
 from tnf.cameras import Views, camera_rays, read_views
 from tnf.errors import TnfError
 from tnf.metrics import ssim
@@ -87,18 +86,11 @@ def fit_inputs(scene_spec: dict[str, Any], capture_dir: str | os.PathLike[str]) 
     """What a fit of ``scene_spec`` to the capture in ``capture_dir`` is made from, as plain data for its resume
     checkpoint (``SceneFitSystem``'s ``inputs``): ``scene``, the scene's settings, and ``capture``, the identity
     of the captured images: the capture item's ``config_hash`` (its manifest), or for a folder without a
-    manifest a digest of its files."""
+    manifest its files' names, sizes and times (``tnf.artifacts.files_digest``)."""
     folder = Path(capture_dir)
     manifest = folder / MANIFEST
     key = read_json(manifest, "manifest").get("config_hash") if manifest.is_file() else None
-    if key:
-        capture = f"item:{key}"
-    else:
-        digest = hashlib.sha256()
-        for f in sorted(p for p in folder.rglob("*") if p.is_file()):
-            digest.update(f.relative_to(folder).as_posix().encode() + b"\0")
-            digest.update(hashlib.sha256(f.read_bytes()).digest())
-        capture = f"files:{digest.hexdigest()[:16]}"
+    capture = f"item:{key}" if key else f"files:{files_digest(folder)}"
     return {"scene": identity(scene_spec), "capture": capture}
 
 

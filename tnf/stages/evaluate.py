@@ -150,13 +150,11 @@ def _job(cfg: Any, ecfg: EvaluateSettings, settings: dict[str, Any], method: str
 
 def _copy_to_hydra_output(folder: Path) -> None:
     """Put the run's results into the Hydra job folder too, so a multirun folder can be aggregated later."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from omegaconf.errors import OmegaConfBaseException
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf.errors import OmegaConfBaseException
 
+    try:
         out = Path(HydraConfig.get().runtime.output_dir)
-    except ImportError:
-        return
     except (ValueError, OmegaConfBaseException):  # not inside a Hydra app that has a run folder (tests, API use)
         return
     for f in folder.iterdir():

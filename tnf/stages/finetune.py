@@ -25,7 +25,7 @@ from tnf.errors import TnfError
 from tnf.generators.settings import FinetuneSettings
 from tnf.registry import from_dict
 from tnf.runtime import seed_everything, stage_console
-from tnf.stages.train import data_settings, datamodule_from_cfg, dataset_names, fit_section, run_config
+from tnf.stages.train import data_settings, datamodule_from_cfg, dataset_names, fit_section, run_config, run_state
 
 
 def resolve_checkpoint(value: str, data_root: Any) -> Path:
@@ -87,12 +87,8 @@ def run(cfg: Any) -> dict[str, Any]:
     config = run_config(cfg, "finetune", f, datasets, generator=spec, source=source, **extra)
     run_name = f.run_name or run_id(finetune_option(spec["name"]), datasets[0], cfg.seed, config)
     run_dir = store.path("models", run_name)
-    fresh = False  # start again rather than resume from last.ckpt
-    if not f.force and store.is_done("models", run_name, config=config) and not (run_dir / "best.ckpt").is_file():
-        # Finished, but the checkpoint generate and evaluate load is gone: resuming would train no epoch.
-        console.print(f"{run_name}: finished, but its best.ckpt is missing; fine-tuning it again", markup=False)
-        fresh = True
-    elif not f.force and store.is_done("models", run_name, config=config):
+    state = "new" if f.force else run_state(store, run_name, config, console, "fine-tuning")
+    if state == "done":
         done = {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
         if real is not None and real["test"] and not (run_dir / "realism.json").is_file():
             # Trained, but its scoring never finished (stopped, or failed): score it now
@@ -128,7 +124,7 @@ def run(cfg: Any) -> dict[str, Any]:
         "frozen": frozen,
         "object_names": dm.object_names,
     }
-    summary = fit_section(cfg, f, system, dm, run_dir, config, info, fresh=fresh)
+    summary = fit_section(cfg, f, system, dm, run_dir, config, info, fresh=state == "lost")
     last = summary.get("last", {})
     console.print(
         f"[bold]{run_name}[/]: {summary['epochs']} epochs on {summary.get('train_pairs') or '?'} pairs; "

@@ -72,15 +72,10 @@ def run(cfg: Any) -> dict[str, Any]:
     checked, spec, datasets, config, run_name, t = plan(cfg)
     store = ArtifactStore(cfg.data_root)
     run_dir = store.path("models", run_name)
-    fresh = False  # start again rather than resume from last.ckpt
-    if not t.force and store.is_done("models", run_name, config=config):
-        if (run_dir / "best.ckpt").is_file():
-            console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
-            return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
-        # Finished, but the checkpoint generate and finetune load is gone. The finished run's last.ckpt holds
-        # every epoch, so resuming from it would train none and write no best.ckpt: the run starts again.
-        console.print(f"{run_name}: finished, but its best.ckpt is missing; training it again", markup=False)
-        fresh = True
+    state = "new" if t.force else run_state(store, run_name, config, console, "training")
+    if state == "done":
+        console.print(f"[green]{run_name}[/]: trained with the same settings, skipped (train.force=true to redo)")
+        return {"run_name": run_name, "run_dir": str(run_dir), "skipped": True}
     if not t.run_name and (note := new_run_note(run_dir.parent, run_name, config)):
         console.print(note, markup=False)
 
@@ -97,9 +92,21 @@ def run(cfg: Any) -> dict[str, Any]:
     )
     console.print(f"training [bold]{spec['name']}[/] on {', '.join(datasets)} -> {run_dir}")
     info = {"generator": spec["name"], "datasets": datasets, "object_names": dm.object_names}
-    summary = fit_section(cfg, t, system, dm, run_dir, config, info, fresh=fresh)
+    summary = fit_section(cfg, t, system, dm, run_dir, config, info, fresh=state == "lost")
     _print_summary(console, run_name, summary)
     return {"run_name": run_name, "run_dir": str(run_dir), **summary}
+
+
+def run_state(store: ArtifactStore, run_name: str, config: dict[str, Any], console: Any, doing: str) -> str:
+    """Where model run ``run_name`` of settings ``config`` stands: ``done`` (finished with them, its best.ckpt in
+    place), ``lost`` (finished, but the best.ckpt generate and evaluate load is gone: said on ``console``, then
+    ``doing`` again from the start, since the finished run's last.ckpt leaves no epoch to resume) or ``new``."""
+    if not store.is_done("models", run_name, config=config):
+        return "new"
+    if (store.path("models", run_name) / "best.ckpt").is_file():
+        return "done"
+    console.print(f"{run_name}: finished, but its best.ckpt is missing; {doing} it again", markup=False)
+    return "lost"
 
 
 def run_config(
