@@ -9,7 +9,8 @@ after the other in this process. ``shard=I shards=N`` fits every N-th of them fr
 ``-m shards=N 'shard=range(N)'`` fits them as N jobs of the Hydra launcher (docs/cluster.md). Objects already
 fitted with the same settings and capture are skipped; an interrupted fit resumes from its last checkpoint.
 ``fit.batch_objects=K`` (hash grids) fits the objects to do in groups of K, each group in one training loop
-(``tnf.scenes.batched``); an interrupted group resumes from the group's checkpoint.
+(``tnf.scenes.batched``); an interrupted group resumes from the group's checkpoint. ``fit.workers=N`` fits them
+in N processes on this machine, worker i as the job ``shard=i shards=N`` would (``tnf.stages.local_workers``).
 """
 
 from __future__ import annotations
@@ -60,8 +61,46 @@ def _for_scene(settings: Any, kind: str) -> Any:
 
 
 def run(cfg: Any) -> list[dict[str, Any]]:
-    """Fit every selected object; returns one summary row per object."""
-    from tnf.scenes.fit import fit_object
+    """Fit every selected object (in ``fit.workers`` processes when above 1); returns one summary row per
+    object."""
+    plan = _plan(cfg)
+    workers = _worker_shares(plan, cfg)
+    if len(workers) > 1:
+        from tnf.stages.local_workers import run_workers
+
+        log.info("fit-scene: %d objects to fit in %d worker processes", len(plan.todo), len(workers))
+        with progress(cfg.progress) as p:
+            rows = plan.done + run_workers("fit-scene", cfg, workers, p)
+    else:
+        with progress(cfg.progress) as p:
+            rows = _fit(plan, cfg, p)
+    rows.sort(key=lambda r: plan.names.index(r["object"]))
+    _print_table(rows, f"fit-scene {plan.kind} -> {plan.store.path('scenes', plan.kind, plan.source)}")
+    return rows
+
+
+def worker_rows(cfg: Any, p: Any) -> list[dict[str, Any]]:
+    """One worker's share (``cfg.shard``) of ``run``'s objects, fitted in this process: its objects' summary rows
+    (``tnf.stages.local_workers``); ``p``: the progress display."""
+    return _fit(_plan(cfg), cfg, p)
+
+
+@dataclasses.dataclass
+class _Plan:
+    """What ``run`` fits: the objects of this job, the rows of those already done, and a job per object to fit."""
+
+    settings: Any
+    kind: str
+    source: str
+    store: ArtifactStore
+    device: str
+    names: list[str]
+    captures: dict[str, Any]
+    done: list[dict[str, Any]]
+    todo: list[dict[str, Any]]  # per object: name, item, spec, config, size
+
+
+def _plan(cfg: Any) -> _Plan:
     from tnf.scenes.settings import FitSettings
 
     settings = from_dict(FitSettings, cfg.fit, where="fit")
@@ -69,8 +108,7 @@ def run(cfg: Any) -> list[dict[str, Any]]:
     settings = _for_scene(settings, kind)
     SCENES.config(kind, params)  # fail early on a bad scene config
     source, _ = split_spec(cfg.objects, "objects")
-    part = run_shard(cfg)
-    device = job_device(resolve_device(cfg.device), part)
+    device = job_device(resolve_device(cfg.device), run_shard(cfg))
     store = ArtifactStore(cfg.data_root)
     store.clean_partials("scenes")
     names = shard_share(selected_objects(cfg, store, source), cfg)  # a job of a sweep over shards: its share
@@ -80,8 +118,8 @@ def run(cfg: Any) -> list[dict[str, Any]]:
         captures[name] = store.require(
             "capture", source, name, hint=f"run `tnf capture object={name}` first (objects={source})"
         )
-    rows: list[dict[str, Any]] = []
-    todo: list[dict[str, Any]] = []  # per object still to fit: name, item, spec, config, size
+    done: list[dict[str, Any]] = []
+    todo: list[dict[str, Any]] = []
     for name in names:
         capture_manifest = store.manifest("capture", source, name) or {}
         spec = {"name": kind, **params}
@@ -97,45 +135,74 @@ def run(cfg: Any) -> list[dict[str, Any]]:
         }
         item = (kind, source, name)
         if store.is_done("scenes", *item, config=config):
-            rows.append({"object": name, "status": "skipped (done)"})
+            done.append({"object": name, "status": "skipped (done)"})
             continue
         todo.append(
             {"name": name, "item": item, "spec": spec, "config": config, "size": _object_size(capture_manifest)}
         )
+    return _Plan(settings, kind, source, store, device, names, captures, done, todo)
+
+
+def _worker_shares(plan: _Plan, cfg: Any) -> list[tuple[int, int, str, float]]:
+    """The worker processes of ``fit.workers`` that have objects to fit: ``(shard, shards, label, planned
+    steps)`` each; none outside a job's own share (a job of a sweep over shards fits its share itself)."""
+    n = min(plan.settings.workers, len(plan.todo))
+    if n <= 1 or run_shard(cfg) is not None:
+        return []
+    steps = plan.settings.resolved(plan.kind).steps
+    todo = {job["name"] for job in plan.todo}
+    out = []
+    for i in range(n):
+        mine = [name for name in plan.names[i::n] if name in todo]
+        if mine:
+            loops = -(-len(mine) // plan.settings.batch_objects)
+            out.append((i, n, f"fit {plan.kind} {i + 1}/{n} ({_label(mine)})", float(steps * loops)))
+    return out
+
+
+def _label(names: list[str]) -> str:
+    return ", ".join(names) if len(names) <= 3 else f"{names[0]} ... {names[-1]}"
+
+
+def _fit(plan: _Plan, cfg: Any, p: Any) -> list[dict[str, Any]]:
+    """Fit ``plan``'s objects to do in this process, one at a time or in groups of ``fit.batch_objects``; returns
+    the rows of the objects done before and of those fitted now."""
+    from tnf.scenes.fit import fit_object
+
+    settings, kind, source, store, device = plan.settings, plan.kind, plan.source, plan.store, plan.device
+    rows = list(plan.done)
     steps = settings.resolved(kind).steps
     together = settings.batch_objects
-    with progress(cfg.progress) as p:
-        if together == 1:
-            for job in todo:
-                name = job["name"]
-                seed_everything(data_seed(cfg))
-                task = p.add_task(f"fit {kind} {name}", total=steps)
-                resume = store.path("scenes", ".resume", kind, source, f"{name}.pt")
-                t0 = time.perf_counter()
+    if together == 1:
+        for job in plan.todo:
+            name = job["name"]
+            seed_everything(data_seed(cfg))
+            task = p.add_task(f"fit {kind} {name}", total=steps)
+            resume = store.path("scenes", ".resume", kind, source, f"{name}.pt")
+            t0 = time.perf_counter()
 
-                def on_step(step: int, loss: float, task: Any = task) -> None:
-                    p.update(task, completed=step + 1)
+            def on_step(step: int, loss: float, task: Any = task) -> None:
+                p.update(task, completed=step + 1)
 
-                with store.writing(
-                    "scenes", *job["item"], config=job["config"], info={"object": name, "source": source}
-                ) as tmp:
-                    metrics = fit_object(
-                        job["spec"],
-                        captures[name],
-                        tmp,
-                        settings,
-                        device=device,
-                        resume_path=resume,
-                        on_step=on_step,
-                        seed=data_seed(cfg),
-                        size_m=job["size"],
-                    )
-                rows.append(_fitted_row(name, metrics, time.perf_counter() - t0, kind))
-        else:
-            for i in range(0, len(todo), together):
-                rows += _fit_group(todo[i : i + together], captures, settings, kind, source, store, device, cfg, p)
-    rows.sort(key=lambda r: names.index(r["object"]))
-    _print_table(rows, f"fit-scene {kind} -> {store.path('scenes', kind, source)}")
+            with store.writing(
+                "scenes", *job["item"], config=job["config"], info={"object": name, "source": source}
+            ) as tmp:
+                metrics = fit_object(
+                    job["spec"],
+                    plan.captures[name],
+                    tmp,
+                    settings,
+                    device=device,
+                    resume_path=resume,
+                    on_step=on_step,
+                    seed=data_seed(cfg),
+                    size_m=job["size"],
+                )
+            rows.append(_fitted_row(name, metrics, time.perf_counter() - t0, kind))
+    else:
+        for i in range(0, len(plan.todo), together):
+            group = plan.todo[i : i + together]
+            rows += _fit_group(group, plan.captures, settings, kind, source, store, device, cfg, p)
     return rows
 
 
@@ -156,8 +223,7 @@ def _fit_group(
 
     names = [job["name"] for job in group]
     seed_everything(data_seed(cfg))
-    label = ", ".join(names) if len(names) <= 3 else f"{names[0]} ... {names[-1]}"
-    task = p.add_task(f"fit {kind} x{len(names)} ({label})", total=settings.resolved(kind).steps)
+    task = p.add_task(f"fit {kind} x{len(names)} ({_label(names)})", total=settings.resolved(kind).steps)
     resume = store.path("scenes", ".resume", kind, source, group_resume_name(names))
     t0 = time.perf_counter()
 
