@@ -156,6 +156,22 @@ def test_a_registered_option_without_its_yaml_names_the_conf_entry_point(capsys,
     )
 
 
+def test_list_names_the_option_that_chooses_each_component(monkeypatch):
+    """`tnf list`'s option column: `kind=name` for a config group option, the setting a class names for one built in
+    code (the mesh scene), and the missing YAML for a plugin that forgot its tnf.conf entry point."""
+    from tnf.listing import component_rows
+    from tnf.registry import SENSORS, Entry
+
+    SENSORS.names()
+    monkeypatch.setitem(SENSORS._entries, "tiny", Entry("tiny", object, "tnf-tiny"))
+    option = {(kind, name): choose for kind, name, _, choose, _ in component_rows()}
+    assert option[("scene", "hashgrid")] == "scene=hashgrid"
+    assert option[("generator", "tn_cgan")] == "generator=tn_cgan"
+    assert option[("objects", "mesh_dir")] == "objects=mesh_dir"
+    assert option[("scene", "mesh")] == "pair.scene_source=mesh"
+    assert option[("sensor", "tiny")] == "none: no sensor/tiny.yaml"
+
+
 @pytest.mark.parametrize(
     "sweep, expected",
     [

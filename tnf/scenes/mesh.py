@@ -16,6 +16,9 @@ from tnf.scenes.base import RGBD, Scene
 class MeshScene(Scene):
     """The object's ground-truth mesh rendered with pyrender (exact RGB-D, no fitting)."""
 
+    #: The setting that chooses it (``tnf list``): it has no ``scene=`` option, as nothing is fitted.
+    chosen_by = "pair.scene_source=mesh"
+
     @dataclass
     @yaml_defaults("capture/default", partial=True)
     class Config:

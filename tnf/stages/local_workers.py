@@ -77,10 +77,10 @@ def run_workers(
     p: Any,
 ) -> list[dict[str, Any]]:
     """Run ``stage``'s worker function (the module's ``worker_rows(cfg, progress)``) in one process per entry of
-    ``workers``: ``(shard, shards, label of its bar, planned steps)``, each with ``cfg`` but for ``shard``/``shards``, and
-    ``cores() // len(workers)`` threads. ``p``: the parent's progress display (a bar per worker). Returns the
-    workers' rows in the order of ``workers``. A worker that fails raises a TnfError naming it with the last lines
-    it wrote; an interrupt stops every worker."""
+    ``workers``: ``(shard, shards, label of its bar, planned steps)``, each with ``cfg`` but for ``shard`` and
+    ``shards``, and ``cores() // len(workers)`` threads. ``p``: the parent's progress display (a bar per worker).
+    Returns the workers' rows in the order of ``workers``. A worker that fails raises a TnfError naming it with the
+    last lines it wrote; an interrupt stops every worker."""
     from omegaconf import OmegaConf
 
     threads = max(1, cores() // len(workers))
@@ -159,8 +159,6 @@ def _worker(stage: str, config: str, shard: int, shards: int, out: str) -> int:
     import torch
     from omegaconf import OmegaConf
 
-    from tnf.cli import report_error
-
     torch.set_num_threads(int(os.environ.get(_THREADS_ENV, "1")))
     cfg = OmegaConf.load(config)
     cfg.shard, cfg.shards, cfg.progress = shard, shards, False
@@ -168,8 +166,8 @@ def _worker(stage: str, config: str, shard: int, shards: int, out: str) -> int:
     body: Callable[[Any, Any], list[dict[str, Any]]] = module.worker_rows
     try:
         rows = body(cfg, StepFile(Path(out) / "progress"))
-    except TnfError as e:
-        report_error(e)
+    except TnfError as e:  # one line, as the tnf command prints it
+        print(f"error: {e}", file=sys.stderr, flush=True)
         return 1
     (Path(out) / "rows.json").write_text(json.dumps(rows, default=float))
     return 0
