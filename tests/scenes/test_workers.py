@@ -108,6 +108,15 @@ def test_workers_fit_only_what_is_left_and_one_share_left_fits_in_this_process(d
     assert not started
 
 
+def test_objects_done_before_are_listed_once_when_workers_fit_the_rest(data_root):
+    """a is done; b and c go to two workers (a and c share worker 1): each object is one row of the result."""
+    for name in ("a", "b", "c"):
+        _capture(data_root, name)
+    fit_scene.run(compose("fit-scene", [*OVERRIDES, "object=a"]))
+    rows = fit_scene.run(compose("fit-scene", [*OVERRIDES, "fit.workers=2"]))
+    assert [(r["object"], r["status"]) for r in rows] == [("a", "skipped (done)"), ("b", "fitted"), ("c", "fitted")]
+
+
 def test_a_failing_worker_is_one_error_naming_it_and_its_objects(data_root):
     """A capture whose views cannot be read fails its worker; the other worker's object is fitted, and the error
     names the failed worker, its objects and the last lines it wrote."""

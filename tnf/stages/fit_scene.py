@@ -73,15 +73,15 @@ def run(cfg: Any) -> list[dict[str, Any]]:
             rows = plan.done + run_workers("fit-scene", cfg, workers, p)
     else:
         with progress(cfg.progress) as p:
-            rows = _fit(plan, cfg, p)
+            rows = plan.done + _fit(plan, cfg, p)
     rows.sort(key=lambda r: plan.names.index(r["object"]))
     _print_table(rows, f"fit-scene {plan.kind} -> {plan.store.path('scenes', plan.kind, plan.source)}")
     return rows
 
 
 def worker_rows(cfg: Any, p: Any) -> list[dict[str, Any]]:
-    """One worker's share (``cfg.shard``) of ``run``'s objects, fitted in this process: its objects' summary rows
-    (``tnf.stages.local_workers``); ``p``: the progress display."""
+    """One worker's share (``cfg.shard``) of ``run``'s objects to fit, fitted in this process: their summary rows
+    (``tnf.stages.local_workers``; the parent has the rows of those done before); ``p``: the progress display."""
     return _fit(_plan(cfg), cfg, p)
 
 
@@ -166,11 +166,11 @@ def _label(names: list[str]) -> str:
 
 def _fit(plan: _Plan, cfg: Any, p: Any) -> list[dict[str, Any]]:
     """Fit ``plan``'s objects to do in this process, one at a time or in groups of ``fit.batch_objects``; returns
-    the rows of the objects done before and of those fitted now."""
+    their summary rows."""
     from tnf.scenes.fit import fit_object
 
     settings, kind, source, store, device = plan.settings, plan.kind, plan.source, plan.store, plan.device
-    rows = list(plan.done)
+    rows: list[dict[str, Any]] = []
     steps = settings.resolved(kind).steps
     together = settings.batch_objects
     if together == 1:

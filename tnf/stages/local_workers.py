@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from tnf.artifacts import write_bytes, write_json
 from tnf.errors import TnfError
 
 log = logging.getLogger(__name__)
@@ -62,9 +63,7 @@ class StepFile:
         now = time.monotonic()
         if now - self._written >= self.every or self._done[task] >= self._totals[task]:
             self._written = now
-            tmp = self.path.with_suffix(".tmp")
-            tmp.write_text(str(sum(self._done)))
-            os.replace(tmp, self.path)
+            write_bytes(self.path, str(sum(self._done)).encode())
 
     def advance(self, task: int, advance: float = 1) -> None:
         self.update(task, advance=advance)
@@ -169,7 +168,7 @@ def _worker(stage: str, config: str, shard: int, shards: int, out: str) -> int:
     except TnfError as e:  # one line, as the tnf command prints it
         print(f"error: {e}", file=sys.stderr, flush=True)
         return 1
-    (Path(out) / "rows.json").write_text(json.dumps(rows, default=float))
+    write_json(Path(out) / "rows.json", rows)
     return 0
 
 
