@@ -16,6 +16,7 @@ import functools
 import glob
 import hashlib
 import json
+import logging
 import os
 import re
 import shutil
@@ -30,6 +31,8 @@ from typing import Any
 from tnf import __version__
 from tnf.errors import TnfError
 from tnf.registry import IDENTITY
+
+log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
 DEFAULT_ROOT = "./tnf-data"
@@ -210,6 +213,69 @@ def exclusive(folder: str | os.PathLike[str], busy: str | None = None) -> Iterat
             yield
         finally:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+@contextlib.contextmanager
+def data_seed_claim(root: str | os.PathLike[str], seed: int, what: str) -> Iterator[None]:
+    """Hold a claim on the data items of store ``root`` for data seed ``seed`` during the block (``what``: the
+    command, for the message another run gets).
+
+    A data item (capture, scene, touches, pairs) sits at one path whatever seed made it, and its key holds the
+    seed. Runs of one data seed share the items (the jobs of a sweep over shards, the seeds of a sweep with
+    ``data_seed`` fixed); a run of another data seed would replace them under the runs that read them. Such a run
+    stops at once with a one-line TnfError naming the run that holds the claim.
+
+    The claim is a shared ``flock`` on ``<root>/.data_seed/users.lock``; ``claim.json`` beside it names the seed
+    and the runs of the last claim. Where the platform or the file system has no ``flock``, the block runs
+    unguarded.
+    """
+    folder = Path(root) / ".data_seed"
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        yield
+        return
+    record = folder / "claim.json"
+    me = {"pid": os.getpid(), "host": _host(), "command": what}
+    users = open(folder / "users.lock", "a")  # noqa: SIM115 (held for the block)
+    try:
+        try:
+            with exclusive(folder):  # one claim decided at a time
+                try:
+                    fcntl.flock(users.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    write_json(record, {"seed": seed, "runs": [me]})  # no run holds a claim: the store is ours
+                except BlockingIOError:
+                    held = _read_claim(record)
+                    if held.get("seed") != seed:
+                        runs = ", ".join(_run_name(r) for r in held.get("runs", [])[-3:])
+                        raise TnfError(
+                            f"data seed {seed}: another run in {Path(root)} uses the data items of data seed "
+                            f"{held.get('seed', '?')} ({runs or 'a run'}), which this run would replace under it. Run "
+                            "the seeds one after another, fix data_seed (one dataset for every seed), or give each "
+                            "seed its own data_root (docs/cluster.md)"
+                        ) from None
+                    write_json(record, {**held, "runs": [*held.get("runs", [])[-7:], me]})
+                fcntl.flock(users.fileno(), fcntl.LOCK_SH)  # the exclusive lock above, shared now
+        except OSError as e:  # a file system without locks (some network mounts)
+            log.debug("data seed claim in %s not taken: %s", root, e)
+        yield
+    finally:
+        users.close()
+
+
+def _run_name(run: Any) -> str:
+    if not isinstance(run, dict):
+        return "a run"
+    return f"`{run.get('command')}` (pid {run.get('pid')} on {run.get('host')})"
+
+
+def _read_claim(record: Path) -> dict[str, Any]:
+    try:
+        held = json.loads(record.read_text())
+    except (OSError, ValueError):
+        return {}
+    return held if isinstance(held, dict) else {}
 
 
 def read_json(path: str | os.PathLike[str], what: str = "file") -> Any:

@@ -8,6 +8,7 @@ Each stage is a Hydra app; all compose the one primary config ``conf/tnf.yaml`` 
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from tnf import __version__
-from tnf.artifacts import clean, data_root
+from tnf.artifacts import clean, data_root, data_seed_claim
 from tnf.env import PRIMARY_CONFIG, conf_dir, stage_choices, stage_overrides
 from tnf.errors import TnfError
 from tnf.listing import print_components
@@ -400,9 +401,11 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
 
         try:
             try:
+                stage = str(getattr(fn, "__module__", "")).rpartition(".")[2]
                 check_settings(cfg)  # every job of a sweep checks its own settings before any work
-                check_sizes(cfg, str(getattr(fn, "__module__", "")).rpartition(".")[2])
-                return fn(cfg)
+                check_sizes(cfg, stage)
+                with _data_claim(cfg, stage):
+                    return fn(cfg)
             except (MemoryError, RuntimeError) as e:
                 if isinstance(e, RuntimeError) and not _is_out_of_memory(e):
                     raise
@@ -416,6 +419,20 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
     task.__name__ = getattr(fn, "__name__", "task")
     task.__module__ = getattr(fn, "__module__", __name__)
     return task
+
+
+# The stages that make or read a data seed's items (capture, scenes, touches, pairs).
+_DATA_STAGES = {"capture", "fit_scene", "touch", "pair", "train", "finetune", "generate", "evaluate", "pipeline"}
+
+
+def _data_claim(cfg: Any, stage: str) -> contextlib.AbstractContextManager[None]:
+    """A data stage's claim on its store's items for its data seed (``tnf.artifacts.data_seed_claim``): a run of
+    another data seed in the same ``data_root`` at the same time stops with one line instead of replacing them."""
+    if stage not in _DATA_STAGES:
+        return contextlib.nullcontext()
+    from tnf.stages import data_seed
+
+    return data_seed_claim(str(cfg.data_root), data_seed(cfg), f"tnf {stage.replace('_', '-')} seed={cfg.seed}")
 
 
 def _is_out_of_memory(e: BaseException) -> bool:

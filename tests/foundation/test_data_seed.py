@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+
+import pytest
 
 from tests.reliability.helpers import QUIET, run_tnf
+from tnf.artifacts import data_seed_claim
+from tnf.errors import TnfError
 from tnf.testing import compose
 
 TOUCH = [*QUIET, "object_names=[ball]"]
@@ -32,3 +38,45 @@ def test_sim_digit_makes_its_data_once_for_every_seed():
         cfg = compose("pipeline", ["experiment=sim_digit", f"seed={seed}"])
         assert cfg.seed == seed and cfg.data_seed == 0
     assert compose("pipeline", ["seed=3"]).data_seed is None  # the quick start: each seed its own data
+
+
+HOLD = """
+import sys
+from tnf.artifacts import data_seed_claim
+with data_seed_claim(sys.argv[1], 3, "tnf pipeline seed=3"):
+    print("held", flush=True)
+    sys.stdin.read()  # until the test closes stdin
+"""
+
+
+def test_a_run_of_another_data_seed_stops_while_a_run_holds_the_store(capsys, data_root):
+    """Seeds whose data stages run at once in one store would replace each other's items under each other."""
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(data_root)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        rc, err = run_tnf(capsys, "touch", *TOUCH, "seed=4")
+        assert rc == 1
+        assert f"data seed 4: another run in {data_root} uses the data items of data seed 3" in err
+        assert f"`tnf pipeline seed=3` (pid {holder.pid} on " in err and "give each seed its own data_root" in err
+        assert not (data_root / "touch").exists()  # stopped before any work
+        # The data seed of the holder: its items are this run's too.
+        assert run_tnf(capsys, "touch", *TOUCH, "seed=4", "data_seed=3")[0] == 0
+        # A stage that reads no data items is not held back.
+        assert run_tnf(capsys, "objects", *QUIET, "seed=4")[0] == 0
+    finally:
+        holder.stdin.close()
+        assert holder.wait(timeout=60) == 0
+    assert run_tnf(capsys, "touch", *TOUCH, "seed=4")[0] == 0  # the holder has gone: the store is free
+
+
+def test_claims_of_one_data_seed_share_the_store_and_another_seed_waits_for_none(tmp_path):
+    with data_seed_claim(tmp_path, 0, "tnf train seed=1"):
+        with data_seed_claim(tmp_path, 0, "tnf train seed=2"):
+            with pytest.raises(TnfError, match=r"\(`tnf train seed=1` \(pid \d+ on .*\), `tnf train seed=2` "):
+                with data_seed_claim(tmp_path, 5, "tnf train seed=5"):
+                    pass
+    with data_seed_claim(tmp_path, 5, "tnf train seed=5"):  # every claim released: seed 5 takes the store
+        record = json.loads((tmp_path / ".data_seed" / "claim.json").read_text())
+        assert record["seed"] == 5 and [r["command"] for r in record["runs"]] == ["tnf train seed=5"]
