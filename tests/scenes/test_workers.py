@@ -14,7 +14,7 @@ from tnf.errors import TnfError
 from tnf.scenes.synthetic import write_sphere_dataset
 from tnf.scenes.system import FitSettings
 from tnf.stages import fit_scene
-from tnf.stages.local_workers import StepFile, _stop
+from tnf.stages.local_workers import StepFile, _stop, worker_warnings
 from tnf.testing import compose
 
 OVERRIDES = [
@@ -156,3 +156,15 @@ def test_stop_ends_workers_still_running():
     t0 = time.monotonic()
     _stop([proc], grace=5)
     assert proc.returncode is not None and time.monotonic() - t0 < 5
+
+
+def test_a_warning_every_worker_logs_is_shown_once_naming_them_all():
+    line = "[2026-12-08 01:00:00,000][tnf.scenes.fit][WARNING] - {}"
+    logs = [
+        "\n".join([line.format("fit.batch_objects groups hash grids only"), "[..][x][INFO] - fitted a"]),
+        "\n".join([line.format("fit.batch_objects groups hash grids only"), line.format("object c: few views")]),
+    ]
+    assert worker_warnings(["1/2", "2/2"], logs) == [
+        "workers 1/2, 2/2: fit.batch_objects groups hash grids only",
+        "worker 2/2: object c: few views",
+    ]

@@ -106,12 +106,11 @@ def run_workers(
                 f.close()
         rows: list[dict[str, Any]] = []
         failed = []
-        for (shard, shards, label, _), proc in zip(workers, procs, strict=True):
+        texts = [(folder / f"worker-{w[0]}" / "log.txt").read_text(errors="replace") for w in workers]
+        for line in worker_warnings([f"{w[0] + 1}/{w[1]}" for w in workers], texts):
+            log.warning("%s", line)
+        for (shard, _, label, _), proc, text in zip(workers, procs, texts, strict=True):
             out = folder / f"worker-{shard}"
-            text = (out / "log.txt").read_text(errors="replace")
-            for line in text.splitlines():
-                if "WARNING" in line:
-                    log.warning("worker %d/%d: %s", shard + 1, shards, line.split(" - ", 1)[-1])
             if proc.returncode != 0:
                 tail = [ln for ln in text.splitlines() if ln.strip()][-_TAIL_LINES:]
                 failed.append(f"{label} exited {proc.returncode}: " + " | ".join(tail))
@@ -120,6 +119,19 @@ def run_workers(
         if failed:
             raise TnfError(f"{stage} in {len(workers)} worker processes: " + "; ".join(failed))
         return rows
+
+
+def worker_warnings(names: Sequence[str], logs: Sequence[str]) -> list[str]:
+    """The warnings in the workers' ``logs`` (one text per worker, named by ``names``), each message once, in the
+    order first logged: ``worker 1/2: MESSAGE``, or ``workers 1/2, 2/2: MESSAGE`` for one that several logged."""
+    seen: dict[str, list[str]] = {}
+    for name, text in zip(names, logs, strict=True):
+        for line in text.splitlines():
+            if "WARNING" in line:
+                who = seen.setdefault(line.split(" - ", 1)[-1], [])
+                if name not in who:
+                    who.append(name)
+    return [f"worker{'s' * (len(who) > 1)} {', '.join(who)}: {message}" for message, who in seen.items()]
 
 
 def _wait(procs: list[Any], folder: Path, workers: Sequence[tuple[int, int, str, float]], tasks: list, p: Any) -> None:
