@@ -226,19 +226,21 @@ def data_seed_claim(root: str | os.PathLike[str], seed: int, what: str) -> Itera
     stops at once with a one-line TnfError naming the run that holds the claim.
 
     The claim is a shared ``flock`` on ``<root>/.data_seed/users.lock``; ``claim.json`` beside it names the seed
-    and the runs of the last claim. Where the platform or the file system has no ``flock``, the block runs
-    unguarded.
+    and the runs of the last claim. Where the platform or the file system has no ``flock``, or the store cannot
+    be written, the block runs unguarded.
     """
     folder = Path(root) / ".data_seed"
-    folder.mkdir(parents=True, exist_ok=True)
     try:
         import fcntl
-    except ImportError:  # not a POSIX system
+
+        folder.mkdir(parents=True, exist_ok=True)
+        users = open(folder / "users.lock", "a")  # noqa: SIM115 (held for the block)
+    except (ImportError, OSError) as e:  # not a POSIX system, or a store this run cannot write to
+        log.debug("data seed claim in %s not taken: %s", root, e)
         yield
         return
     record = folder / "claim.json"
     me = {"pid": os.getpid(), "host": _host(), "command": what}
-    users = open(folder / "users.lock", "a")  # noqa: SIM115 (held for the block)
     try:
         try:
             with exclusive(folder):  # one claim decided at a time
