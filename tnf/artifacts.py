@@ -237,6 +237,8 @@ def data_seed_claim(root: str | os.PathLike[str], seed: int, what: str) -> Itera
         users = open(folder / "users.lock", "a")  # noqa: SIM115 (held for the block)
     except (ImportError, OSError) as e:  # not a POSIX system, or a store this run cannot write to
         log.debug("data seed claim in %s not taken: %s", root, e)
+        users = None
+    if users is None:
         yield
         return
     record = folder / "claim.json"
