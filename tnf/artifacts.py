@@ -221,9 +221,9 @@ def data_seed_claim(root: str | os.PathLike[str], seed: int, what: str) -> Itera
     command, for the message another run gets).
 
     A data item (capture, scene, touches, pairs) sits at one path whatever seed made it, and its key holds the
-    seed. Runs of one data seed share the items (the jobs of a sweep over shards, the seeds of a sweep with
-    ``data_seed`` fixed); a run of another data seed would replace them under the runs that read them. Such a run
-    stops at once with a one-line TnfError naming the run that holds the claim.
+    seed. Runs that make items of one data seed share them (the jobs of a sweep over shards, the seeds of a sweep
+    with ``data_seed`` fixed); a run making another data seed's would replace them under the runs using them. Such
+    a run stops at once with a one-line TnfError naming the run that holds the claim.
 
     The claim is a shared ``flock`` on ``<root>/.data_seed/users.lock``; ``claim.json`` beside it names the seed
     and the runs of the last claim. Where the platform or the file system has no ``flock``, or the store cannot

@@ -421,13 +421,15 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
     return task
 
 
-# The stages that make or read a data seed's items (capture, scenes, touches, pairs).
-_DATA_STAGES = {"capture", "fit_scene", "touch", "pair", "train", "finetune", "generate", "evaluate", "pipeline"}
+# The stages that make a data seed's items (capture, scenes, touches, pairs). Stages that only read them (train,
+# generate, evaluate) take none: a sweep over seeds may train on one store's pairs side by side.
+_DATA_STAGES = {"capture", "fit_scene", "touch", "pair", "pipeline"}
 
 
 def _data_claim(cfg: Any, stage: str) -> contextlib.AbstractContextManager[None]:
-    """A data stage's claim on its store's items for its data seed (``tnf.artifacts.data_seed_claim``): a run of
-    another data seed in the same ``data_root`` at the same time stops with one line instead of replacing them."""
+    """A data stage's claim on its store's items for its data seed (``tnf.artifacts.data_seed_claim``): a run
+    making another data seed's items in the same ``data_root`` at the same time stops with one line instead of
+    replacing them."""
     if stage not in _DATA_STAGES:
         return contextlib.nullcontext()
     from tnf.stages import data_seed

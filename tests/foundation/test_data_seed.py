@@ -63,8 +63,11 @@ def test_a_run_of_another_data_seed_stops_while_a_run_holds_the_store(capsys, da
         assert not (data_root / "touch").exists()  # stopped before any work
         # The data seed of the holder: its items are this run's too.
         assert run_tnf(capsys, "touch", *TOUCH, "seed=4", "data_seed=3")[0] == 0
-        # A stage that reads no data items is not held back.
+        # Stages that make no data items are not held back: train reads whatever pairs the store holds (none
+        # here, so it stops for want of them, not for the claim).
         assert run_tnf(capsys, "objects", *QUIET, "seed=4")[0] == 0
+        rc, err = run_tnf(capsys, "train", *QUIET, "seed=4")
+        assert rc == 1 and "another run" not in err and "pair" in err
     finally:
         holder.stdin.close()
         assert holder.wait(timeout=60) == 0
