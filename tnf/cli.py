@@ -423,14 +423,17 @@ def _guard(fn: Callable[..., object]) -> Callable[..., object]:
 
 # The stages that make a data seed's items (capture, scenes, touches, pairs). Stages that only read them (train,
 # generate, evaluate) take none: a sweep over seeds may train on one store's pairs side by side.
-_DATA_STAGES = {"capture", "fit_scene", "touch", "pair", "pipeline"}
+_DATA_STAGES = {"capture", "fit-scene", "touch", "pair"}
 
 
 def _data_claim(cfg: Any, stage: str) -> contextlib.AbstractContextManager[None]:
-    """A data stage's claim on its store's items for its data seed (``tnf.artifacts.data_seed_claim``): a run
-    making another data seed's items in the same ``data_root`` at the same time stops with one line instead of
-    replacing them."""
-    if stage not in _DATA_STAGES:
+    """The claim of a stage that makes data items (a pipeline that runs one) on its store for its data seed
+    (``tnf.artifacts.data_seed_claim``): a run making another data seed's items in the same ``data_root`` at the
+    same time stops with one line instead of replacing them."""
+    stages = {stage.replace("_", "-")}
+    if stage == "pipeline":
+        stages = {str(s) for s in cfg.pipeline.stages}
+    if not stages & _DATA_STAGES:
         return contextlib.nullcontext()
     from tnf.stages import data_seed
 

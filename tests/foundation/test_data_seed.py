@@ -68,6 +68,12 @@ def test_a_run_of_another_data_seed_stops_while_a_run_holds_the_store(capsys, da
         assert run_tnf(capsys, "objects", *QUIET, "seed=4")[0] == 0
         rc, err = run_tnf(capsys, "train", *QUIET, "seed=4")
         assert rc == 1 and "another run" not in err and "pair" in err
+        # So is a pipeline of those stages alone (paper_runs.sh trains its seeds side by side so); with a data stage
+        # it is not.
+        rc, err = run_tnf(capsys, "pipeline", *QUIET, "seed=4", "pipeline.stages=[train,evaluate]")
+        assert rc == 1 and "another run" not in err
+        rc, err = run_tnf(capsys, "pipeline", *QUIET, "seed=4", "pipeline.stages=[pair,train]")
+        assert rc == 1 and "data seed 4: another run" in err
     finally:
         holder.stdin.close()
         assert holder.wait(timeout=60) == 0
