@@ -248,38 +248,57 @@ def data_seed_claim(root: str | os.PathLike[str], seed: int, what: str) -> Itera
             with exclusive(folder):  # one claim decided at a time
                 try:
                     fcntl.flock(users.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    write_json(record, {"seed": seed, "runs": [me]})  # no run holds a claim: the store is ours
-                except BlockingIOError:
+                except BlockingIOError:  # runs hold the store: join them if they use this data seed
                     held = _read_claim(record)
-                    if held.get("seed") != seed:
-                        runs = ", ".join(_run_name(r) for r in held.get("runs", [])[-3:])
+                    runs = [r for r in held["runs"] if _run_alive(r)]
+                    if held["seed"] is not None and held["seed"] != seed:
+                        names = ", ".join(_run_name(r) for r in runs[-3:])
                         raise TnfError(
                             f"data seed {seed}: another run in {Path(root)} uses the data items of data seed "
-                            f"{held.get('seed', '?')} ({runs or 'a run'}), which this run would replace under it. Run "
-                            "the seeds one after another, fix data_seed (one dataset for every seed), or give each "
+                            f"{held['seed']} ({names or 'a run'}), which this run would replace under it. Run the "
+                            "seeds one after another, fix data_seed (one dataset for every seed), or give each "
                             "seed its own data_root (docs/cluster.md)"
                         ) from None
-                    write_json(record, {**held, "runs": [*held.get("runs", [])[-7:], me]})
-                fcntl.flock(users.fileno(), fcntl.LOCK_SH)  # the exclusive lock above, shared now
-        except OSError as e:  # a file system without locks (some network mounts)
-            log.debug("data seed claim in %s not taken: %s", root, e)
+                    fcntl.flock(users.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+                    write_json(record, {"seed": seed, "runs": [*runs[-7:], me]})
+                else:  # no run holds a claim: the store is ours
+                    try:
+                        write_json(record, {"seed": seed, "runs": [me]})
+                    finally:  # shared from now on, whether or not the record could be written
+                        fcntl.flock(users.fileno(), fcntl.LOCK_SH)
+        except OSError as e:  # a file system without locks (some network mounts), or a record not written
+            log.debug("data seed claim in %s not fully taken: %s", root, e)
         yield
     finally:
+        with contextlib.suppress(OSError):
+            fcntl.flock(users.fileno(), fcntl.LOCK_UN)  # also for processes forked in the block, which share it
         users.close()
 
 
-def _run_name(run: Any) -> str:
-    if not isinstance(run, dict):
-        return "a run"
+def _run_name(run: dict[str, Any]) -> str:
     return f"`{run.get('command')}` (pid {run.get('pid')} on {run.get('host')})"
 
 
+def _run_alive(run: dict[str, Any]) -> bool:
+    """Whether the run of a claim's record may still be running (runs on other machines cannot be told)."""
+    pid, host = run.get("pid"), run.get("host")
+    return not isinstance(pid, int) or not isinstance(host, str) or _process_alive(pid, host)
+
+
 def _read_claim(record: Path) -> dict[str, Any]:
+    """The seed (None where unknown) and the runs of a claim's record, whatever the file holds."""
     try:
         held = json.loads(record.read_text())
     except (OSError, ValueError):
-        return {}
-    return held if isinstance(held, dict) else {}
+        held = None
+    if not isinstance(held, dict):
+        return {"seed": None, "runs": []}
+    seed = held.get("seed")
+    runs = held.get("runs")
+    return {
+        "seed": seed if isinstance(seed, int) else None,
+        "runs": [r for r in runs if isinstance(r, dict)] if isinstance(runs, list) else [],
+    }
 
 
 def read_json(path: str | os.PathLike[str], what: str = "file") -> Any:
@@ -425,9 +444,13 @@ def _writer_alive(temporary: Path) -> bool:
     m = _TEMPORARY.search(temporary.name)
     if m is None:  # no writer in its name: not a write in progress
         return False
-    pid, host = int(m[1]), m[2]
+    return _process_alive(int(m[1]), m[2])
+
+
+def _process_alive(pid: int, host: str) -> bool:
+    """Whether process ``pid`` of machine ``host`` may still run (another machine's cannot be told: True)."""
     if host != _host() or pid == os.getpid():
-        return True  # another machine's job (cannot tell) or this process's own write
+        return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

@@ -437,7 +437,7 @@ def _data_claim(cfg: Any, stage: str) -> contextlib.AbstractContextManager[None]
         return contextlib.nullcontext()
     from tnf.stages import data_seed
 
-    return data_seed_claim(str(cfg.data_root), data_seed(cfg), f"tnf {stage.replace('_', '-')} seed={cfg.seed}")
+    return data_seed_claim(data_root(cfg.data_root), data_seed(cfg), f"tnf {stage.replace('_', '-')} seed={cfg.seed}")
 
 
 def _is_out_of_memory(e: BaseException) -> bool:
