@@ -84,6 +84,7 @@ def check_not_another_models(
             "over a generator setting, a label naming that setting), its own report (evaluate.name=...), or "
             "replace it (evaluate.force=true)"
         )
+    return None
 
 
 def _data_rebuilt(models: Path, old: str, new: str) -> bool:

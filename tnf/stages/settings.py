@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from tnf.registry import FROM_YAML, at_least, yaml_defaults, yaml_field
 from tnf.runtime import check_memory
@@ -149,7 +149,7 @@ def check_components(cfg: Any, stage: str) -> None:
             spec = OmegaConf.to_container(cfg[kind], resolve=True)
         except OmegaConfBaseException:  # an interpolation only a running Hydra job resolves: left to the stage
             continue
-        name, params = split_spec(spec, kind)
+        name, params = split_spec(cast(Any, spec), kind)  # a mapping or a name; split_spec checks which
         REGISTRIES[kind].config(name, params)
 
 
