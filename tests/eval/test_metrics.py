@@ -134,3 +134,27 @@ def test_ssim_loss_in_float32_matches_float64_in_value_and_gradient():
     assert 0.5 < loss64.min() < 0.999
     assert torch.allclose(loss32, loss64, atol=1e-6)
     assert ((grad32.double() - grad64).norm() / grad64.norm()) < 1e-4
+
+
+@pytest.mark.parametrize("offset", [0, 1, 40])
+def test_ssim_metric_in_float32_matches_float64(offset):
+    # The metric computes its statistics in float32 (centred values, exact window products, whatever the matmul
+    # precision a GPU trainer set); float64 is the reference. Near-identical images (offset 0, 1) are where the
+    # variances cancel most; bright images (values near 255) where uncentred float32 would lose the most digits.
+    from tnf.metrics import _prepare, _ssim
+
+    a = _images(5, n=4)
+    noise = torch.randint(-offset, offset + 1, a.shape, generator=torch.Generator().manual_seed(6))
+    b = (a.int() + noise + 60).clamp(0, 255).byte()
+    a = (a.int() + 60).clamp(0, 255).byte()
+    saved = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision("high")
+    try:
+        ours = ssim(a, b)
+    finally:
+        torch.set_float32_matmul_precision(saved)
+    ref = _ssim(_prepare(a), _prepare(b), 255.0, torch.float64)  # computed in float64, returned as float32
+    assert ours.dtype == torch.float32
+    assert offset > 0 or torch.equal(ref, torch.ones(4))
+    assert 0.2 < ref.min() and (offset == 0 or ref.max() < 0.9999)
+    assert torch.allclose(ours, ref, atol=1e-6, rtol=0)
