@@ -86,6 +86,11 @@ def test_load_generator_reproduces_outputs(trained):
     run_dir, system, _ = trained
     loaded = load_generator(run_dir / "last.ckpt", "cpu")
     assert not loaded.training and loaded.generator_name == "tn_cgan"
+    # Channels-last, as trained: the faster convolutions on a CPU (oneDNN) and a GPU (cuDNN).
+    kernels = [
+        m.weight for m in loaded.generator.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size != (1, 1)
+    ]
+    assert kernels and all(w.is_contiguous(memory_format=torch.channels_last) for w in kernels)
     batch = make_pairs(3, 32, seed=5)
     system.eval()
     with torch.no_grad():
